@@ -1,0 +1,40 @@
+# Two entry points: `make demo` (the main job) and `make test` (lint, types, tests).
+# Each bootstraps .venv with the pinned dependencies by itself.
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed-stamp
+
+.PHONY: demo test lint typecheck pytest bench schemas school clean
+
+$(STAMP): pyproject.toml constraints.txt
+	@./scripts/bootstrap-venv "$(PYTHON)" "$(VENV)"
+	@touch $@
+
+demo: $(STAMP)
+	$(BIN)/wsnav demo
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+typecheck: $(STAMP)
+	$(BIN)/pyright
+	@if [ -f firmware/device/pyrightconfig.json ]; then cd firmware/device && ../../$(BIN)/pyright -p pyrightconfig.json; fi
+
+pytest: $(STAMP)
+	@$(BIN)/pytest -q $(PYTEST_ARGS); rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest: no tests collected"; rc=0; fi; exit $$rc
+
+test: lint typecheck pytest
+
+schemas: $(STAMP)
+	$(BIN)/python -m schemas.export
+
+school: $(STAMP)
+	$(BIN)/python sites/school/generate.py
+
+bench: $(STAMP)
+	$(BIN)/python -m bench
+
+clean:
+	rm -rf $(VENV) build .pytest_cache .ruff_cache

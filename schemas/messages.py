@@ -1,0 +1,126 @@
+"""Pydantic models of every MQTT payload in the wsnav contract (DESIGN.md, "MQTT contract").
+
+Payloads are small JSON objects with a version field `v`; unknown fields are refused so that a typo on a node
+is noticed instead of silently ignored.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from schemas.ids import Id
+
+CONTRACT_VERSION = 1
+MAX_PAYLOAD_BYTES = 1024
+"""Anything larger is dropped unread: an ESP8266 never sends more than ~120 bytes."""
+MAX_OPERATOR_PAYLOAD_BYTES = 8192
+"""Operator blocks may carry a polygon, so they get a larger allowance."""
+
+ZoneStateValue = Literal["blocked", "clear", "caution"]
+NodeStatusValue = Literal["online", "offline"]
+RobotStateValue = Literal["idle", "navigating", "waiting", "arrived", "cancelled"]
+
+Point2 = tuple[float, float]
+Pose = tuple[float, float, float]
+
+
+class _Message(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    v: Literal[1] = CONTRACT_VERSION
+
+    def to_payload(self) -> bytes:
+        """Compact JSON bytes, as sent on the wire."""
+        return self.model_dump_json(exclude_none=True).encode()
+
+
+class ZoneState(_Message):
+    """`zones/<zone>/state/<node>`: what one node sees in its zone; retained, QoS 1, also sent as heartbeat."""
+
+    zone: Id
+    node: Id
+    state: ZoneStateValue
+    seq: Annotated[int, Field(ge=0, le=2**31 - 1)]
+    """Per-node, increasing; restarts from a random base on reboot are tolerated by the receiver's reset rule."""
+
+
+class NodeStatus(_Message):
+    """`nodes/<node>/status`: birth `online` on connect, last will `offline`; retained."""
+
+    node: Id
+    status: NodeStatusValue
+
+
+class RobotStatus(_Message):
+    """`robots/<robot>/status`: what the agent is doing, at 2 Hz and on every state change."""
+
+    robot: Id
+    state: RobotStateValue
+    pose: Pose
+    goal: Id | Pose | None = None
+    blocked_zones: list[Id] = Field(default_factory=list)
+    replans: Annotated[int, Field(ge=0)] = 0
+    plan_length_m: Annotated[float, Field(ge=0)] | None = None
+    reason: Annotated[str, Field(max_length=200)] | None = None
+    """Why the robot is `waiting` or `cancelled`, in words an operator can act on."""
+    t: float | None = None
+    """The agent's clock when the status was made (simulated time in simulation)."""
+
+
+class RobotGoal(_Message):
+    """`robots/<robot>/goal`: a named point of the site or an [x, y, yaw] pose; `cancel` stops the robot."""
+
+    goal: Id | Pose | None = None
+    cancel: bool = False
+
+    @model_validator(mode="after")
+    def _goal_or_cancel(self) -> RobotGoal:
+        if (self.goal is None) == (not self.cancel):
+            raise ValueError("give exactly one of 'goal' or 'cancel': true")
+        return self
+
+
+class OperatorBlock(_Message):
+    """`operator/blocks/<id>`: a temporary keep-out area set by an operator; retained, empty payload removes it."""
+
+    zone: Id | None = None
+    polygon: Annotated[list[Point2], Field(min_length=3, max_length=64)] | None = None
+    expires_at: float | None = None
+    """Absolute time (seconds on the site clock) after which the block no longer applies; None: until removed."""
+    reason: Annotated[str, Field(max_length=200)] | None = None
+
+    @model_validator(mode="after")
+    def _zone_or_polygon(self) -> OperatorBlock:
+        if (self.zone is None) == (self.polygon is None):
+            raise ValueError("give exactly one of 'zone' or 'polygon'")
+        return self
+
+
+M = TypeVar("M", bound=_Message)
+
+MESSAGE_MODELS: dict[str, type[_Message]] = {
+    "zone_state": ZoneState,
+    "node_status": NodeStatus,
+    "robot_status": RobotStatus,
+    "robot_goal": RobotGoal,
+    "operator_block": OperatorBlock,
+}
+
+
+class PayloadError(ValueError):
+    """A payload that must be dropped: the message says why, in one line."""
+
+
+def parse_payload(model: type[M], payload: bytes | str, *, max_bytes: int = MAX_PAYLOAD_BYTES) -> M:
+    """Validate raw bytes against a model; raises PayloadError with a one-line reason, never anything else."""
+    raw = payload.encode() if isinstance(payload, str) else payload
+    if len(raw) > max_bytes:
+        raise PayloadError(f"payload of {len(raw)} bytes exceeds {max_bytes}")
+    try:
+        return model.model_validate_json(raw)
+    except ValidationError as exc:
+        first: dict[str, Any] = dict(exc.errors()[0])
+        where = ".".join(str(p) for p in first.get("loc", ())) or "payload"
+        raise PayloadError(f"{model.__name__}: {where}: {first.get('msg', 'invalid')}") from None

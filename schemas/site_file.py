@@ -1,0 +1,138 @@
+"""Pydantic model of `sites/<name>/site.yaml`: zones, the nodes that watch them, robots, points and routes.
+
+Checks that need only the file live here; checks that need the map (zone outside it, point in a wall) live in
+schemas.site, which loads both.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from schemas.ids import Id
+
+Point2 = tuple[float, float]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class DigitalSensor(_Strict):
+    """PIR motion sensor or IR break-beam: one digital pin; `invert` when the module is active-low."""
+
+    type: Literal["pir", "ir_beam"]
+    pin: Annotated[int, Field(ge=0, le=16)]
+    invert: bool = False
+
+
+class UltrasonicSensor(_Strict):
+    """HC-SR04: an object nearer than `threshold_m` means the passage is blocked; median of `samples` pings."""
+
+    type: Literal["hcsr04"]
+    trigger_pin: Annotated[int, Field(ge=0, le=16)]
+    echo_pin: Annotated[int, Field(ge=0, le=16)]
+    threshold_m: Annotated[float, Field(gt=0.02, le=4.0)] = 1.0
+    samples: Annotated[int, Field(ge=1, le=15)] = 5
+
+
+Sensor = Annotated[DigitalSensor | UltrasonicSensor, Field(discriminator="type")]
+
+
+class Zone(_Strict):
+    id: Id
+    polygon: Annotated[list[Point2], Field(min_length=3)]
+    name: str | None = None
+
+
+class Node(_Strict):
+    """One ESP8266 watching one zone; many nodes may watch the same zone."""
+
+    id: Id
+    zone: Id
+    sensor: Sensor
+    position: Point2 | None = None
+    """Where the node hangs, for pictures; the zone's centre when absent."""
+    heartbeat_s: Annotated[float, Field(gt=0, le=3600)] | None = None
+    """Overrides the site's heartbeat period for this node."""
+    on_delay_ms: Annotated[int, Field(ge=0, le=600_000)] = 500
+    """Debounce: the sensor must read 'occupied' this long before the node says `blocked`."""
+    off_delay_ms: Annotated[int, Field(ge=0, le=600_000)] = 3000
+    """Debounce: the sensor must read 'free' this long before the node says `clear`."""
+
+
+class Robot(_Strict):
+    id: Id
+    footprint_radius: Annotated[float, Field(gt=0, le=2.0)] = 0.105
+
+
+class Route(_Strict):
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+    from_: Id = Field(alias="from")
+    to: Id
+    raffle: Annotated[list[Annotated[list[Id], Field(min_length=1)]], Field(min_length=1)]
+    """The zone sets, one of which is blocked per run (the paper's raffle)."""
+
+
+class ZonePolicy(_Strict):
+    """How the robot's zone layer reads zone states (DESIGN.md, "Costmap and planning")."""
+
+    caution_cost: Annotated[int, Field(ge=1, le=252)] = 200
+    stale_after_heartbeats: Annotated[float, Field(gt=1)] = 3.0
+    stale: Literal["keep", "unknown", "lethal"] = "keep"
+    fuse: Literal["any_blocked", "majority"] = "any_blocked"
+
+
+class SiteFile(_Strict):
+    name: Id
+    map: str
+    heartbeat_s: Annotated[float, Field(gt=0, le=3600)] = 5.0
+    policy: ZonePolicy = ZonePolicy()
+    zones: list[Zone]
+    nodes: list[Node] = Field(default_factory=list)
+    robots: list[Robot] = Field(default_factory=list)
+    points: dict[Id, Annotated[list[float], Field(min_length=2, max_length=3)]] = Field(default_factory=dict)
+    routes: list[Route] = Field(default_factory=list)
+
+    @field_validator("points")
+    @classmethod
+    def _yaw_default(cls, points: dict[str, list[float]]) -> dict[str, list[float]]:
+        return {name: [*xy, 0.0] if len(xy) == 2 else xy for name, xy in points.items()}
+
+    @model_validator(mode="after")
+    def _references(self) -> SiteFile:
+        _unique("zones", [z.id for z in self.zones])
+        _unique("nodes", [n.id for n in self.nodes])
+        _unique("robots", [r.id for r in self.robots])
+        clash = {n.id for n in self.nodes} & {r.id for r in self.robots}
+        if clash:
+            raise ValueError(f"ids used by both a node and a robot (they share one credentials folder): {sorted(clash)}")
+        zones = {z.id for z in self.zones}
+        for i, node in enumerate(self.nodes):
+            if node.zone not in zones:
+                raise ValueError(f"nodes[{i}] ({node.id}): unknown zone {node.zone!r}")
+        for i, route in enumerate(self.routes):
+            for end in (route.from_, route.to):
+                if end not in self.points:
+                    raise ValueError(f"routes[{i}]: unknown point {end!r}")
+            for zone_set in route.raffle:
+                for zone in zone_set:
+                    if zone not in zones:
+                        raise ValueError(f"routes[{i}].raffle: unknown zone {zone!r}")
+        return self
+
+    def zone(self, zone_id: str) -> Zone:
+        return next(z for z in self.zones if z.id == zone_id)
+
+    def heartbeat_of(self, node: Node) -> float:
+        return node.heartbeat_s if node.heartbeat_s is not None else self.heartbeat_s
+
+
+def _unique(key: str, ids: list[str]) -> None:
+    seen: set[str] = set()
+    for i, value in enumerate(ids):
+        if value in seen:
+            raise ValueError(f"{key}[{i}]: duplicate id {value!r}")
+        seen.add(value)

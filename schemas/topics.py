@@ -1,0 +1,109 @@
+"""MQTT topic names of the contract: build them here, parse them here, nowhere else.
+
+Every topic sits under `wsn/<site>/`; ids never contain topic separators or wildcards (schemas.ids).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Literal
+
+from schemas.ids import ID_PATTERN
+
+ROOT = "wsn"
+_ID = re.compile(ID_PATTERN)
+
+TopicKind = Literal["zone_state", "node_status", "robot_status", "robot_goal", "operator_block", "sim_world"]
+
+
+def _check(*ids: str) -> None:
+    for value in ids:
+        if not _ID.match(value):
+            raise ValueError(f"not a valid id for a topic level: {value!r}")
+
+
+def zone_state(site: str, zone: str, node: str) -> str:
+    _check(site, zone, node)
+    return f"{ROOT}/{site}/zones/{zone}/state/{node}"
+
+
+def node_status(site: str, node: str) -> str:
+    _check(site, node)
+    return f"{ROOT}/{site}/nodes/{node}/status"
+
+
+def robot_status(site: str, robot: str) -> str:
+    _check(site, robot)
+    return f"{ROOT}/{site}/robots/{robot}/status"
+
+
+def robot_goal(site: str, robot: str) -> str:
+    _check(site, robot)
+    return f"{ROOT}/{site}/robots/{robot}/goal"
+
+
+def operator_block(site: str, block_id: str) -> str:
+    _check(site, block_id)
+    return f"{ROOT}/{site}/operator/blocks/{block_id}"
+
+
+def sim_world(site: str) -> str:
+    """Simulation only: where the zone simulator publishes the obstacles it placed, for simulated lidars."""
+    _check(site)
+    return f"{ROOT}/{site}/sim/world"
+
+
+def all_zone_states(site: str) -> str:
+    _check(site)
+    return f"{ROOT}/{site}/zones/+/state/+"
+
+
+def all_node_statuses(site: str) -> str:
+    _check(site)
+    return f"{ROOT}/{site}/nodes/+/status"
+
+
+def all_operator_blocks(site: str) -> str:
+    _check(site)
+    return f"{ROOT}/{site}/operator/blocks/+"
+
+
+def all_robot_statuses(site: str) -> str:
+    _check(site)
+    return f"{ROOT}/{site}/robots/+/status"
+
+
+@dataclass(frozen=True)
+class Topic:
+    """A parsed contract topic; fields that do not apply to its kind are None."""
+
+    kind: TopicKind
+    site: str
+    zone: str | None = None
+    node: str | None = None
+    robot: str | None = None
+    block_id: str | None = None
+
+
+def parse(topic: str) -> Topic | None:
+    """The contract topic this name denotes, or None if it is not one (wrong root, shape or ids)."""
+    parts = topic.split("/")
+    if len(parts) < 3 or parts[0] != ROOT or not all(_ID.match(p) for p in parts[1:]):
+        return None
+    site, rest = parts[1], parts[2:]
+    match rest:
+        case ["zones", zone, "state", node]:
+            return Topic("zone_state", site, zone=zone, node=node)
+        case ["nodes", node, "status"]:
+            return Topic("node_status", site, node=node)
+        case ["robots", robot, "status"]:
+            return Topic("robot_status", site, robot=robot)
+        case ["robots", robot, "goal"]:
+            return Topic("robot_goal", site, robot=robot)
+        case ["operator", "blocks", block_id]:
+            return Topic("operator_block", site, block_id=block_id)
+        case ["sim", "world"]:
+            return Topic("sim_world", site)
+        case _:
+            return None

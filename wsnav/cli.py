@@ -1,0 +1,40 @@
+"""The `wsnav` console script: one entry point whose subcommands come from each component's `cli` module."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+
+from wsnav import site_commands
+from wsnav.cli_support import CliError, Parser
+
+Registrar = Callable[["argparse._SubParsersAction[Parser]"], None]
+
+REGISTRARS: list[Registrar] = [
+    site_commands.register,
+]
+
+
+def build_parser() -> Parser:
+    parser = Parser(prog="wsnav", description="Robots that navigate with a wireless sensor network's eyes.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
+    for register in REGISTRARS:
+        register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except CliError as exc:
+        print(f"wsnav: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

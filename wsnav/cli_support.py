@@ -1,0 +1,31 @@
+"""What every subcommand shares: one-line errors instead of tracebacks, and the HOST:PORT argument type."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import NoReturn
+
+
+class CliError(Exception):
+    """A problem the user can fix; printed as one line on stderr, exit code 2."""
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse, but a bad argument prints one line (`wsnav: error: ...`) rather than usage plus error."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def host_port(text: str) -> tuple[str, int]:
+    """Parse HOST:PORT (IPv6 in brackets); argparse turns the ValueError into a one-line error."""
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
+    return host.strip("[]"), int(port)
+
+
+def fail(message: str) -> NoReturn:
+    print(f"wsnav: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
