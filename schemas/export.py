@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from schemas.credentials import Credentials, NodeConfig
 from schemas.messages import MESSAGE_MODELS
 from schemas.site_file import SiteFile
 
@@ -15,7 +16,7 @@ JSON_DIR = Path(__file__).parent / "json"
 
 def rendered() -> dict[str, str]:
     """File name -> exact file text, for every exported schema."""
-    models = {**MESSAGE_MODELS, "site_file": SiteFile}
+    models = {**MESSAGE_MODELS, "site_file": SiteFile, "credentials": Credentials, "node_config": NodeConfig}
     out: dict[str, str] = {}
     for name, model in sorted(models.items()):
         schema = model.model_json_schema(by_alias=True)
