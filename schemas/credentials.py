@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from schemas.ids import Id
 from schemas.site_file import Sensor
@@ -46,7 +46,6 @@ class Credentials(BaseModel):
 class NodeConfig(Credentials):
     """A node's file, also its firmware config.json."""
 
-    role: Literal["node"] = "node"
     node: Id
     zone: Id
     sensor: Sensor
@@ -55,3 +54,9 @@ class NodeConfig(Credentials):
     off_delay_ms: Annotated[int, Field(ge=0)]
     keepalive_s: Annotated[int, Field(ge=5, le=3600)] = 30
     wifi: WifiConfig = WifiConfig()
+
+    @model_validator(mode="after")
+    def _is_node(self) -> NodeConfig:
+        if self.role != "node":
+            raise ValueError("a node config must have role 'node'")
+        return self

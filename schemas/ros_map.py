@@ -39,7 +39,9 @@ class MapYaml(BaseModel):
     @model_validator(mode="after")
     def _thresholds(self) -> MapYaml:
         if self.free_thresh >= self.occupied_thresh:
-            raise ValueError(f"free_thresh {self.free_thresh} must be below occupied_thresh {self.occupied_thresh}")
+            raise ValueError(
+                f"free_thresh {self.free_thresh} must be below occupied_thresh {self.occupied_thresh}"
+            )
         return self
 
 
@@ -73,7 +75,10 @@ class OccupancyGrid:
 
     def cell_to_world(self, row: int, col: int) -> tuple[float, float]:
         """Centre of a cell in world coordinates."""
-        return (self.origin[0] + (col + 0.5) * self.resolution, self.origin[1] + (row + 0.5) * self.resolution)
+        return (
+            self.origin[0] + (col + 0.5) * self.resolution,
+            self.origin[1] + (row + 0.5) * self.resolution,
+        )
 
     def contains(self, x: float, y: float) -> bool:
         row, col = self.world_to_cell(x, y)
@@ -136,7 +141,9 @@ def _read_image(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | 
     raise MapError(f"{path}: unsupported image mode {mode}")
 
 
-def _classify(grey: NDArray[np.float64], alpha: NDArray[np.float64] | None, meta: MapYaml) -> NDArray[np.int8]:
+def _classify(
+    grey: NDArray[np.float64], alpha: NDArray[np.float64] | None, meta: MapYaml
+) -> NDArray[np.int8]:
     """map_server's per-pixel rule, vectorised; flips rows so row 0 is the bottom of the image."""
     p = 255.0 - grey if meta.negate else grey
     if meta.mode == "raw":

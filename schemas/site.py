@@ -90,7 +90,7 @@ def _describe(exc: ValidationError, raw: dict[str, object]) -> str:
     for part in loc:
         key += f"[{part}]" if isinstance(part, int) else (f".{part}" if key else str(part))
         if isinstance(node, dict):
-            node = node.get(part)
+            node = node.get(str(part))
         elif isinstance(node, list) and isinstance(part, int) and part < len(node):
             node = node[part]
         else:
@@ -107,11 +107,15 @@ def _check_against_map(path: Path, spec: SiteFile, grid: OccupancyGrid) -> None:
     for i, zone in enumerate(spec.zones):
         for x, y in zone.polygon:
             if not (x0 <= x <= x1 and y0 <= y <= y1):
-                raise SiteError(f"{path}: zones[{i}] ({zone.id}): vertex [{x:g}, {y:g}] lies outside the map ({extent})")
+                raise SiteError(
+                    f"{path}: zones[{i}] ({zone.id}): vertex [{x:g}, {y:g}] lies outside the map ({extent})"
+                )
     for i, node in enumerate(spec.nodes):
         if node.position is not None and not grid.contains(*node.position):
             x, y = node.position
-            raise SiteError(f"{path}: nodes[{i}] ({node.id}).position: [{x:g}, {y:g}] lies outside the map ({extent})")
+            raise SiteError(
+                f"{path}: nodes[{i}] ({node.id}).position: [{x:g}, {y:g}] lies outside the map ({extent})"
+            )
     for name, (x, y, _yaw) in spec.points.items():
         if not grid.contains(x, y):
             raise SiteError(f"{path}: points.{name}: [{x:g}, {y:g}] lies outside the map ({extent})")

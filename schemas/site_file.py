@@ -108,7 +108,9 @@ class SiteFile(_Strict):
         _unique("robots", [r.id for r in self.robots])
         clash = {n.id for n in self.nodes} & {r.id for r in self.robots}
         if clash:
-            raise ValueError(f"ids used by both a node and a robot (they share one credentials folder): {sorted(clash)}")
+            raise ValueError(
+                f"ids used by both a node and a robot (they share one credentials folder): {sorted(clash)}"
+            )
         zones = {z.id for z in self.zones}
         for i, node in enumerate(self.nodes):
             if node.zone not in zones:
