@@ -78,27 +78,23 @@ def _parse(path: Path) -> SiteFile:
 
 
 def _describe(exc: ValidationError, raw: dict[str, object]) -> str:
-    """The first error as `key.path (id): message`, with the id of the list item when it has one."""
+    """The first error as `key[i] (id).sub: message`: the id names the list item a reader should look at."""
     err = exc.errors()[0]
     loc = [p for p in err["loc"] if not (isinstance(p, str) and p in ("pir", "ir_beam", "hcsr04"))]
     msg = str(err["msg"]).removeprefix("Value error, ")
-    if not loc:
-        return msg
     key = ""
     node: object = raw
-    item_id = None
     for part in loc:
         key += f"[{part}]" if isinstance(part, int) else (f".{part}" if key else str(part))
         if isinstance(node, dict):
             node = node.get(str(part))
         elif isinstance(node, list) and isinstance(part, int) and part < len(node):
             node = node[part]
+            if isinstance(node, dict) and "id" in node:
+                key += f" ({node['id']})"
         else:
             node = None
-        if isinstance(node, dict) and "id" in node:
-            item_id = node["id"]
-    suffix = f" ({item_id})" if item_id is not None else ""
-    return f"{key}{suffix}: {msg}"
+    return f"{key}: {msg}" if key else msg
 
 
 def _check_against_map(path: Path, spec: SiteFile, grid: OccupancyGrid) -> None:

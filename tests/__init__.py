@@ -1,0 +1,1 @@
+"""The wsnav test suite: real brokers, real MicroPython, real maps."""
