@@ -6,6 +6,7 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 
+from robot_agent import cli as robot_agent_cli
 from wsnav import site_commands
 from wsnav.cli_support import CliError, Parser
 
@@ -13,6 +14,7 @@ Registrar = Callable[["argparse._SubParsersAction[Parser]"], None]
 
 REGISTRARS: list[Registrar] = [
     site_commands.register,
+    robot_agent_cli.register,
 ]
 
 

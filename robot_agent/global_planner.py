@@ -1,0 +1,244 @@
+"""The robot agent's global planner: cost-aware A* (compiled, pyastar2d) over a costmap_2d-style grid.
+
+Input is a uint8 costmap with costmap_2d's values (0 free .. 252, 253 inscribed, 254 lethal, 255 unknown;
+row 0 = map bottom) plus its resolution and origin; output is a path in world metres. Cell weights follow
+NavFn (`COST_NEUTRAL + COST_FACTOR * cost`, normalised so a free step costs 1), so paths keep clear of walls
+the way ROS users expect. The grid path is then shortened by line-of-sight shortcuts that never cross cells
+costlier than the stretch they replace (or than `smooth_cost`), so it is not a staircase yet no nearer walls.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import pyastar2d
+from numpy.typing import NDArray
+
+from robot_agent.inflation import INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
+
+Reason = Literal["ok", "start_outside", "goal_outside", "start_blocked", "goal_blocked", "no_path"]
+XY = tuple[float, float]
+
+
+@dataclass(frozen=True)
+class PlannerParams:
+    """Tuning of the planner; the defaults are NavFn's cost model with diagonal moves."""
+
+    neutral_cost: float = 50.0
+    """NavFn's COST_NEUTRAL: the price of a step through free space."""
+    cost_factor: float = 0.8
+    """NavFn's COST_FACTOR: how much a unit of costmap cost adds to a step."""
+    impassable_from: int = INSCRIBED_INFLATED_OBSTACLE
+    """Costs at or above this (inscribed, lethal) cannot be entered; NavFn uses the inscribed value."""
+    allow_unknown: bool = False
+    """When true, unknown cells are passable at the highest price (NavFn's allow_unknown)."""
+    allow_diagonal: bool = True
+    smooth: bool = True
+    smooth_cost: int = 64
+    """A shortcut may cross cells up to this cost, or up to the highest cost of the stretch it replaces."""
+    start_escape_m: float = 0.3
+    """If the start lies in inscribed space (robot brushing a wall), inscribed cells this near it may be
+    crossed to get out; lethal cells never."""
+
+
+@dataclass(frozen=True)
+class Plan:
+    reachable: bool
+    reason: Reason
+    path: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
+    """(n, 2) world x, y in metres from start to goal: the smoothed polyline's vertices."""
+    cells: NDArray[np.intp] = field(default_factory=lambda: np.zeros((0, 2), dtype=np.intp))
+    """(m, 2) row, col of the raw A* path."""
+    length_m: float = float("nan")
+    plan_ms: float = 0.0
+
+    def densify(self, step_m: float) -> NDArray[np.float64]:
+        """The path resampled every `step_m` metres or less along each segment (for a path follower)."""
+        return densify(self.path, step_m)
+
+
+def weight_lut(params: PlannerParams) -> NDArray[np.float32]:
+    """A* step weight for each cost value 0..255; inf = impassable."""
+    cost = np.arange(256, dtype=np.float64)
+    weight = 1.0 + params.cost_factor * np.minimum(cost, 252.0) / params.neutral_cost
+    weight[cost >= params.impassable_from] = np.inf
+    if params.allow_unknown:
+        # NavFn maps unknown to COST_OBS - 1 (253) on its own scale.
+        weight[NO_INFORMATION] = (LETHAL_OBSTACLE - 1) / params.neutral_cost
+    else:
+        weight[NO_INFORMATION] = np.inf
+    return weight.astype(np.float32)
+
+
+def weights_for(costs: NDArray[np.uint8], params: PlannerParams) -> NDArray[np.float32]:
+    """A* weights of a whole costmap (one table lookup, so cheap even on big maps)."""
+    return weight_lut(params)[costs]
+
+
+def plan_path(
+    costs: NDArray[np.uint8],
+    resolution: float,
+    origin: Sequence[float],
+    start: XY,
+    goal: XY,
+    params: PlannerParams | None = None,
+    weights: NDArray[np.float32] | None = None,
+) -> Plan:
+    """Plan from `start` to `goal` (world metres) over `costs`; never raises for unreachable goals.
+
+    `origin` is the world position of cell (0, 0)'s corner (x, y[, yaw]; yaw must be 0, as map_server's).
+    Pass `weights` (from weights_for) to reuse them across several plans on the same costmap.
+    """
+    p = params or PlannerParams()
+    t0 = time.perf_counter()
+    height, width = costs.shape
+    ox, oy = float(origin[0]), float(origin[1])
+    s = _cell(start, resolution, ox, oy)
+    g = _cell(goal, resolution, ox, oy)
+    if not (0 <= s[0] < height and 0 <= s[1] < width):
+        return Plan(False, "start_outside", plan_ms=_ms(t0))
+    if not (0 <= g[0] < height and 0 <= g[1] < width):
+        return Plan(False, "goal_outside", plan_ms=_ms(t0))
+    w = weights if weights is not None else weights_for(costs, p)
+    if not np.isfinite(w[g]):
+        return Plan(False, "goal_blocked", plan_ms=_ms(t0))
+    if not np.isfinite(w[s]):
+        w = _escape_start(costs, w, s, resolution, p)
+        if w is None:
+            return Plan(False, "start_blocked", plan_ms=_ms(t0))
+    if s == g:
+        path = np.array([start, goal], dtype=np.float64)
+        return Plan(True, "ok", path, np.array([s], dtype=np.intp), _length(path), _ms(t0))
+    raw = pyastar2d.astar_path(w, s, g, allow_diagonal=p.allow_diagonal)
+    if raw is None or len(raw) == 0:
+        return Plan(False, "no_path", plan_ms=_ms(t0))
+    cells = np.asarray(raw, dtype=np.intp)
+    keep = _shortcut(cells, costs, w, p) if p.smooth else np.arange(len(cells))
+    centres = np.empty((len(keep), 2), dtype=np.float64)
+    centres[:, 0] = ox + (cells[keep, 1] + 0.5) * resolution
+    centres[:, 1] = oy + (cells[keep, 0] + 0.5) * resolution
+    centres[0] = start
+    centres[-1] = goal
+    return Plan(True, "ok", centres, cells, _length(centres), _ms(t0))
+
+
+def densify(path: NDArray[np.float64], step_m: float) -> NDArray[np.float64]:
+    if len(path) < 2:
+        return path.copy()
+    out = [path[:1]]
+    for a, b in itertools.pairwise(path):
+        n = max(1, int(np.ceil(float(np.hypot(*(b - a))) / step_m)))
+        t = np.linspace(0.0, 1.0, n + 1)[1:, None]
+        out.append(a + (b - a) * t)
+    return np.vstack(out)
+
+
+def simplify(path: NDArray[np.float64], tolerance_m: float) -> NDArray[np.float64]:
+    """Ramer-Douglas-Peucker: drop vertices within `tolerance_m` of the line through their neighbours."""
+    if len(path) < 3:
+        return path.copy()
+    keep = np.zeros(len(path), dtype=bool)
+    keep[0] = keep[-1] = True
+    stack = [(0, len(path) - 1)]
+    while stack:
+        i, j = stack.pop()
+        if j <= i + 1:
+            continue
+        a, b = path[i], path[j]
+        seg = b - a
+        norm = float(np.hypot(*seg))
+        mid = path[i + 1 : j]
+        if norm == 0:
+            dist = np.hypot(*(mid - a).T)
+        else:
+            dist = np.abs(seg[0] * (mid[:, 1] - a[1]) - seg[1] * (mid[:, 0] - a[0])) / norm
+        k = int(np.argmax(dist))
+        if dist[k] > tolerance_m:
+            keep[i + 1 + k] = True
+            stack += [(i, i + 1 + k), (i + 1 + k, j)]
+    return path[keep]
+
+
+def _cell(xy: XY, resolution: float, ox: float, oy: float) -> tuple[int, int]:
+    return int(np.floor((xy[1] - oy) / resolution)), int(np.floor((xy[0] - ox) / resolution))
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1000.0
+
+
+def _length(path: NDArray[np.float64]) -> float:
+    return float(np.hypot(*np.diff(path, axis=0).T).sum()) if len(path) > 1 else 0.0
+
+
+def _escape_start(
+    costs: NDArray[np.uint8], w: NDArray[np.float32], s: tuple[int, int], resolution: float, p: PlannerParams
+) -> NDArray[np.float32] | None:
+    """Weights that let the robot leave inscribed space around its start; None if the start is lethal."""
+    if costs[s] != INSCRIBED_INFLATED_OBSTACLE or p.start_escape_m <= 0:
+        return None
+    r = int(np.ceil(p.start_escape_m / resolution))
+    r0, r1 = max(s[0] - r, 0), min(s[0] + r + 1, costs.shape[0])
+    c0, c1 = max(s[1] - r, 0), min(s[1] + r + 1, costs.shape[1])
+    rows, cols = np.ogrid[r0:r1, c0:c1]
+    near = (rows - s[0]) ** 2 + (cols - s[1]) ** 2 <= r * r
+    window = costs[r0:r1, c0:c1]
+    out = w.copy()
+    patch = out[r0:r1, c0:c1]
+    patch[near & (window == INSCRIBED_INFLATED_OBSTACLE)] = np.float32(
+        1.0 + p.cost_factor * 252.0 / p.neutral_cost
+    )
+    return out
+
+
+def _line_cells(a: NDArray[np.intp], b: NDArray[np.intp]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Cells a straight line between two cell centres passes through, sampled at a quarter cell."""
+    n = int(np.ceil(4 * max(abs(int(b[0] - a[0])), abs(int(b[1] - a[1]))))) + 1
+    t = np.linspace(0.0, 1.0, n + 1)
+    rows = np.floor(a[0] + 0.5 + (b[0] - a[0]) * t).astype(np.intp)
+    cols = np.floor(a[1] + 0.5 + (b[1] - a[1]) * t).astype(np.intp)
+    return rows, cols
+
+
+def _shortcut(
+    cells: NDArray[np.intp], costs: NDArray[np.uint8], w: NDArray[np.float32], p: PlannerParams
+) -> NDArray[np.intp]:
+    """Indices of the raw path kept after greedy line-of-sight shortcutting (exponential then binary search)."""
+    path_cost = costs[cells[:, 0], cells[:, 1]]
+    n = len(cells)
+
+    def visible(i: int, j: int) -> bool:
+        rows, cols = _line_cells(cells[i], cells[j])
+        if not bool(np.isfinite(w[rows, cols]).all()):
+            return False
+        limit = max(p.smooth_cost, int(path_cost[i : j + 1].max()))
+        return int(costs[rows, cols].max()) <= limit
+
+    keep = [0]
+    i = 0
+    while i < n - 1:
+        good, step = i + 1, 1
+        bad = n
+        while good < n - 1:
+            j = min(i + 2 * step, n - 1)
+            if visible(i, j):
+                good, step = j, 2 * step
+                if j == n - 1:
+                    break
+            else:
+                bad = j
+                break
+        while bad - good > 1:
+            mid = (good + bad) // 2
+            if visible(i, mid):
+                good = mid
+            else:
+                bad = mid
+        keep.append(good)
+        i = good
+    return np.asarray(keep, dtype=np.intp)

@@ -1,0 +1,112 @@
+"""Zone polygons (metres, map frame) as cell masks of a grid, the way costmap_2d fills a polygon.
+
+A cell belongs to a zone when its centre lies inside the polygon or the polygon's outline crosses it
+(costmap_2d's `setConvexPolygonCost` marks outline cells too), so a zone drawn from wall to wall closes the
+passage with no gap of free cells. Kept separate and small: the planner's CLI and the zone layer share it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from matplotlib.path import Path as MplPath
+from numpy.typing import NDArray
+
+Polygon = Sequence[tuple[float, float]] | Sequence[Sequence[float]]
+
+
+@dataclass(frozen=True)
+class GridFrame:
+    """Where a grid sits in the world: row 0 at origin y (map bottom), square cells of `resolution` metres."""
+
+    width: int
+    height: int
+    resolution: float
+    origin_x: float
+    origin_y: float
+
+    def world_to_cell(self, x: float, y: float) -> tuple[int, int]:
+        """(row, col) of the cell containing a world point; may lie outside the grid."""
+        col = int(np.floor((x - self.origin_x) / self.resolution))
+        row = int(np.floor((y - self.origin_y) / self.resolution))
+        return row, col
+
+    def cell_to_world(self, row: int, col: int) -> tuple[float, float]:
+        """Centre of a cell in metres."""
+        return self.origin_x + (col + 0.5) * self.resolution, self.origin_y + (row + 0.5) * self.resolution
+
+    def contains_cell(self, row: int, col: int) -> bool:
+        return 0 <= row < self.height and 0 <= col < self.width
+
+
+@dataclass(frozen=True)
+class CellWindow:
+    """A polygon's cells inside its bounding window: mask[r, c] is grid cell (row0 + r, col0 + c)."""
+
+    row0: int
+    col0: int
+    mask: NDArray[np.bool_]
+
+    @property
+    def rows(self) -> slice:
+        return slice(self.row0, self.row0 + self.mask.shape[0])
+
+    @property
+    def cols(self) -> slice:
+        return slice(self.col0, self.col0 + self.mask.shape[1])
+
+    @property
+    def empty(self) -> bool:
+        return self.mask.size == 0 or not bool(self.mask.any())
+
+
+def polygon_window(polygon: Polygon, frame: GridFrame) -> CellWindow:
+    """The polygon's cells, clipped to the grid, in the smallest window that holds them.
+
+    Returning a window rather than a full-size mask lets a zone layer update only the bounds that changed.
+    """
+    pts = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
+    res = frame.resolution
+    # Continuous cell coordinates (col, row) of the vertices.
+    cc = (pts[:, 0] - frame.origin_x) / res
+    rr = (pts[:, 1] - frame.origin_y) / res
+    c0 = max(int(np.floor(cc.min())), 0)
+    c1 = min(int(np.floor(cc.max())), frame.width - 1)
+    r0 = max(int(np.floor(rr.min())), 0)
+    r1 = min(int(np.floor(rr.max())), frame.height - 1)
+    if c1 < c0 or r1 < r0:
+        return CellWindow(row0=0, col0=0, mask=np.zeros((0, 0), dtype=bool))
+    shape = (r1 - r0 + 1, c1 - c0 + 1)
+    cols, rows = np.meshgrid(np.arange(c0, c1 + 1) + 0.5, np.arange(r0, r1 + 1) + 0.5)
+    centres = np.column_stack([cols.ravel(), rows.ravel()])
+    inside = MplPath(np.column_stack([cc, rr])).contains_points(centres).reshape(shape)
+    inside |= _outline(cc, rr, r0, c0, shape)
+    return CellWindow(row0=r0, col0=c0, mask=inside)
+
+
+def polygon_mask(polygon: Polygon, frame: GridFrame) -> NDArray[np.bool_]:
+    """Full-grid boolean mask (row 0 = map bottom) of the polygon's cells."""
+    mask = np.zeros((frame.height, frame.width), dtype=bool)
+    window = polygon_window(polygon, frame)
+    if window.mask.size:
+        mask[window.rows, window.cols] = window.mask
+    return mask
+
+
+def _outline(
+    cc: NDArray[np.float64], rr: NDArray[np.float64], r0: int, c0: int, shape: tuple[int, int]
+) -> NDArray[np.bool_]:
+    """Cells the polygon's edges pass through, sampled at a quarter cell (enough for cells 1 wide)."""
+    out = np.zeros(shape, dtype=bool)
+    n = len(cc)
+    for i in range(n):
+        xa, ya, xb, yb = cc[i], rr[i], cc[(i + 1) % n], rr[(i + 1) % n]
+        steps = int(np.ceil(max(abs(xb - xa), abs(yb - ya)) * 4)) + 1
+        t = np.linspace(0.0, 1.0, steps + 1)
+        cols = np.floor(xa + (xb - xa) * t).astype(np.int64) - c0
+        rows = np.floor(ya + (yb - ya) * t).astype(np.int64) - r0
+        keep = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
+        out[rows[keep], cols[keep]] = True
+    return out
