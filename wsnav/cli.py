@@ -6,6 +6,7 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 
+from broker import cli as broker_cli
 from robot_agent import cli as robot_agent_cli
 from wsnav import site_commands
 from wsnav.cli_support import CliError, Parser
@@ -15,6 +16,7 @@ Registrar = Callable[["argparse._SubParsersAction[Parser]"], None]
 REGISTRARS: list[Registrar] = [
     site_commands.register,
     robot_agent_cli.register,
+    broker_cli.register,
 ]
 
 

@@ -1,0 +1,131 @@
+"""The site's topic access rules, derived once from the site file and enforced by amqtt and Mosquitto alike.
+
+- a node publishes only `zones/<its zone>/state/<itself>` and `nodes/<itself>/status` (and may read them back,
+  e.g. to resume its `seq` after a reboot);
+- a robot reads zones, nodes, operator topics, other robots' status and the simulated world, and publishes only
+  under `robots/<itself>/`;
+- the operator publishes `operator/...`, robot goals and the simulated world (`sim/...`, used by the zone
+  simulator), and reads everything of the site.
+Nothing outside `wsn/<site>/` is allowed to anyone. The same `AclRules` feed the amqtt plugin below and the
+Mosquitto ACL file (broker.mosquitto), so the two brokers enforce one model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from amqtt.contexts import Action, BaseContext
+from amqtt.plugins.base import BaseTopicPlugin
+from amqtt.session import Session
+
+from broker.credentials import OPERATOR
+from schemas import topics
+from schemas.site_file import SiteFile
+
+
+@dataclass(frozen=True)
+class AclRules:
+    """username -> topic filters it may publish to / subscribe to."""
+
+    publish: dict[str, list[str]]
+    subscribe: dict[str, list[str]]
+
+    def may_publish(self, user: str | None, topic: str) -> bool:
+        return user is not None and any(matches(f, topic) for f in self.publish.get(user, ()))
+
+    def may_subscribe(self, user: str | None, topic_filter: str) -> bool:
+        return user is not None and any(covers(f, topic_filter) for f in self.subscribe.get(user, ()))
+
+
+def site_rules(spec: SiteFile) -> AclRules:
+    """The rules for every node, robot and the operator of the site (see the module docstring)."""
+    site = spec.name
+    root = f"{topics.ROOT}/{site}"
+    publish: dict[str, list[str]] = {}
+    subscribe: dict[str, list[str]] = {}
+    for node in spec.nodes:
+        own = [topics.zone_state(site, node.zone, node.id), topics.node_status(site, node.id)]
+        publish[node.id] = own
+        subscribe[node.id] = list(own)
+    for robot in spec.robots:
+        publish[robot.id] = [f"{root}/robots/{robot.id}/#"]
+        subscribe[robot.id] = [
+            f"{root}/zones/#",
+            f"{root}/nodes/#",
+            f"{root}/operator/#",
+            f"{root}/robots/{robot.id}/#",
+            topics.all_robot_statuses(site),
+            f"{root}/sim/#",
+        ]
+    publish[OPERATOR] = [f"{root}/operator/#", f"{root}/robots/+/goal", f"{root}/sim/#"]
+    subscribe[OPERATOR] = [f"{root}/#"]
+    return AclRules(publish=publish, subscribe=subscribe)
+
+
+def matches(topic_filter: str, topic: str) -> bool:
+    """MQTT filter matching of a concrete topic name ('+' one level, '#' the rest, incl. the parent level)."""
+    f_levels = topic_filter.split("/")
+    t_levels = topic.split("/")
+    for i, level in enumerate(f_levels):
+        if level == "#":
+            return True
+        if i >= len(t_levels) or level not in ("+", t_levels[i]):
+            return False
+    return len(f_levels) == len(t_levels)
+
+
+def covers(allowed: str, requested: str) -> bool:
+    """True when every topic the `requested` filter can match is also matched by `allowed`.
+
+    amqtt's own ACL compares filters level by level as if they were names, so `wsn/+/...` or `#` could slip
+    past a rule meant for one site; this checks set inclusion instead.
+    """
+    a_levels = allowed.split("/")
+    r_levels = requested.split("/")
+    for i, level in enumerate(a_levels):
+        if level == "#":
+            return True
+        if i >= len(r_levels):
+            return False
+        wanted = r_levels[i]
+        if wanted == "#":
+            return False
+        if level == "+":
+            continue
+        if wanted != level:
+            return False
+    return len(a_levels) == len(r_levels)
+
+
+class WsnavAclPlugin(BaseTopicPlugin):
+    """amqtt topic plugin enforcing `AclRules` on publish and subscribe (refused publishes are dropped)."""
+
+    @dataclass
+    class Config(BaseTopicPlugin.Config):
+        publish: dict[str, list[str]] = field(default_factory=dict)
+        subscribe: dict[str, list[str]] = field(default_factory=dict)
+
+    def __init__(self, context: BaseContext) -> None:
+        super().__init__(context)
+        config = self.context.config
+        assert isinstance(config, WsnavAclPlugin.Config)
+        self.rules = AclRules(publish=config.publish, subscribe=config.subscribe)
+
+    async def topic_filtering(
+        self, *, session: Session | None = None, topic: str | None = None, action: Action | None = None
+    ) -> bool | None:
+        if topic is None or session is None:
+            return False
+        user = session.username
+        if action == Action.PUBLISH:
+            allowed = self.rules.may_publish(user, topic)
+            if not allowed:
+                self.context.logger.info(f"refused publish by {user!r} to {topic!r}")
+            return allowed
+        if action == Action.SUBSCRIBE:
+            allowed = self.rules.may_subscribe(user, topic)
+            if not allowed:
+                self.context.logger.info(f"refused subscription by {user!r} to {topic!r}")
+            return allowed
+        # RECEIVE: the subscription was checked when it was made; checking again per message costs fan-in time.
+        return True

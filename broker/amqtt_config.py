@@ -1,0 +1,82 @@
+"""The amqtt broker configuration generated from a site and its credentials folder.
+
+Only our own plugins are loaded (auth, ACL, retained store): amqtt's defaults would add the anonymous plugin
+(fact 5) and its ACL plugin cannot express subscribe rules per filter (fact 6).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from broker.acl import site_rules
+from broker.credentials import PASSWORD_FILE, site_ids
+from schemas.site_file import SiteFile
+
+
+@dataclass(frozen=True)
+class TlsListener:
+    bind: tuple[str, int]
+    certfile: Path
+    keyfile: Path
+    cafile: Path | None = None
+
+
+@dataclass(frozen=True)
+class BrokerOptions:
+    """Everything `wsnav broker run` (or the embedded helper) decides besides the site and credentials."""
+
+    bind: tuple[str, int] = ("127.0.0.1", 1883)
+    data_dir: Path | None = None
+    """Where retained messages persist; None keeps them in memory only."""
+    flush_interval_s: float = 0.2
+    synchronous: str = "NORMAL"
+    ws_bind: tuple[str, int] | None = None
+    tls: TlsListener | None = None
+    max_connections: int = 0
+    """0: unlimited."""
+
+
+def bind_text(host: str, port: int) -> str:
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
+def amqtt_config(spec: SiteFile, credentials_dir: Path, options: BrokerOptions) -> dict[str, Any]:
+    """The dict for `amqtt.broker.Broker(config)`: listeners, our plugins, and persistence."""
+    rules = site_rules(spec)
+    listeners: dict[str, dict[str, Any]] = {
+        "default": {
+            "type": "tcp",
+            "bind": bind_text(*options.bind),
+            "max_connections": options.max_connections,
+        }
+    }
+    if options.ws_bind is not None:
+        listeners["ws"] = {"type": "ws", "bind": bind_text(*options.ws_bind)}
+    if options.tls is not None:
+        tls: dict[str, Any] = {
+            "type": "tcp",
+            "bind": bind_text(*options.tls.bind),
+            "ssl": True,
+            "certfile": str(options.tls.certfile),
+            "keyfile": str(options.tls.keyfile),
+        }
+        if options.tls.cafile is not None:
+            tls["cafile"] = str(options.tls.cafile)
+        listeners["tls"] = tls
+    plugins: dict[str, Any] = {
+        "broker.auth.WsnavAuthPlugin": {
+            "password_file": str(credentials_dir / PASSWORD_FILE),
+            "publish": rules.publish,
+            "reserved_client_ids": site_ids(spec),
+        },
+        "broker.acl.WsnavAclPlugin": {"publish": rules.publish, "subscribe": rules.subscribe},
+    }
+    if options.data_dir is not None:
+        plugins["broker.retained_store.RetainedStorePlugin"] = {
+            "data_dir": str(options.data_dir),
+            "flush_interval_s": options.flush_interval_s,
+            "synchronous": options.synchronous,
+        }
+    return {"listeners": listeners, "plugins": plugins}

@@ -1,0 +1,77 @@
+"""amqtt authentication: argon2 password file, no anonymous clients, no borrowed identities.
+
+Works around amqtt 0.12.1's AnonymousAuthPlugin (fact 5: it admits any client that merely sends a username).
+A connect is refused when:
+- there is no username, the user is unknown or the password is wrong;
+- the client id names another site id (a robot connecting as client `n1` would take over n1's session and will);
+- the last-will topic is not one the user may publish (else a will could bypass the ACL, which amqtt does not
+  check for wills). Mosquitto 2 refuses such a will the same way.
+A successful verification is remembered as an HMAC under a per-process key, so reconnect storms do not pay the
+argon2 cost again; argon2 itself runs in a worker thread so the event loop keeps serving other clients.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import hmac
+import secrets
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from amqtt.contexts import BaseContext
+from amqtt.plugins.base import BaseAuthPlugin
+from amqtt.session import Session
+
+from broker.acl import AclRules
+from broker.credentials import read_password_file, verify_password
+
+
+class WsnavAuthPlugin(BaseAuthPlugin):
+    @dataclass
+    class Config(BaseAuthPlugin.Config):
+        password_file: str = ""
+        publish: dict[str, list[str]] = field(default_factory=dict)
+        """The ACL's publish rules, to vet last-will topics."""
+        reserved_client_ids: list[str] = field(default_factory=list)
+        """Client ids only the user of the same name may use."""
+
+    def __init__(self, context: BaseContext) -> None:
+        super().__init__(context)
+        config = self.context.config
+        assert isinstance(config, WsnavAuthPlugin.Config)
+        self._hashes = read_password_file(Path(config.password_file))
+        self._rules = AclRules(publish=config.publish, subscribe={})
+        self._reserved = set(config.reserved_client_ids)
+        self._key = secrets.token_bytes(32)
+        self._verified: dict[str, bytes] = {}
+
+    async def authenticate(self, *, session: Session) -> bool | None:
+        user, password = session.username, session.password or ""
+        if not user:
+            self.context.logger.info("refused a client without username")
+            return False
+        digest = self._hashes.get(user)
+        if digest is None or not await self._password_ok(user, password, digest):
+            self.context.logger.info(f"refused {user!r}: unknown user or wrong password")
+            return False
+        client_id = session.client_id or ""
+        if client_id in self._reserved and client_id != user:
+            self.context.logger.info(f"refused {user!r}: client id {client_id!r} belongs to another id")
+            return False
+        if session.will_flag and not self._rules.may_publish(user, session.will_topic or ""):
+            self.context.logger.info(
+                f"refused {user!r}: last will on {session.will_topic!r} is not its topic"
+            )
+            return False
+        return True
+
+    async def _password_ok(self, user: str, password: str, digest: str) -> bool:
+        tag = hmac.new(self._key, password.encode(), hashlib.sha256).digest()
+        known = self._verified.get(user)
+        if known is not None and hmac.compare_digest(known, tag):
+            return True
+        ok = await asyncio.to_thread(verify_password, digest, password)
+        if ok:
+            self._verified[user] = tag
+        return ok

@@ -1,0 +1,162 @@
+"""`wsnav broker run | credentials | mosquitto-config`."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from wsnav.cli_support import CliError, host_port
+
+if TYPE_CHECKING:
+    from schemas.site import Site
+    from wsnav.cli_support import Parser
+
+# The broker modules (and amqtt) are imported inside the commands: every `wsnav` call builds this parser.
+
+
+def register(sub: argparse._SubParsersAction[Parser]) -> None:
+    broker = sub.add_parser(
+        "broker", help="the site's MQTT broker: run it, make credentials, configure Mosquitto"
+    )
+    bsub = broker.add_subparsers(dest="broker_command", required=True, parser_class=type(broker))
+
+    run = bsub.add_parser(
+        "run", help="run the amqtt broker for a site (auth, ACL, persistent retained state)"
+    )
+    run.add_argument("--site", type=Path, required=True, help="site directory or site.yaml")
+    run.add_argument("--credentials", type=Path, required=True, help="folder written by `broker credentials`")
+    run.add_argument("--bind", type=host_port, required=True, help="HOST:PORT of the MQTT/TCP listener")
+    run.add_argument(
+        "--data", type=Path, help="folder for persistent retained messages (default: memory only)"
+    )
+    run.add_argument(
+        "--flush-interval", type=float, default=0.2, help="seconds; retained writes lag at most this"
+    )
+    run.add_argument(
+        "--sync", choices=["normal", "full"], default="normal", help="full: survive power cuts too"
+    )
+    run.add_argument(
+        "--ws-bind", type=host_port, help="HOST:PORT of an optional MQTT-over-WebSocket listener"
+    )
+    run.add_argument("--tls-bind", type=host_port, help="HOST:PORT of an optional MQTT/TLS listener")
+    run.add_argument("--certfile", type=Path, help="TLS certificate chain (PEM), with --tls-bind")
+    run.add_argument("--keyfile", type=Path, help="TLS private key (PEM), with --tls-bind")
+    run.add_argument("--cafile", type=Path, help="CA bundle to verify client certificates, with --tls-bind")
+    run.add_argument("--max-connections", type=int, default=0, help="per listener; 0 = unlimited")
+    run.add_argument("--log-level", choices=["debug", "info", "warning", "error"], default="warning")
+    run.set_defaults(func=run_command)
+
+    creds = bsub.add_parser("credentials", help="per-id credentials files and the broker's password file")
+    creds.add_argument("--site", type=Path, required=True, help="site directory or site.yaml")
+    creds.add_argument("--out", type=Path, required=True, help="credentials folder (created 0700)")
+    creds.add_argument(
+        "--broker", type=host_port, help="HOST:PORT the devices connect to (kept when omitted)"
+    )
+    creds.add_argument("--wifi-ssid", help="Wi-Fi network written into every node's config")
+    creds.add_argument("--wifi-password", help="Wi-Fi password written into every node's config")
+    creds.set_defaults(func=credentials_command)
+
+    mosq = bsub.add_parser("mosquitto-config", help="mosquitto.conf, password and ACL files: the same model")
+    mosq.add_argument("--site", type=Path, required=True, help="site directory or site.yaml")
+    mosq.add_argument(
+        "--credentials", type=Path, required=True, help="folder written by `broker credentials`"
+    )
+    mosq.add_argument("--out", type=Path, required=True, help="folder for the three files (created 0700)")
+    mosq.add_argument(
+        "--bind", type=host_port, default=("0.0.0.0", 1883), help="HOST:PORT (default 0.0.0.0:1883)"
+    )
+    mosq.add_argument("--data", type=Path, default=Path("/var/lib/mosquitto"), help="persistence folder")
+    mosq.add_argument(
+        "--user", help="system user Mosquitto drops to when started as root (default: mosquitto)"
+    )
+    mosq.set_defaults(func=mosquitto_command)
+
+
+def _site(path: Path) -> Site:
+    from schemas.site import SiteError, load_site
+
+    try:
+        return load_site(path)
+    except SiteError as exc:
+        raise CliError(str(exc)) from None
+
+
+def run_command(args: argparse.Namespace) -> int:
+    from broker.amqtt_config import BrokerOptions, TlsListener
+    from broker.server import BrokerStartError, RunningBroker, serve
+
+    site = _site(args.site)
+    tls = None
+    if args.tls_bind is not None:
+        if args.certfile is None or args.keyfile is None:
+            raise CliError("--tls-bind needs --certfile and --keyfile")
+        for path in (args.certfile, args.keyfile, args.cafile):
+            if path is not None and not path.is_file():
+                raise CliError(f"{path}: no such file")
+        tls = TlsListener(args.tls_bind, args.certfile, args.keyfile, args.cafile)
+    if args.flush_interval < 0:
+        raise CliError("--flush-interval must be >= 0")
+    options = BrokerOptions(
+        bind=args.bind,
+        data_dir=args.data,
+        flush_interval_s=args.flush_interval,
+        synchronous=args.sync.upper(),
+        ws_bind=args.ws_bind,
+        tls=tls,
+        max_connections=args.max_connections,
+    )
+    logging.basicConfig(
+        level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+
+    def ready(running: RunningBroker) -> None:
+        print(running.ready_line(), flush=True)
+        if args.data is None:
+            print("wsnav: note: no --data folder: retained messages are kept in memory only", file=sys.stderr)
+
+    try:
+        asyncio.run(serve(site.spec, args.credentials, options, ready))
+    except BrokerStartError as exc:
+        raise CliError(str(exc)) from None
+    print("broker stopped", flush=True)
+    return 0
+
+
+def credentials_command(args: argparse.Namespace) -> int:
+    from broker.credentials import CredentialsError, write_credentials
+
+    site = _site(args.site)
+    try:
+        report = write_credentials(site.spec, args.out, args.broker, args.wifi_ssid, args.wifi_password)
+    except CredentialsError as exc:
+        raise CliError(str(exc)) from None
+    for ident in report.created:
+        print(f"{ident}: new credentials")
+    for ident in report.kept:
+        print(f"{ident}: kept existing password")
+    for ident in report.stale:
+        print(
+            f"{ident}.json: {ident} is no longer in the site: left in place, removed from the password file"
+        )
+    print(f"wrote {args.out}/ ({len(report.created) + len(report.kept)} ids)")
+    return 0
+
+
+def mosquitto_command(args: argparse.Namespace) -> int:
+    from broker.credentials import CredentialsError
+    from broker.mosquitto import MosquittoOptions, write_mosquitto_config
+
+    site = _site(args.site)
+    options = MosquittoOptions(bind=args.bind, data_dir=args.data.resolve(), user=args.user)
+    try:
+        files = write_mosquitto_config(site.spec, args.credentials, args.out, options)
+    except CredentialsError as exc:
+        raise CliError(str(exc)) from None
+    for path in files:
+        print(f"wrote {path}")
+    print(f"run: mosquitto -c {files[0]}")
+    return 0

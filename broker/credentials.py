@@ -1,0 +1,253 @@
+"""The credentials folder: one `<id>.json` per node, robot and the operator, plus the broker's password file.
+
+Secrets are generated once and then kept: a rerun reuses every existing password (so deployed nodes keep
+working), gives new ids new passwords, refreshes the site-derived fields of node configs (zone, sensor,
+heartbeat, debounce), and reports files whose id left the site instead of deleting them. Everything is written
+owner-only (files 0600, folder 0700) because these files are the keys to the site.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import secrets
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from argon2 import PasswordHasher
+from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatchError
+from pydantic import ValidationError
+
+from schemas.credentials import BrokerAddress, Credentials, NodeConfig, WifiConfig
+from schemas.site_file import SiteFile
+
+PASSWORD_FILE = "broker.passwd"
+"""`username:<argon2 hash>` lines; the format amqtt's FileAuthPlugin also reads."""
+OPERATOR = "operator"
+
+# The passwords are 192-bit random tokens, so a slow hash adds no real protection against guessing; modest
+# argon2id parameters keep a connect at a few ms on a Raspberry Pi even when 1000 nodes join at once.
+HASHER = PasswordHasher(time_cost=1, memory_cost=8192, parallelism=1)
+
+
+class CredentialsError(ValueError):
+    """A credentials folder or file that cannot be used; str() is one line naming the file."""
+
+
+@dataclass
+class CredentialsReport:
+    """What a `write_credentials` run did, for the one-line-per-id summary."""
+
+    created: list[str] = field(default_factory=list)
+    kept: list[str] = field(default_factory=list)
+    stale: list[str] = field(default_factory=list)
+    """Files `<id>.json` whose id is no longer in the site (left in place, not in the password file)."""
+
+
+def new_password() -> str:
+    """32 URL-safe characters: no ':' (password file separator) and easy to type into a device console."""
+    return secrets.token_urlsafe(24)
+
+
+def site_ids(spec: SiteFile) -> list[str]:
+    """Every username of the site: nodes, robots and the operator."""
+    ids = [n.id for n in spec.nodes] + [r.id for r in spec.robots]
+    if OPERATOR in ids:
+        raise CredentialsError(
+            f"site {spec.name}: the id {OPERATOR!r} is reserved for the operator's credentials"
+        )
+    return [*ids, OPERATOR]
+
+
+def write_credentials(
+    spec: SiteFile,
+    out: Path,
+    broker: tuple[str, int] | None = None,
+    wifi_ssid: str | None = None,
+    wifi_password: str | None = None,
+) -> CredentialsReport:
+    """Create or refresh the credentials folder `out` for the site; see the module docstring for the rules.
+
+    `broker` and the Wi-Fi settings, when given, replace what existing files hold; otherwise those are kept.
+    """
+    secure_dir(out)
+    existing = {p.stem: p for p in out.glob("*.json")}
+    report = CredentialsReport()
+    passwords: dict[str, str] = {}
+    node_by_id = {n.id: n for n in spec.nodes}
+    robot_ids = {r.id for r in spec.robots}
+    for ident in site_ids(spec):
+        old = _read_raw(existing[ident]) if ident in existing else None
+        password = _password_of(old, existing.get(ident)) or new_password()
+        address = _broker_of(old, broker)
+        wifi = _wifi_of(old, wifi_ssid, wifi_password)
+        record: Credentials
+        if ident in node_by_id:
+            node = node_by_id[ident]
+            keepalive = old.get("keepalive_s") if old else None
+            keepalive_s = keepalive if isinstance(keepalive, int) and 5 <= keepalive <= 3600 else 30
+            record = NodeConfig(
+                role="node",
+                username=ident,
+                password=password,
+                site=spec.name,
+                broker=address,
+                node=ident,
+                zone=node.zone,
+                sensor=node.sensor,
+                heartbeat_s=spec.heartbeat_of(node),
+                on_delay_ms=node.on_delay_ms,
+                off_delay_ms=node.off_delay_ms,
+                keepalive_s=keepalive_s,
+                wifi=wifi,
+            )
+        else:
+            role = "robot" if ident in robot_ids else "operator"
+            record = Credentials(username=ident, password=password, role=role, site=spec.name, broker=address)
+        write_private(out / f"{ident}.json", record.model_dump_json(indent=2) + "\n")
+        passwords[ident] = password
+        (report.kept if old else report.created).append(ident)
+    report.stale = sorted(name for name in existing if name not in passwords)
+    write_password_file(out / PASSWORD_FILE, passwords)
+    return report
+
+
+def write_password_file(path: Path, passwords: dict[str, str]) -> None:
+    """The argon2 password file; an existing line is kept when it still matches, so reruns cause no churn."""
+    old = read_password_file(path) if path.exists() else {}
+    lines = []
+    for user, password in passwords.items():
+        digest = old.get(user)
+        if digest is None or not verify_password(digest, password):
+            digest = HASHER.hash(password)
+        lines.append(f"{user}:{digest}\n")
+    write_private(path, "".join(lines))
+
+
+def read_password_file(path: Path) -> dict[str, str]:
+    """username -> argon2 hash; raises CredentialsError naming the file and line on anything malformed."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise CredentialsError(
+            f"{path}: no password file (run `wsnav broker credentials --site SITE --out {path.parent}`)"
+        ) from None
+    except OSError as exc:
+        raise CredentialsError(f"{path}: cannot read: {exc.strerror}") from None
+    users: dict[str, str] = {}
+    for number, raw in enumerate(text.splitlines(), 1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        user, sep, digest = line.partition(":")
+        if not sep or not user or not digest.startswith("$argon2"):
+            raise CredentialsError(f"{path}: line {number}: expected `username:$argon2...`")
+        users[user] = digest
+    return users
+
+
+def verify_password(digest: str, password: str) -> bool:
+    try:
+        return HASHER.verify(digest, password)
+    except (VerifyMismatchError, VerificationError, InvalidHashError):
+        return False
+
+
+def load_credentials(path: Path) -> Credentials:
+    """One `<id>.json` (a NodeConfig when its role is node); raises CredentialsError with a one-line reason."""
+    raw = _read_raw(path)
+    try:
+        return (
+            NodeConfig.model_validate(raw) if raw.get("role") == "node" else Credentials.model_validate(raw)
+        )
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        key = ".".join(str(p) for p in err["loc"]) or "(file)"
+        raise CredentialsError(f"{path}: {key}: {err['msg']}") from None
+
+
+def load_folder(folder: Path, spec: SiteFile) -> dict[str, Credentials]:
+    """Every site id's credentials from the folder; a missing or broken file is an error naming it."""
+    if not folder.is_dir():
+        raise CredentialsError(f"{folder}: not a credentials folder (run `wsnav broker credentials`)")
+    found: dict[str, Credentials] = {}
+    for ident in site_ids(spec):
+        path = folder / f"{ident}.json"
+        if not path.exists():
+            raise CredentialsError(f"{path}: missing (rerun `wsnav broker credentials` for this site)")
+        creds = load_credentials(path)
+        if creds.username != ident:
+            raise CredentialsError(f"{path}: username {creds.username!r} does not match the file name")
+        found[ident] = creds
+    return found
+
+
+def _read_raw(path: Path) -> dict[str, object]:
+    try:
+        raw = json.loads(path.read_text())
+    except OSError as exc:
+        raise CredentialsError(f"{path}: cannot read: {exc.strerror}") from None
+    except json.JSONDecodeError as exc:
+        raise CredentialsError(
+            f"{path}: not valid JSON: {exc.msg} (line {exc.lineno}); fix or remove it"
+        ) from None
+    if not isinstance(raw, dict):
+        raise CredentialsError(f"{path}: expected a JSON object")
+    return raw
+
+
+def _password_of(old: dict[str, object] | None, path: Path | None) -> str | None:
+    if old is None:
+        return None
+    password = old.get("password")
+    if not isinstance(password, str) or len(password) < 16:
+        raise CredentialsError(
+            f"{path}: password: missing or shorter than 16 characters; fix or remove the file"
+        )
+    return password
+
+
+def _broker_of(old: dict[str, object] | None, given: tuple[str, int] | None) -> BrokerAddress:
+    if given is not None:
+        return BrokerAddress(host=given[0], port=given[1])
+    if old and isinstance(old.get("broker"), dict):
+        try:
+            return BrokerAddress.model_validate(old["broker"])
+        except ValidationError:
+            pass
+    return BrokerAddress()
+
+
+def _wifi_of(old: dict[str, object] | None, ssid: str | None, password: str | None) -> WifiConfig:
+    wifi = WifiConfig()
+    if old and isinstance(old.get("wifi"), dict):
+        with contextlib.suppress(ValidationError):
+            wifi = WifiConfig.model_validate(old["wifi"])
+    if ssid is not None:
+        wifi = wifi.model_copy(update={"ssid": ssid})
+    if password is not None:
+        wifi = wifi.model_copy(update={"password": password})
+    return wifi
+
+
+def secure_dir(path: Path) -> None:
+    try:
+        path.mkdir(mode=0o700, parents=True, exist_ok=True)
+        os.chmod(path, 0o700)
+    except OSError as exc:
+        raise CredentialsError(f"{path}: cannot create the credentials folder: {exc.strerror}") from None
+
+
+def write_private(path: Path, text: str) -> None:
+    """Atomic, owner-only write: a crash never leaves a half-written key file, and no one else can read it."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        os.fchmod(fd, 0o600)
+        with os.fdopen(fd, "w") as handle:
+            handle.write(text)
+        os.replace(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        raise CredentialsError(f"{path}: cannot write: {exc.strerror}") from None

@@ -1,0 +1,179 @@
+"""Shared by the broker tests (no tests here): paho clients that wait on events, and a Mosquitto runner.
+
+Everything waits on a condition with a generous timeout, never on a fixed sleep, so the tests hold on a busy
+2-core machine.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import queue
+import socket
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import paho.mqtt.client as mqtt
+from paho.mqtt.enums import CallbackAPIVersion
+from paho.mqtt.reasoncodes import ReasonCode
+
+from broker.credentials import load_credentials
+
+TIMEOUT = 30.0
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """A running broker under test: where it listens and where the ids' credentials are."""
+
+    kind: str
+    host: str
+    port: int
+    credentials_dir: Path
+
+    def password(self, ident: str) -> str:
+        return load_credentials(self.credentials_dir / f"{ident}.json").password
+
+
+@dataclass(frozen=True)
+class Received:
+    topic: str
+    payload: bytes
+    qos: int
+    retain: bool
+
+
+class Client:
+    """A paho client whose connect/subscribe/publish block until the broker answered."""
+
+    def __init__(
+        self, endpoint: Endpoint, client_id: str, username: str | None, password: str | None
+    ) -> None:
+        self.endpoint = endpoint
+        self.mqtt = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=True)
+        if username is not None:
+            self.mqtt.username_pw_set(username, password)
+        self.messages: queue.Queue[Received] = queue.Queue()
+        self.received: list[Received] = []
+        self._connack: queue.Queue[ReasonCode] = queue.Queue()
+        self._subacks: dict[int, threading.Event] = {}
+        self._granted: dict[int, list[int]] = {}
+        self.mqtt.on_connect = self._on_connect
+        self.mqtt.on_message = self._on_message
+        self.mqtt.on_subscribe = self._on_subscribe
+        self.mqtt.on_disconnect = self._on_disconnect
+
+    def _on_connect(self, _c: object, _u: object, _f: object, reason: ReasonCode, _p: object) -> None:
+        self._connack.put(reason)
+
+    def _on_disconnect(self, _c: object, _u: object, _f: object, reason: ReasonCode, _p: object) -> None:
+        if reason.is_failure:
+            self._connack.put(reason)
+
+    def _on_message(self, _c: object, _u: object, msg: mqtt.MQTTMessage) -> None:
+        item = Received(msg.topic, bytes(msg.payload), msg.qos, bool(msg.retain))
+        self.received.append(item)
+        self.messages.put(item)
+
+    def _on_subscribe(self, _c: object, _u: object, mid: int, reasons: list[ReasonCode], _p: object) -> None:
+        self._granted[mid] = [r.value for r in reasons]
+        self._subacks.setdefault(mid, threading.Event()).set()
+
+    def connect(self, will: tuple[str, bytes] | None = None) -> ReasonCode:
+        """Connect and wait for CONNACK (or the refusal); returns the reason code."""
+        if will is not None:
+            self.mqtt.will_set(will[0], will[1], qos=1, retain=True)
+        self.mqtt.connect(self.endpoint.host, self.endpoint.port, keepalive=30)
+        self.mqtt.loop_start()
+        try:
+            return self._connack.get(timeout=TIMEOUT)
+        except queue.Empty:
+            raise TimeoutError("no CONNACK") from None
+
+    def subscribe(self, topic: str, qos: int = 1) -> list[int]:
+        """Subscribe and wait for SUBACK; returns the granted QoS codes (128 = refused)."""
+        result, mid = self.mqtt.subscribe(topic, qos)
+        assert result == mqtt.MQTT_ERR_SUCCESS and mid is not None
+        event = self._subacks.setdefault(mid, threading.Event())
+        assert event.wait(TIMEOUT), f"no SUBACK for {topic}"
+        return self._granted[mid]
+
+    def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False) -> None:
+        """Publish; with QoS 1 wait for the PUBACK."""
+        info = self.mqtt.publish(topic, payload, qos=qos, retain=retain)
+        if qos:
+            info.wait_for_publish(TIMEOUT)
+            assert info.is_published(), f"no PUBACK for {topic}"
+
+    def wait_for(self, topic: str, payload: bytes | None = None, timeout: float = TIMEOUT) -> Received:
+        """The first message (already received or arriving) on `topic` (with `payload`, when given)."""
+        deadline = time.monotonic() + timeout
+        seen = 0
+        while True:
+            for item in self.received[seen:]:
+                if item.topic == topic and (payload is None or item.payload == payload):
+                    return item
+            seen = len(self.received)
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError(f"nothing on {topic} within {timeout:g} s; got {self.topics()}")
+            with contextlib.suppress(queue.Empty):
+                self.messages.get(timeout=min(left, 0.5))
+
+    def topics(self) -> list[str]:
+        return [m.topic for m in self.received]
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.mqtt.disconnect()
+        self.mqtt.loop_stop()
+
+
+@contextlib.contextmanager
+def client(endpoint: Endpoint, ident: str | None, client_id: str | None = None) -> Iterator[Client]:
+    """A connected client for a site id (its own password), refused connects raise AssertionError."""
+    c = Client(
+        endpoint, client_id or ident or "anonymous", ident, endpoint.password(ident) if ident else None
+    )
+    try:
+        reason = c.connect()
+        assert not reason.is_failure, f"{ident} refused: {reason}"
+        yield c
+    finally:
+        c.close()
+
+
+def connect_reason(
+    endpoint: Endpoint,
+    username: str | None,
+    password: str | None,
+    client_id: str = "probe",
+    will: tuple[str, bytes] | None = None,
+) -> ReasonCode:
+    c = Client(endpoint, client_id, username, password)
+    try:
+        return c.connect(will)
+    finally:
+        c.close()
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def wait_listening(host: str, port: int, proc: subprocess.Popen[bytes] | None = None) -> None:
+    """Until a TCP connect succeeds (or the process died)."""
+    deadline = time.monotonic() + TIMEOUT
+    while time.monotonic() < deadline:
+        if proc is not None and proc.poll() is not None:
+            err = proc.stderr.read().decode() if proc.stderr else ""
+            raise RuntimeError(f"process exited with {proc.returncode}: {err}")
+        with contextlib.suppress(OSError), socket.create_connection((host, port), timeout=1):
+            return
+        time.sleep(0.05)
+    raise TimeoutError(f"nothing listening on {host}:{port}")
