@@ -18,6 +18,14 @@ if TYPE_CHECKING:
 # The broker modules (and amqtt) are imported inside the commands: every `wsnav` call builds this parser.
 
 
+def bind_address(text: str) -> tuple[str, int]:
+    """HOST:PORT for a listener; port 0 means any free port (the ready line tells which)."""
+    host, sep, port = text.rpartition(":")
+    if sep and host and port == "0":
+        return host.strip("[]"), 0
+    return host_port(text)
+
+
 def register(sub: argparse._SubParsersAction[Parser]) -> None:
     broker = sub.add_parser(
         "broker", help="the site's MQTT broker: run it, make credentials, configure Mosquitto"
@@ -29,7 +37,9 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     )
     run.add_argument("--site", type=Path, required=True, help="site directory or site.yaml")
     run.add_argument("--credentials", type=Path, required=True, help="folder written by `broker credentials`")
-    run.add_argument("--bind", type=host_port, required=True, help="HOST:PORT of the MQTT/TCP listener")
+    run.add_argument(
+        "--bind", type=bind_address, required=True, help="HOST:PORT of the MQTT/TCP listener (port 0: any)"
+    )
     run.add_argument(
         "--data", type=Path, help="folder for persistent retained messages (default: memory only)"
     )
@@ -40,9 +50,9 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         "--sync", choices=["normal", "full"], default="normal", help="full: survive power cuts too"
     )
     run.add_argument(
-        "--ws-bind", type=host_port, help="HOST:PORT of an optional MQTT-over-WebSocket listener"
+        "--ws-bind", type=bind_address, help="HOST:PORT of an optional MQTT-over-WebSocket listener"
     )
-    run.add_argument("--tls-bind", type=host_port, help="HOST:PORT of an optional MQTT/TLS listener")
+    run.add_argument("--tls-bind", type=bind_address, help="HOST:PORT of an optional MQTT/TLS listener")
     run.add_argument("--certfile", type=Path, help="TLS certificate chain (PEM), with --tls-bind")
     run.add_argument("--keyfile", type=Path, help="TLS private key (PEM), with --tls-bind")
     run.add_argument("--cafile", type=Path, help="CA bundle to verify client certificates, with --tls-bind")

@@ -1,0 +1,139 @@
+"""`wsnav broker credentials` and `mosquitto-config`: owner-only files, kept secrets, node configs from the site,
+and Mosquitto's password format produced without Mosquitto's tools."""
+
+from __future__ import annotations
+
+import json
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from broker.credentials import PASSWORD_FILE, read_password_file, verify_password
+from broker.mosquitto import ACL, CONF, PASSWORDS, mosquitto_hash
+from schemas.credentials import Credentials, NodeConfig
+from tests.site_fixtures import tiny_site
+
+
+def wsnav(*args: str | Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "wsnav.cli", *map(str, args)], capture_output=True, text=True, timeout=120
+    )
+
+
+def mode(path: Path) -> int:
+    return stat.S_IMODE(path.stat().st_mode)
+
+
+def test_files_for_every_id_owner_only(tmp_path: Path) -> None:
+    site = tiny_site(tmp_path / "site")
+    out = tmp_path / "creds"
+    result = wsnav("broker", "credentials", "--site", site, "--out", out, "--broker", "10.0.0.2:1883")
+    assert result.returncode == 0, result.stderr
+    assert mode(out) == 0o700
+    names = sorted(p.name for p in out.iterdir())
+    assert names == sorted([PASSWORD_FILE, "n1.json", "n2.json", "robot1.json", "operator.json"])
+    assert all(mode(p) == 0o600 for p in out.iterdir())
+    node = NodeConfig.model_validate_json((out / "n2.json").read_text())
+    assert (node.node, node.zone, node.sensor.type, node.heartbeat_s) == ("n2", "z2", "hcsr04", 5.0)
+    assert (node.on_delay_ms, node.off_delay_ms, node.broker.host, node.broker.port) == (
+        500,
+        3000,
+        "10.0.0.2",
+        1883,
+    )
+    robot = Credentials.model_validate_json((out / "robot1.json").read_text())
+    assert robot.role == "robot"
+    assert Credentials.model_validate_json((out / "operator.json").read_text()).role == "operator"
+    hashes = read_password_file(out / PASSWORD_FILE)
+    assert set(hashes) == {"n1", "n2", "robot1", "operator"}
+    assert verify_password(hashes["n2"], node.password)
+    assert not verify_password(hashes["n1"], node.password)
+
+
+def test_rerun_keeps_secrets_adds_new_ids_reports_removed(tmp_path: Path) -> None:
+    site = tiny_site(tmp_path / "site")
+    out = tmp_path / "creds"
+    assert wsnav("broker", "credentials", "--site", site, "--out", out).returncode == 0
+    before = {p.name: json.loads(p.read_text())["password"] for p in out.glob("*.json")}
+    tiny_site(
+        site,
+        nodes=[
+            {"id": "n1", "zone": "z1", "sensor": {"type": "pir", "pin": 5}, "heartbeat_s": 2},
+            {"id": "n3", "zone": "z2", "sensor": {"type": "ir_beam", "pin": 4}},
+        ],
+    )
+    result = wsnav("broker", "credentials", "--site", site, "--out", out)
+    assert result.returncode == 0, result.stderr
+    after = {p.name: json.loads(p.read_text())["password"] for p in out.glob("*.json")}
+    assert after["n1.json"] == before["n1.json"] and after["robot1.json"] == before["robot1.json"]
+    assert "n3.json" in after and after["n3.json"] not in before.values()
+    assert "n2.json" in after  # left in place ...
+    assert "n2" not in read_password_file(out / PASSWORD_FILE)  # ... but can no longer log in
+    assert "n2.json: n2 is no longer in the site" in result.stdout
+    assert NodeConfig.model_validate_json((out / "n1.json").read_text()).heartbeat_s == 2.0
+
+
+def test_damaged_existing_file_is_not_replaced(tmp_path: Path) -> None:
+    site = tiny_site(tmp_path / "site")
+    out = tmp_path / "creds"
+    assert wsnav("broker", "credentials", "--site", site, "--out", out).returncode == 0
+    (out / "n1.json").write_text("{not json")
+    result = wsnav("broker", "credentials", "--site", site, "--out", out)
+    assert result.returncode != 0
+    assert len(result.stderr.splitlines()) == 1 and "n1.json: not valid JSON" in result.stderr
+    assert (out / "n1.json").read_text() == "{not json"
+
+
+def test_missing_site_is_one_line(tmp_path: Path) -> None:
+    result = wsnav("broker", "credentials", "--site", tmp_path / "nowhere", "--out", tmp_path / "c")
+    assert result.returncode != 0
+    assert len(result.stderr.splitlines()) == 1 and "no such site file" in result.stderr
+
+
+def test_mosquitto_hash_matches_mosquitto_passwd_format() -> None:
+    # Computed once with `mosquitto_passwd -b` (2.0.11) for password "secretsecret".
+    reference = "$7$101$JEUYz8QdMzOm6BD0$CpC6Mf6KerTRs6XBHL12OWTkK4w+MlSX1qfWymz/U1ZGeYKyC5b39RJGqCI2ogVnimAFeSikM86RPILfZf8WFQ=="
+    import base64
+
+    salt = base64.b64decode(reference.split("$")[3])
+    assert mosquitto_hash("secretsecret", salt) == reference
+
+
+def test_mosquitto_config_files(tmp_path: Path) -> None:
+    site = tiny_site(tmp_path / "site")
+    creds, out = tmp_path / "creds", tmp_path / "mosq"
+    assert wsnav("broker", "credentials", "--site", site, "--out", creds).returncode == 0
+    result = wsnav("broker", "mosquitto-config", "--site", site, "--credentials", creds, "--out", out)
+    assert result.returncode == 0, result.stderr
+    conf = (out / CONF).read_text()
+    for line in (
+        "allow_anonymous false",
+        "set_tcp_nodelay true",
+        "persistence true",
+        f"acl_file {out / ACL}",
+    ):
+        assert line in conf.splitlines()
+    acl = (out / ACL).read_text()
+    assert "user n1\ntopic write wsn/tiny/zones/z1/state/n1\ntopic write wsn/tiny/nodes/n1/status\n" in acl
+    users = [line.split(":")[0] for line in (out / PASSWORDS).read_text().splitlines()]
+    assert sorted(users) == ["n1", "n2", "operator", "robot1"]
+    assert all(mode(p) == 0o600 for p in out.iterdir())
+
+
+@pytest.mark.parametrize("broken", ["missing", "bad"])
+def test_mosquitto_config_bad_credentials_is_one_line(tmp_path: Path, broken: str) -> None:
+    site = tiny_site(tmp_path / "site")
+    creds = tmp_path / "creds"
+    assert wsnav("broker", "credentials", "--site", site, "--out", creds).returncode == 0
+    if broken == "missing":
+        (creds / "robot1.json").unlink()
+    else:
+        (creds / "robot1.json").write_text('{"username": "robot1"}')
+    result = wsnav(
+        "broker", "mosquitto-config", "--site", site, "--credentials", creds, "--out", tmp_path / "m"
+    )
+    assert result.returncode != 0
+    assert len(result.stderr.splitlines()) == 1 and "robot1.json" in result.stderr

@@ -1,0 +1,162 @@
+"""`wsnav broker run` as a process: retained state across SIGTERM and kill -9 restarts, clean exits, and one-line
+errors for a port in use and bad input."""
+
+from __future__ import annotations
+
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from broker.credentials import write_credentials
+from broker.embedded import BrokerProcess
+from broker.retained_store import read_retained
+from schemas import topics
+from schemas.site import load_site
+from tests.site_fixtures import tiny_site
+from tests.test_broker_helpers import TIMEOUT, Endpoint, client
+
+SITE = "tiny"
+STATE = topics.zone_state(SITE, "z1", "n1")
+STATUS = topics.node_status(SITE, "n1")
+OTHER = topics.zone_state(SITE, "z2", "n2")
+
+
+@pytest.fixture
+def setup(tmp_path: Path) -> tuple[Path, Path]:
+    site = tiny_site(tmp_path / "site")
+    creds = tmp_path / "creds"
+    write_credentials(load_site(site).spec, creds)
+    return site, creds
+
+
+def wsnav(*args: str | Path, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "wsnav.cli", *map(str, args)], capture_output=True, text=True, timeout=timeout
+    )
+
+
+def endpoint(proc: BrokerProcess) -> Endpoint:
+    return Endpoint("amqtt", proc.host, proc.port, proc.credentials_dir)
+
+
+def publish_states(ep: Endpoint) -> None:
+    """n1 blocked + online, n2 clear then removed (an empty retained payload clears a topic)."""
+    with client(ep, "n1") as n1, client(ep, "n2") as n2, client(ep, "operator", "watch") as watch:
+        assert watch.subscribe(f"wsn/{SITE}/#") == [1]
+        n2.publish(OTHER, b"clear", retain=True)
+        n1.publish(STATE, b"blocked", retain=True)
+        n1.publish(STATUS, b"online", retain=True)
+        n2.publish(OTHER, b"", retain=True)
+        watch.wait_for(STATUS, b"online")
+        watch.wait_for(OTHER, b"")
+
+
+def retained_after_restart(ep: Endpoint) -> dict[str, bytes]:
+    """What a fresh subscriber gets: by the sentinel it has every retained message."""
+    with client(ep, "operator", "after") as after, client(ep, "n1") as n1:
+        assert after.subscribe(f"wsn/{SITE}/zones/#") == [1]
+        assert after.subscribe(f"wsn/{SITE}/nodes/#") == [1]
+        sentinel = topics.node_status(SITE, "n1")
+        after.wait_for(STATE)
+        after.wait_for(STATUS)
+        n1.publish(sentinel, b"sentinel")
+        after.wait_for(sentinel, b"sentinel")
+        return {m.topic: m.payload for m in after.received if m.retain}
+
+
+def wait_stored(data: Path, expected: dict[str, bytes]) -> None:
+    """Until the store on disk holds exactly these topics (the flusher runs within its interval)."""
+    deadline = time.monotonic() + TIMEOUT
+    while time.monotonic() < deadline:
+        stored = {t: p for t, (p, _q) in read_retained(data).items()}
+        if stored == expected:
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"store holds {read_retained(data)}, expected {expected}")
+
+
+@pytest.mark.parametrize("stop", ["sigterm", "sigint", "kill-9"])
+def test_retained_state_survives_a_restart(setup: tuple[Path, Path], tmp_path: Path, stop: str) -> None:
+    site, creds = setup
+    data = tmp_path / "data"
+    first = BrokerProcess(site, creds, data_dir=data).start()
+    try:
+        publish_states(endpoint(first))
+        if stop == "kill-9":
+            wait_stored(data, {STATE: b"blocked", STATUS: b"online"})
+            assert first.kill() == -signal.SIGKILL
+        else:
+            assert first.proc is not None
+            first.proc.send_signal(signal.SIGTERM if stop == "sigterm" else signal.SIGINT)
+            assert first.proc.wait(TIMEOUT) == 0
+            assert "broker stopped\n" in first.output
+    finally:
+        first.kill()
+    with BrokerProcess(site, creds, data_dir=data) as second:
+        got = retained_after_restart(endpoint(second))
+    assert got[STATE] == b"blocked"
+    assert got[STATUS] == b"online"
+    assert OTHER not in got
+
+
+def test_ready_line_and_clean_exit(setup: tuple[Path, Path], tmp_path: Path) -> None:
+    site, creds = setup
+    proc = BrokerProcess(site, creds, data_dir=tmp_path / "data").start()
+    assert proc.output[0] == f"broker ready on 127.0.0.1:{proc.port}\n"
+    assert proc.terminate() == 0
+    assert proc.errors == []
+
+
+def test_port_in_use_is_one_line_and_nonzero(setup: tuple[Path, Path]) -> None:
+    site, creds = setup
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        result = wsnav("broker", "run", "--site", site, "--credentials", creds, "--bind", f"127.0.0.1:{port}")
+    assert result.returncode != 0
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, result.stderr
+    assert "cannot start listening" in lines[0] and "address already in use" in lines[0]
+    assert "broker ready" not in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (
+            ["--site", "{tmp}/nowhere", "--credentials", "{creds}", "--bind", "127.0.0.1:0"],
+            "no such site file",
+        ),
+        (
+            ["--site", "{site}", "--credentials", "{tmp}/nowhere", "--bind", "127.0.0.1:0"],
+            "not a credentials",
+        ),
+        (["--site", "{site}", "--credentials", "{site}", "--bind", "127.0.0.1:0"], "no password file"),
+        (["--site", "{site}", "--credentials", "{creds}", "--bind", "localhost"], "expected HOST:PORT"),
+        (["--site", "{site}", "--credentials", "{creds}"], "required"),
+    ],
+)
+def test_bad_input_is_one_line(
+    setup: tuple[Path, Path], tmp_path: Path, args: list[str], needle: str
+) -> None:
+    site, creds = setup
+    filled = [a.format(tmp=tmp_path, site=site, creds=creds) for a in args]
+    result = wsnav("broker", "run", *filled)
+    assert result.returncode != 0
+    assert len(result.stderr.splitlines()) == 1, result.stderr
+    assert needle in result.stderr
+
+
+def test_broken_password_file_is_one_line(setup: tuple[Path, Path]) -> None:
+    site, creds = setup
+    (creds / "broker.passwd").write_text("n1 has no hash\n")
+    result = wsnav("broker", "run", "--site", site, "--credentials", creds, "--bind", "127.0.0.1:0")
+    assert result.returncode != 0
+    assert len(result.stderr.splitlines()) == 1, result.stderr
+    assert "broker.passwd: line 1" in result.stderr
