@@ -1,0 +1,211 @@
+"""The zone node's main loop: wires config, sensor, node logic, Wi-Fi, MQTT and the watchdog together.
+
+One loop, no other waits: every iteration reads the sensor, feeds node_logic, moves the Wi-Fi/broker connection
+state machine one step (each step bounded by socket timeouts), sends what node_logic asks for, keeps the MQTT
+link alive with its own pings, and feeds the watchdog only if the loop is healthy. "Healthy" means the loop
+completes iterations and the node has not been offline longer than MAX_OFFLINE_MS: past that, the watchdog is
+left to reset the board, which is the surest cure for a wedged ESP8266 radio stack.
+"""
+
+import gc
+import random
+import time
+
+from backoff import Backoff
+from micropython import const
+from mqtt import MQTTClient
+from node_logic import NodeLogic
+
+# const() with a leading underscore: inlined by the compiler, no heap at run time.
+_LOOP_MS = const(50)
+_SOCKET_TIMEOUT_MS = const(1500)
+"""Per socket operation; connect + CONNACK stays well inside the ESP8266's ~5 s watchdog."""
+_WIFI_JOIN_TIMEOUT_MS = const(20000)
+_MAX_OFFLINE_MS = const(600000)
+"""Ten minutes without the broker: stop feeding the watchdog and let it reset the board."""
+_MAX_ERRORS = const(20)
+"""Consecutive unexpected exceptions in the loop before it stops feeding the watchdog."""
+
+_OFFLINE = const(0)
+_WIFI_JOINING = const(1)
+_BROKER_WAIT = const(2)
+_ONLINE = const(3)
+
+
+class Clock:
+    """Monotonic milliseconds since start, immune to ticks_ms wrap-around (2**30 ms on the ESP8266)."""
+
+    def __init__(self) -> None:
+        self._last = time.ticks_ms()
+        self._now = 0
+
+    def now_ms(self) -> int:
+        t = time.ticks_ms()
+        self._now += time.ticks_diff(t, self._last)
+        self._last = t
+        return self._now
+
+    def sleep_ms(self, ms: int) -> None:
+        time.sleep_ms(ms)
+
+
+def _rand16() -> int:
+    return random.getrandbits(16)
+
+
+class Node:
+    """A running node. `sensor` has `occupied()`, `wifi` has `start()`/`connected()` (or is None: wired)."""
+
+    def __init__(self, cfg, sensor, wifi=None, wdt=None, clock=None, log=print) -> None:
+        self.cfg = cfg
+        self.sensor = sensor
+        self.wifi = wifi
+        self.wdt = wdt
+        self.clock = clock if clock is not None else Clock()
+        self.log = log
+        self.logic = NodeLogic(
+            cfg.site,
+            cfg.zone,
+            cfg.node,
+            cfg.on_delay_ms,
+            cfg.off_delay_ms,
+            cfg.heartbeat_ms,
+            random.getrandbits(20),
+        )
+        self.client = MQTTClient(
+            cfg.node,
+            cfg.broker_host,
+            cfg.broker_port,
+            cfg.username,
+            cfg.password,
+            cfg.keepalive_s,
+            _SOCKET_TIMEOUT_MS,
+        )
+        self.wifi_backoff = Backoff(1000, 60000, _rand16)
+        self.broker_backoff = Backoff(500, 30000, _rand16)
+        self.phase = _OFFLINE
+        self.next_attempt_ms = 0
+        self.phase_since_ms = 0
+        self.online_since_ms = 0
+        self.offline_since_ms = 0
+        self.errors = 0
+        self.connects = 0
+        self.loop_ms = _LOOP_MS
+
+    # -- health and watchdog -----------------------------------------------------------------------------
+    def healthy(self, now_ms: int) -> bool:
+        if self.errors >= _MAX_ERRORS:
+            return False
+        return self.phase == _ONLINE or now_ms - self.offline_since_ms < _MAX_OFFLINE_MS
+
+    def feed(self) -> None:
+        if self.wdt is not None and self.healthy(self.clock.now_ms()):
+            self.wdt.feed()
+
+    # -- connection state machine --------------------------------------------------------------------------
+    def _go_offline(self, now_ms: int, why) -> None:
+        if self.phase == _ONLINE:
+            self.offline_since_ms = now_ms
+        self.client.close()
+        self.logic.on_disconnect()
+        wifi_up = self.wifi is None or self.wifi.connected()
+        self.phase = _BROKER_WAIT if wifi_up else _OFFLINE
+        self.next_attempt_ms = now_ms + self.broker_backoff.next_delay_ms()
+        self.log("mqtt down:", why)
+
+    def _connect_broker(self, now_ms: int) -> None:
+        client = self.client
+        try:
+            client.connect(self.logic.will())
+            self.feed()
+            for topic, payload, retain, qos in self.logic.on_connect(now_ms):
+                client.publish(topic, payload, retain, qos)
+                self.feed()
+        except OSError as exc:
+            self._go_offline(now_ms, exc)
+            return
+        self.broker_backoff.reset()
+        self.phase = _ONLINE
+        self.online_since_ms = now_ms
+        self.connects += 1
+        self.log("mqtt up", self.connects)
+
+    def _connection_step(self, now_ms: int) -> None:
+        wifi = self.wifi
+        if self.phase == _ONLINE:
+            if wifi is not None and not wifi.connected():
+                self._go_offline(now_ms, "wifi lost")
+            return
+        if self.phase == _OFFLINE:
+            if now_ms >= self.next_attempt_ms:
+                if wifi is not None:
+                    wifi.start()
+                self.phase = _WIFI_JOINING
+                self.phase_since_ms = now_ms
+            return
+        if self.phase == _WIFI_JOINING:
+            if wifi is None or wifi.connected():
+                self.wifi_backoff.reset()
+                self.phase = _BROKER_WAIT
+                self.next_attempt_ms = now_ms
+            elif now_ms - self.phase_since_ms > _WIFI_JOIN_TIMEOUT_MS:
+                self.phase = _OFFLINE
+                self.next_attempt_ms = now_ms + self.wifi_backoff.next_delay_ms()
+                self.log("wifi join timed out")
+            return
+        # _BROKER_WAIT
+        if wifi is not None and not wifi.connected():
+            self.phase = _OFFLINE
+            self.next_attempt_ms = now_ms
+        elif now_ms >= self.next_attempt_ms:
+            self._connect_broker(now_ms)
+
+    # -- the loop ----------------------------------------------------------------------------------------
+    def iteration(self) -> None:
+        """One pass: sense, decide, connect/publish, keep alive. Never waits longer than a socket timeout."""
+        now = self.clock.now_ms()
+        occupied = self.sensor.occupied()
+        was_online = self.phase == _ONLINE
+        self._connection_step(now)
+        if self.phase == _ONLINE:
+            try:
+                if was_online:
+                    msg = self.logic.step(occupied, now)
+                    if msg is not None:
+                        self.client.publish(msg[0], msg[1], msg[2], msg[3])
+                self.client.poll()
+                self.client.maintain()
+            except OSError as exc:
+                self._go_offline(now, exc)
+        else:
+            self.logic.step(occupied, now)
+
+    def run(self, until_ms=-1) -> None:
+        """Loop forever (or until the clock passes `until_ms`, for tests); feeds the watchdog when healthy."""
+        clock = self.clock
+        self.offline_since_ms = clock.now_ms()
+        while until_ms < 0 or clock.now_ms() < until_ms:
+            try:
+                self.iteration()
+                self.errors = 0
+            except MemoryError:
+                gc.collect()
+                self.errors += 1
+                self.log("MemoryError")
+            except Exception as exc:  # a bug must not kill the node silently: count it, let the WDT decide
+                self.errors += 1
+                self.log("loop error:", exc)
+            self.feed()
+            clock.sleep_ms(self.loop_ms)
+
+
+def main(cfg) -> None:
+    """Board entry point (main.py loads the config first): start the watchdog and loop forever."""
+    import machine
+
+    import sensors
+    import wifi
+
+    node = Node(cfg, sensors.from_config(cfg), wifi.Wifi(cfg.wifi_ssid, cfg.wifi_password), machine.WDT())
+    gc.collect()
+    node.run()

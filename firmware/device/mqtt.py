@@ -1,0 +1,256 @@
+"""A small MQTT 3.1.1 client for the zone node: the code that runs on the board is the code that is tested.
+
+Why not umqtt.simple/robust (frozen in the ESP8266 image): they never send PINGREQ by themselves and block
+without timeouts, so a half-open TCP connection (broker rebooted, Wi-Fi access point gone) hangs the node until
+the watchdog bites. This client:
+- sets a timeout on every socket operation and bounds every wait (CONNACK, PUBACK, PINGRESP) by a deadline;
+- sends its own keepalive pings (`maintain`) and declares the link dead when a PINGRESP is overdue;
+- tolerates PUBLISH packets it never asked for (amqtt 0.12 sends retained messages matching *other* clients'
+  subscriptions): they are read and thrown away in small chunks, never buffered whole, and QoS 1 ones are
+  acknowledged so the broker does not resend them;
+- raises OSError (MQTTError is one) for every failure, so the caller has one thing to catch.
+It only publishes: no SUBSCRIBE, no QoS 2, no incoming message callback.
+"""
+
+import select
+import socket
+
+from micropython import const
+from time import ticks_diff, ticks_ms
+
+# const() names with a leading underscore are inlined by the compiler and cost no heap at run time.
+_CONNECT = const(0x10)
+_CONNACK = const(0x20)
+_PUBLISH = const(0x30)
+_PUBACK = const(0x40)
+_PINGREQ = const(0xC0)
+_PINGRESP = const(0xD0)
+_DISCONNECT = const(0xE0)
+
+_MAX_UNSOLICITED = const(16)
+"""Packets handled per `poll` call, so a flood of retained messages cannot starve the main loop."""
+
+
+class MQTTError(OSError):
+    """A protocol-level failure (refused CONNACK, missing PUBACK or PINGRESP, closed connection)."""
+
+
+def _str(s) -> bytes:
+    """An MQTT UTF-8 string: 2-byte big-endian length then the bytes."""
+    b = s.encode() if isinstance(s, str) else s
+    return bytes((len(b) >> 8, len(b) & 0xFF)) + b
+
+
+def _fixed(first: int, length: int) -> bytes:
+    """Fixed header: packet type/flags byte and the variable-length 'remaining length'."""
+    out = bytearray((first,))
+    while True:
+        byte = length & 0x7F
+        length >>= 7
+        out.append(byte | 0x80 if length else byte)
+        if not length:
+            return bytes(out)
+
+
+class MQTTClient:
+    """One connection to the broker; create a new one (or call `connect` again) after any OSError."""
+
+    def __init__(
+        self,
+        client_id: str,
+        host: str,
+        port: int = 1883,
+        user=None,
+        password=None,
+        keepalive_s: int = 30,
+        timeout_ms: int = 2000,
+    ) -> None:
+        self.client_id = client_id
+        self.host = host
+        self.port = port
+        self.user = user
+        self.password = password
+        self.keepalive_s = keepalive_s
+        self.timeout_ms = timeout_ms
+        self.sock = None  # type: socket.socket | None
+        self._poller = None
+        self._pid = 0
+        self._last_tx = 0
+        self._ping_sent = -1
+        self.pings = 0
+        self.ignored = 0
+
+    # -- socket helpers: every call is bounded by the socket timeout -------------------------------------
+    def _send(self, data: bytes) -> None:
+        sock = self.sock
+        if sock is None:
+            raise MQTTError("not connected")
+        mv = memoryview(data)
+        sent = 0
+        while sent < len(data):
+            n = sock.send(mv[sent:])
+            if not n:
+                raise MQTTError("send failed")
+            sent += n
+        self._last_tx = ticks_ms()
+
+    def _recv(self, n: int) -> bytes:
+        sock = self.sock
+        if sock is None:
+            raise MQTTError("not connected")
+        data = sock.recv(n)
+        if not data:
+            raise MQTTError("connection closed by broker")
+        while len(data) < n:
+            more = sock.recv(n - len(data))
+            if not more:
+                raise MQTTError("connection closed by broker")
+            data += more
+        return data
+
+    def _skip(self, n: int) -> None:
+        """Discard n bytes in small chunks: an unsolicited message must not cost its size in heap."""
+        while n > 0:
+            n -= len(self._recv(n if n < 64 else 64))
+
+    def _read_packet(self):
+        """Read one packet; returns (type, short_body) where short_body is what we need of it (or b'')."""
+        first = self._recv(1)[0]
+        length = 0
+        shift = 0
+        while True:
+            b = self._recv(1)[0]
+            length |= (b & 0x7F) << shift
+            if not b & 0x80:
+                break
+            shift += 7
+            if shift > 21:
+                raise MQTTError("bad remaining length")
+        kind = first & 0xF0
+        if kind == _PUBLISH:
+            self.ignored += 1
+            qos = (first >> 1) & 3
+            tlen = self._recv(2)
+            tl = (tlen[0] << 8) | tlen[1]
+            self._skip(tl)
+            rest = length - 2 - tl
+            if qos:
+                pid = self._recv(2)
+                rest -= 2
+                self._skip(rest)
+                if qos == 1:
+                    self._send(bytes((_PUBACK, 2)) + pid)
+            else:
+                self._skip(rest)
+            return kind, b""
+        if length <= 4:
+            return kind, self._recv(length) if length else b""
+        self._skip(length)
+        return kind, b""
+
+    def _wait_for(self, kind: int, body=None) -> bytes:
+        """Read packets until one of `kind` (and `body`, if given) arrives; bounded by timeout_ms overall."""
+        start = ticks_ms()
+        while ticks_diff(ticks_ms(), start) < self.timeout_ms:
+            k, b = self._read_packet()
+            if k == kind and (body is None or b == body):
+                return b
+            if k == _PINGRESP:
+                self._ping_sent = -1
+        raise MQTTError("timed out waiting for packet type " + str(kind >> 4))
+
+    # -- the protocol -----------------------------------------------------------------------------------
+    def connect(self, will=None, clean: bool = True) -> None:
+        """Open TCP and do CONNECT/CONNACK; `will` is (topic, payload, retain, qos) or None."""
+        self.close()
+        addr = socket.getaddrinfo(self.host, self.port)[0][-1]
+        sock = socket.socket()
+        self.sock = sock
+        sock.settimeout(self.timeout_ms / 1000)
+        try:
+            sock.connect(addr)
+            flags = 0x02 if clean else 0
+            payload = _str(self.client_id)
+            if will is not None:
+                flags |= 0x04 | (will[3] << 3) | (0x20 if will[2] else 0)
+                payload += _str(will[0]) + _str(will[1])
+            if self.user is not None:
+                flags |= 0x80
+                payload += _str(self.user)
+                if self.password is not None:
+                    flags |= 0x40
+                    payload += _str(self.password)
+            ka = self.keepalive_s
+            var = b"\x00\x04MQTT\x04" + bytes((flags, ka >> 8, ka & 0xFF))
+            self._send(_fixed(_CONNECT, len(var) + len(payload)) + var + payload)
+            body = self._wait_for(_CONNACK)
+            if len(body) != 2 or body[1] != 0:
+                raise MQTTError("connection refused, code " + (str(body[1]) if len(body) == 2 else "?"))
+        except Exception:
+            self.close()
+            raise
+        poller = select.poll()
+        poller.register(sock, select.POLLIN)
+        self._poller = poller
+        self._ping_sent = -1
+
+    def publish(self, topic: str, payload: bytes, retain: bool = False, qos: int = 0) -> None:
+        """Send a PUBLISH; with qos=1 wait (bounded) for the matching PUBACK. No retry: the caller reconnects."""
+        t = _str(topic)
+        first = _PUBLISH | (qos << 1) | (1 if retain else 0)
+        if qos:
+            self._pid = self._pid + 1 if self._pid < 0xFFFF else 1
+            pid = bytes((self._pid >> 8, self._pid & 0xFF))
+            self._send(_fixed(first, len(t) + 2 + len(payload)) + t + pid + payload)
+            self._wait_for(_PUBACK, pid)
+        else:
+            self._send(_fixed(first, len(t) + len(payload)) + t + payload)
+
+    def ping(self) -> None:
+        """Send PINGREQ; the PINGRESP is collected by `poll` or any later wait."""
+        self._send(bytes((_PINGREQ, 0)))
+        self._ping_sent = ticks_ms()
+        self.pings += 1
+
+    def poll(self) -> None:
+        """Handle whatever the broker sent, without blocking when nothing is waiting."""
+        poller = self._poller
+        if poller is None:
+            raise MQTTError("not connected")
+        for _ in range(_MAX_UNSOLICITED):
+            events = poller.poll(0)
+            if not events:
+                return
+            if events[0][1] & (select.POLLHUP | select.POLLERR):
+                raise MQTTError("connection lost")
+            kind, _body = self._read_packet()
+            if kind == _PINGRESP:
+                self._ping_sent = -1
+
+    def maintain(self) -> None:
+        """Keepalive: ping after half the keepalive period without sending; fail if a PINGRESP is overdue."""
+        now = ticks_ms()
+        half = self.keepalive_s * 500
+        if self._ping_sent >= 0:
+            if ticks_diff(now, self._ping_sent) > max(half, self.timeout_ms):
+                raise MQTTError("no PINGRESP from broker")
+        elif ticks_diff(now, self._last_tx) >= half:
+            self.ping()
+
+    def disconnect(self) -> None:
+        """Polite DISCONNECT (the will is not sent), then close; never raises."""
+        try:
+            self._send(bytes((_DISCONNECT, 0)))
+        except Exception:
+            pass
+        self.close()
+
+    def close(self) -> None:
+        sock = self.sock
+        self.sock = None
+        self._poller = None
+        if sock is not None:
+            try:
+                sock.close()
+            except Exception:
+                pass

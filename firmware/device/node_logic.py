@@ -1,0 +1,117 @@
+"""The zone node's state machine: given sensor readings and the time, what to publish and when. No I/O.
+
+Pure logic shared by the board (`main.py`) and the zone simulator (CPython, up to 1000 nodes in one process), so
+the simulator exercises the very decisions the ESP8266 makes. A publication is a tuple
+`(topic, payload_bytes, retain, qos)`; the caller sends it with whatever transport it has.
+
+Rules (DESIGN.md, "MQTT contract"):
+- the zone state is published (retained, QoS 1) on every debounced change and again every heartbeat period,
+  so its arrival time tells the robot how fresh it is;
+- after every (re)connect: birth `online` (retained) and the current state, whatever happened while offline;
+- the last will is `offline` (retained);
+- `seq` increases with every state publication, from a base the caller picks (random on the board, so a reboot
+  does not replay old numbers exactly).
+"""
+
+from debounce import Debouncer
+from payloads import (
+    BLOCKED,
+    CLEAR,
+    OFFLINE,
+    ONLINE,
+    SEQ_MAX,
+    node_status_payload,
+    node_status_topic,
+    zone_state_payload,
+    zone_state_topic,
+)
+
+QOS_STATE = 1
+QOS_STATUS = 1
+
+
+class NodeLogic:
+    """One node: debouncer + heartbeat timer + sequence numbers; knows whether the transport is up."""
+
+    def __init__(
+        self,
+        site: str,
+        zone: str,
+        node: str,
+        on_delay_ms: int,
+        off_delay_ms: int,
+        heartbeat_ms: int,
+        seq_base: int = 0,
+    ) -> None:
+        self.zone = zone
+        self.node = node
+        self.heartbeat_ms = heartbeat_ms
+        self.state_topic = zone_state_topic(site, zone, node)
+        self.status_topic = node_status_topic(site, node)
+        self.debouncer = Debouncer(on_delay_ms, off_delay_ms)
+        self.seq = seq_base % (SEQ_MAX + 1)
+        self.connected = False
+        self.last_publish_ms = None  # type: int | None
+        self.publications = 0
+
+    @property
+    def state(self) -> str:
+        """The debounced zone state as a contract word."""
+        return BLOCKED if self.debouncer.state else CLEAR
+
+    def will(self) -> tuple:
+        """(topic, payload, retain, qos) for the CONNECT packet's last will."""
+        return (self.status_topic, node_status_payload(self.node, OFFLINE), True, QOS_STATUS)
+
+    def birth(self) -> tuple:
+        return (self.status_topic, node_status_payload(self.node, ONLINE), True, QOS_STATUS)
+
+    def state_message(self, now_ms: int) -> tuple:
+        """The current state as a fresh publication (next seq); restarts the heartbeat period."""
+        self.seq = self.seq + 1 if self.seq < SEQ_MAX else 0
+        self.last_publish_ms = now_ms
+        self.publications += 1
+        return (
+            self.state_topic,
+            zone_state_payload(self.zone, self.node, self.state, self.seq),
+            True,
+            QOS_STATE,
+        )
+
+    def on_connect(self, now_ms: int) -> list:
+        """The transport just connected: birth, then the current state (republished after every reconnect)."""
+        self.connected = True
+        return [self.birth(), self.state_message(now_ms)]
+
+    def on_disconnect(self) -> None:
+        """The transport went down: changes are still tracked and sent by the next `on_connect`."""
+        self.connected = False
+
+    def step(self, occupied: bool, now_ms: int):
+        """Feed one raw sensor reading; returns a publication (change or heartbeat) or None.
+
+        While disconnected the debouncer keeps running but nothing is returned: the state that counts is the
+        one at reconnect time, not a backlog.
+        """
+        before = self.debouncer.state
+        after = self.debouncer.update(occupied, now_ms)
+        if not self.connected:
+            return None
+        if after != before:
+            return self.state_message(now_ms)
+        last = self.last_publish_ms
+        if last is None or now_ms - last >= self.heartbeat_ms:
+            return self.state_message(now_ms)
+        return None
+
+    def next_due_ms(self, now_ms: int) -> int:
+        """Milliseconds until `step` could publish without a sensor change (heartbeat or pending debounce)."""
+        due = self.heartbeat_ms
+        if self.last_publish_ms is not None:
+            due = self.heartbeat_ms - (now_ms - self.last_publish_ms)
+            if due < 0:
+                due = 0
+        pending = self.debouncer.pending_ms(now_ms)
+        if 0 <= pending < due:
+            due = pending
+        return due

@@ -1,0 +1,33 @@
+"""Turning raw sensor signals into "occupied": pure arithmetic shared by the board and the zone simulator.
+
+HC-SR04: the echo pulse lasts the sound's round trip, so distance_mm = pulse_us * 343 m/s / 2. A single ping
+is noisy (soft clothing, cross-talk), hence the median of N pings; a ping with no echo (timeout, negative from
+`machine.time_pulse_us`) means nothing within range and counts as far away.
+"""
+
+NO_ECHO_MM = 10000
+"""Stands for "no echo": farther than the HC-SR04's 4 m range."""
+
+
+def echo_us_to_mm(pulse_us: int) -> int:
+    """Round-trip echo time in microseconds to one-way distance in millimetres (NO_ECHO_MM if invalid)."""
+    if pulse_us <= 0:
+        return NO_ECHO_MM
+    return (pulse_us * 343) // 2000
+
+
+def median(values: list) -> int:
+    """The median of a short list (sorted in place; upper median for even lengths, as on the board)."""
+    values.sort()
+    return values[len(values) // 2]
+
+
+def ultrasonic_occupied(pulses_us: list, threshold_mm: int) -> bool:
+    """Occupied when the median distance of the pings is nearer than the threshold."""
+    mm = [echo_us_to_mm(p) for p in pulses_us]
+    return median(mm) < threshold_mm
+
+
+def digital_occupied(level: int, invert: bool) -> bool:
+    """PIR / IR beam level to occupied; `invert` for active-low modules (a broken beam often reads 1)."""
+    return (level != 0) != invert

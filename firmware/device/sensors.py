@@ -1,0 +1,61 @@
+"""Board I/O for the zone sensors: machine.Pin and machine.time_pulse_us. Decisions live in sensing.py.
+
+Each sensor object has one method, `occupied() -> bool`, the raw (undebounced) reading.
+"""
+
+import time
+
+from machine import Pin, time_pulse_us
+
+from sensing import digital_occupied, ultrasonic_occupied
+
+ECHO_TIMEOUT_US = 30000
+"""~5 m round trip: beyond the HC-SR04's range, and short enough that N pings fit well inside the watchdog."""
+PING_GAP_MS = 25
+"""Let the previous ping's echoes die out before the next one (cross-talk from the walls of a corridor)."""
+
+
+class DigitalSensor:
+    """PIR (high while motion) or IR break-beam receiver; `invert` for active-low modules."""
+
+    def __init__(self, pin: int, invert: bool = False) -> None:
+        self._pin = Pin(pin, Pin.IN)
+        self.invert = invert
+
+    def occupied(self) -> bool:
+        return digital_occupied(self._pin.value(), self.invert)
+
+
+class Ultrasonic:
+    """HC-SR04: 10 us trigger pulse, echo high for the round trip; median of `samples` pings."""
+
+    def __init__(self, trigger_pin: int, echo_pin: int, threshold_mm: int, samples: int = 5) -> None:
+        self._trig = Pin(trigger_pin, Pin.OUT)
+        self._trig.value(0)
+        self._echo = Pin(echo_pin, Pin.IN)
+        self.threshold_mm = threshold_mm
+        self._pulses = [0] * samples
+
+    def ping_us(self) -> int:
+        """One measurement: echo pulse length in us, negative on timeout (no echo)."""
+        self._trig.value(0)
+        time.sleep_us(2)
+        self._trig.value(1)
+        time.sleep_us(10)
+        self._trig.value(0)
+        return time_pulse_us(self._echo, 1, ECHO_TIMEOUT_US)
+
+    def occupied(self) -> bool:
+        pulses = self._pulses
+        for i in range(len(pulses)):
+            if i:
+                time.sleep_ms(PING_GAP_MS)
+            pulses[i] = self.ping_us()
+        return ultrasonic_occupied(pulses, self.threshold_mm)
+
+
+def from_config(cfg):
+    """The sensor described by a nodeconfig.NodeConfig."""
+    if cfg.sensor_type == "hcsr04":
+        return Ultrasonic(cfg.trigger_pin, cfg.echo_pin, cfg.threshold_mm, cfg.samples)
+    return DigitalSensor(cfg.pin, cfg.invert)

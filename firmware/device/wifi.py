@@ -1,0 +1,32 @@
+"""Board I/O for Wi-Fi (station mode), written so that nothing here ever waits.
+
+`start()` asks the radio to join and returns at once; the main loop calls `connected()` every iteration and
+gives up on an attempt after its own timeout (then backs off and calls `start()` again). That keeps the
+watchdog-fed main loop the only loop on the board.
+"""
+
+import network
+
+
+class Wifi:
+    def __init__(self, ssid: str, password: str) -> None:
+        self.ssid = ssid
+        self.password = password
+        self._sta = network.WLAN(network.STA_IF)
+        ap = network.WLAN(network.AP_IF)
+        if ap.active():
+            ap.active(False)  # the ESP8266 starts its own access point by default: not on a site network
+
+    def start(self) -> None:
+        """Begin (or restart) joining the access point; returns immediately."""
+        sta = self._sta
+        sta.active(True)
+        if self.ssid:
+            try:
+                sta.disconnect()
+            except OSError:
+                pass
+            sta.connect(self.ssid, self.password)
+
+    def connected(self) -> bool:
+        return self._sta.isconnected()
