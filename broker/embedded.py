@@ -135,6 +135,10 @@ class BrokerThread:
     def port(self) -> int:
         return self._started().port
 
+    @property
+    def credentials_dir(self) -> Path:
+        return self._creds
+
     def credentials(self, ident: str) -> Credentials:
         return self._started().credentials(ident)
 

@@ -3,6 +3,9 @@
 - Fact 1 (a connecting client receives the retained messages matching *other* clients' subscriptions) and
   fact 2 (a retained QoS 0 message is delivered at the subscriber's QoS): `WsnavBroker` sends retained messages
   only for the session's own subscriptions, at min(granted QoS, stored QoS).
+- Fact 4 (silent clients are never dropped): a client that sends nothing for 1.5 x its keepalive (MQTT 3.1.1
+  section 3.1.2.10) is disconnected as abnormal, so its last will (`offline`) is published: a node that loses
+  power is reported within seconds, not never.
 - Fact 3 (a listener that cannot bind leaves a process with no listener): `start_broker` raises
   `BrokerStartError` with one line, after closing whatever did open, so the caller exits non-zero.
 - Fact 8 (the amqtt CLI dies on SIGTERM without shutdown): `serve` turns SIGTERM and SIGINT into a clean
@@ -14,14 +17,18 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import signal
 import socket
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
+from amqtt.adapters import ReaderAdapter, WriterAdapter
 from amqtt.broker import Broker
 from amqtt.errors import AMQTTError, BrokerError, PluginError, PluginLoadError
+from amqtt.mqtt.protocol.broker_handler import BrokerProtocolHandler
 from amqtt.session import Session
 
 from broker.amqtt_config import BrokerOptions, amqtt_config, bind_text
@@ -46,7 +53,20 @@ logging.getLogger("amqtt.broker").addFilter(_DropStartupTraceback())
 
 
 class WsnavBroker(Broker):
-    """amqtt's Broker with retained-message delivery fixed (facts 1 and 2)."""
+    """amqtt's Broker with retained-message delivery (facts 1, 2) and keepalive (fact 4) fixed."""
+
+    async def _initialize_client_session(
+        self, reader: ReaderAdapter, writer: WriterAdapter, remote_address: str, remote_port: int
+    ) -> tuple[BrokerProtocolHandler, Session]:
+        handler, session = await super()._initialize_client_session(
+            reader, writer, remote_address, remote_port
+        )
+        if session.keep_alive > 0:
+            # amqtt's reader already times out after keep_alive seconds, then calls a handler hook that does
+            # nothing: stretch the timeout to the spec's 1.5x and make the hook end the session abnormally.
+            session.keep_alive = math.ceil(session.keep_alive * 1.5)
+            setattr(handler, "handle_read_timeout", partial(_drop_silent_client, handler))  # noqa: B010
+        return handler, session
 
     async def _publish_retained_messages_for_subscription(
         self, subscription: tuple[str, int], session: Session
@@ -75,6 +95,17 @@ class WsnavBroker(Broker):
         ]
         if tasks:
             await asyncio.wait(tasks)
+
+
+def _drop_silent_client(handler: BrokerProtocolHandler) -> None:
+    client_id = handler.session.client_id if handler.session else None
+    log.info(f"{client_id}: silent for 1.5x its keepalive, disconnecting (its will is published)")
+    task = asyncio.ensure_future(handler.handle_connection_closed())
+    _background.add(task)
+    task.add_done_callback(_background.discard)
+
+
+_background: set[asyncio.Future[None]] = set()
 
 
 @dataclass

@@ -1,0 +1,80 @@
+"""The embeddable broker (asyncio context manager and thread), QoS of retained messages (fact 2) and the
+keepalive fix (fact 4): a node that goes silent gets its will published."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from pathlib import Path
+
+import paho.mqtt.client as mqtt
+from paho.mqtt.enums import CallbackAPIVersion
+
+from broker.embedded import BrokerThread, embedded_broker
+from schemas import topics
+from tests.site_fixtures import tiny_site
+from tests.test_broker_helpers import TIMEOUT, Endpoint, client
+
+SITE = "tiny"
+
+
+def test_async_context_manager_generates_credentials_and_stops(tmp_path: Path) -> None:
+    site = tiny_site(tmp_path / "site")
+    state = topics.zone_state(SITE, "z1", "n1")
+
+    async def main() -> None:
+        async with embedded_broker(site, data_dir=tmp_path / "data") as broker:
+            ep = Endpoint("amqtt", broker.host, broker.port, broker.credentials_dir)
+            assert broker.credentials("n1").username == "n1"
+
+            def exchange() -> None:
+                with client(ep, "n1") as node, client(ep, "robot1") as robot:
+                    assert robot.subscribe(topics.all_zone_states(SITE)) == [1]
+                    node.publish(state, b"blocked", retain=True)
+                    robot.wait_for(state, b"blocked")
+
+            await asyncio.to_thread(exchange)
+            creds = broker.credentials_dir
+        assert not creds.exists()  # the temporary credentials are gone with the broker
+
+    asyncio.run(asyncio.wait_for(main(), TIMEOUT * 2))
+
+
+def test_retained_qos0_is_delivered_at_qos0(tmp_path: Path) -> None:
+    site = tiny_site(tmp_path / "site")
+    state = topics.zone_state(SITE, "z1", "n1")
+    with BrokerThread(site) as broker:
+        ep = Endpoint("amqtt", broker.host, broker.port, broker.credentials_dir)
+        with client(ep, "n1") as node:
+            node.publish(state, b"qos0", qos=0, retain=True)
+            node.publish(topics.node_status(SITE, "n1"), b"online", qos=1, retain=True)  # after the QoS 0 one
+        with client(ep, "robot1") as robot:
+            assert robot.subscribe(f"wsn/{SITE}/nodes/#") == [1]
+            robot.wait_for(topics.node_status(SITE, "n1"), b"online")
+            assert robot.subscribe(topics.all_zone_states(SITE)) == [1]
+            got = robot.wait_for(state, b"qos0")
+        assert got.retain and got.qos == 0
+
+
+def test_silent_client_is_dropped_and_its_will_published(tmp_path: Path) -> None:
+    site = tiny_site(tmp_path / "site")
+    status = topics.node_status(SITE, "n1")
+    with BrokerThread(site) as broker:
+        ep = Endpoint("amqtt", broker.host, broker.port, broker.credentials_dir)
+        with client(ep, "robot1") as robot:
+            assert robot.subscribe(status) == [1]
+            node = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="n1")
+            node.username_pw_set("n1", ep.password("n1"))
+            connected = threading.Event()
+            node.on_connect = lambda *_: connected.set()
+            node.will_set(status, b"offline", qos=1, retain=True)
+            node.connect(ep.host, ep.port, keepalive=2)
+            node.loop_start()
+            assert connected.wait(TIMEOUT)
+            node.publish(status, b"online", qos=1, retain=True).wait_for_publish(TIMEOUT)
+            robot.wait_for(status, b"online")
+            node.loop_stop()  # the socket stays open, but the node never speaks again (power cut, hang)
+            robot.wait_for(status, b"offline")  # within 1.5 x 2 s, not never
+            sock = node.socket()
+            if sock is not None:
+                sock.close()
