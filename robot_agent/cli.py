@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -41,6 +42,8 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     plan.add_argument("--cost-scaling", type=float, default=3.0, metavar="K", help="default 3.0")
     plan.add_argument("--png", type=Path, help="draw the path over the site")
     plan.set_defaults(func=plan_command)
+    # Let `--to -0.5,-2` through: argparse would take "-0.5,-2" for an option. Python 3.13 does this itself.
+    plan._negative_number_matcher = re.compile(r"^-\.?\d")
 
 
 def frame_of(site: Site) -> GridFrame:
