@@ -1,29 +1,15 @@
-"""`wsnav plan`: an offline plan on a site with some zones blocked, no broker; one JSON object on stdout.
+"""`wsnav plan --site DIR --from POINT --to POINT [--block ZONE ...] [--png FILE]`: an offline plan, no broker.
 
-It builds the same costmap the agent would hold with those zones reported `blocked` (static layer, zones
-lethal, inflation for the robot's footprint), so a site's routes can be checked before any robot runs.
+Prints one JSON object (`reachable`, `length_m`, `path`, `blocked_zones`, `plan_ms`, ...). The work lives in
+robot_agent.offline_plan, imported only when the command runs, so other commands start fast.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import re
-import time
-from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
-
-import numpy as np
-from numpy.typing import NDArray
-
-from robot_agent.global_planner import Plan, PlannerParams, plan_path, simplify
-from robot_agent.inflation import LETHAL_OBSTACLE, InflationParams, inflate, static_layer
-from robot_agent.zone_geometry import GridFrame, polygon_window
-from schemas.ros_map import FREE
-from schemas.site import Site, SiteError, load_site
-from wsnav.cli_support import CliError
 
 if TYPE_CHECKING:
     from wsnav.cli_support import Parser
@@ -46,144 +32,7 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     plan._negative_number_matcher = re.compile(r"^-\.?\d")
 
 
-def frame_of(site: Site) -> GridFrame:
-    grid = site.grid
-    return GridFrame(grid.width, grid.height, grid.resolution, grid.origin[0], grid.origin[1])
-
-
-def zone_lethal(site: Site, blocked: Sequence[str]) -> NDArray[np.bool_]:
-    """Cells of the blocked zones (what the zone layer marks lethal)."""
-    frame = frame_of(site)
-    mask = np.zeros((frame.height, frame.width), dtype=bool)
-    for zone_id in blocked:
-        window = polygon_window(site.spec.zone(zone_id).polygon, frame)
-        if window.mask.size:
-            mask[window.rows, window.cols] |= window.mask
-    return mask
-
-
-def site_costmap(site: Site, blocked: Sequence[str], inflation: InflationParams) -> NDArray[np.uint8]:
-    """Static layer, blocked zones lethal, then inflation: the agent's global costmap for these zone states."""
-    costs = static_layer(site.grid)
-    costs[zone_lethal(site, blocked)] = LETHAL_OBSTACLE
-    return inflate(costs, site.grid.resolution, inflation)
-
-
-def parse_point(site: Site, text: str, what: str) -> tuple[float, float, float]:
-    """A named point of the site, or `x,y` / `x,y,yaw` in metres; must lie in the map's free space."""
-    if text in site.spec.points:
-        return site.point(text)
-    parts = text.split(",")
-    try:
-        values = [float(v) for v in parts]
-    except ValueError:
-        values = []
-    if len(values) not in (2, 3) or not all(math.isfinite(v) for v in values):
-        known = ", ".join(sorted(site.spec.points)) or "none"
-        raise CliError(f"{what} {text!r}: not a point of site {site.name!r} (points: {known}) nor x,y[,yaw]")
-    x, y = values[0], values[1]
-    yaw = values[2] if len(values) == 3 else 0.0
-    grid = site.grid
-    if not grid.contains(x, y):
-        x0, y0, x1, y1 = grid.bounds
-        raise CliError(f"{what} [{x:g}, {y:g}] lies outside the map (x {x0:g}..{x1:g}, y {y0:g}..{y1:g})")
-    row, col = grid.world_to_cell(x, y)
-    value = int(grid.data[row, col])
-    if value != FREE:
-        raise CliError(f"{what} [{x:g}, {y:g}] lies inside {'unknown space' if value < 0 else 'a wall'}")
-    return x, y, yaw
-
-
 def plan_command(args: argparse.Namespace) -> int:
-    try:
-        site = load_site(args.site)
-    except SiteError as exc:
-        raise CliError(str(exc)) from None
-    start = parse_point(site, args.start, "--from")
-    goal = parse_point(site, args.goal, "--to")
-    zone_ids = [z.id for z in site.spec.zones]
-    blocked: list[str] = []
-    for zone in args.block:
-        if zone not in zone_ids:
-            raise CliError(
-                f"--block {zone!r}: no such zone in site {site.name!r} (zones: {', '.join(zone_ids)})"
-            )
-        if zone not in blocked:
-            blocked.append(zone)
-    radius = robot_radius(site, args.robot)
-    try:
-        inflation = InflationParams(radius, max(args.inflation_radius, radius), args.cost_scaling)
-    except ValueError as exc:
-        raise CliError(str(exc)) from None
-    t0 = time.perf_counter()
-    costs = site_costmap(site, blocked, inflation)
-    costmap_ms = (time.perf_counter() - t0) * 1000.0
-    plan = plan_path(costs, site.grid.resolution, site.grid.origin, start[:2], goal[:2], PlannerParams())
-    out = plan_json(site, args.start, args.goal, start, goal, blocked, plan, costmap_ms)
-    if args.png is not None:
-        draw_plan(site, plan, blocked, args.png, f"{args.start} -> {args.goal}")
-        out["png"] = str(args.png)
-    print(json.dumps(out))
-    return 0
+    from robot_agent.offline_plan import plan_command as run
 
-
-def robot_radius(site: Site, robot_id: str | None) -> float:
-    robots = site.spec.robots
-    if robot_id is None:
-        return robots[0].footprint_radius if robots else 0.105
-    for robot in robots:
-        if robot.id == robot_id:
-            return robot.footprint_radius
-    raise CliError(f"--robot {robot_id!r}: no such robot in site {site.name!r}")
-
-
-def plan_json(
-    site: Site,
-    start_name: str,
-    goal_name: str,
-    start: tuple[float, float, float],
-    goal: tuple[float, float, float],
-    blocked: list[str],
-    plan: Plan,
-    costmap_ms: float,
-) -> dict[str, object]:
-    """The command's output: path vertices within half a cell of the planned polyline, in metres."""
-    path = simplify(plan.path, site.grid.resolution / 2) if plan.reachable else plan.path
-    return {
-        "site": site.name,
-        "from": start_name,
-        "to": goal_name,
-        "start": [round(v, 4) for v in start],
-        "goal": [round(v, 4) for v in goal],
-        "blocked_zones": blocked,
-        "reachable": plan.reachable,
-        "reason": plan.reason,
-        "length_m": round(plan.length_m, 3) if plan.reachable else None,
-        "path": [[round(float(x), 3), round(float(y), 3)] for x, y in path],
-        "plan_ms": round(plan.plan_ms, 2),
-        "costmap_ms": round(costmap_ms, 2),
-    }
-
-
-def draw_plan(site: Site, plan: Plan, blocked: list[str], png: Path, title: str) -> None:
-    import matplotlib.pyplot as plt
-
-    from wsnav.site_render import draw_site, figure_for
-
-    fig, ax = figure_for(site)
-    draw_site(ax, site, blocked=blocked, show_routes=False)
-    if plan.reachable:
-        ax.plot(plan.path[:, 0], plan.path[:, 1], color="blue", linewidth=2.2, label="plan")
-        status = f"{plan.length_m:.2f} m"
-    else:
-        status = f"unreachable ({plan.reason})"
-    blocked_txt = ", ".join(blocked) or "none"
-    ax.set_title(f"site {site.name}: {title}, blocked: {blocked_txt}: {status}")
-    fig.tight_layout()
-    try:
-        png.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(png, dpi=110)
-    except OSError as exc:
-        raise CliError(f"{png}: cannot write picture: {exc.strerror or exc}") from None
-    finally:
-        plt.close(fig)
+    return run(args)

@@ -113,6 +113,7 @@ def test_real_map_sites_check_and_plan(name: str, capsys: pytest.CaptureFixture[
         (["--from", "A", "--to", "1,2,3,4"], "not a point of site"),
         (["--from", "A", "--to", "nan,1"], "not a point of site"),
         (["--from", "A", "--to", "B", "--robot", "r9"], "--robot 'r9': no such robot"),
+        (["--from", "A", "--to", "B", "--inflation-radius", "nan"], "--inflation-radius nan: expected"),
     ],
 )
 def test_bad_input_is_one_line_on_stderr(args: list[str], expected: str) -> None:

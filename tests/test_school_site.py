@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from scipy.ndimage import distance_transform_edt
 
-from robot_agent.cli import site_costmap, zone_lethal
 from robot_agent.global_planner import Plan, PlannerParams, plan_path
 from robot_agent.inflation import InflationParams
+from robot_agent.offline_plan import site_costmap, zone_lethal
 from schemas.site import Site, load_site
 from tests.conftest import SITES
 from wsnav.cli import main
