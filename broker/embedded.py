@@ -114,11 +114,16 @@ class BrokerThread:
         data_dir: Path | None = None,
         flush_interval_s: float = 0.2,
         start_timeout_s: float = 30.0,
+        options: BrokerOptions | None = None,
     ) -> None:
+        """`options`, when given, replaces host, port, data_dir and flush_interval_s (e.g. to add WebSocket
+        or TLS listeners; their bound addresses are in `info.extra`)."""
         self._spec = _spec(site)
         self._temporaries: list[tempfile.TemporaryDirectory[str]] = []
         self._creds = _credentials(self._spec, credentials_dir, self._temporaries)
-        self._options = BrokerOptions(bind=(host, port), data_dir=data_dir, flush_interval_s=flush_interval_s)
+        self._options = options or BrokerOptions(
+            bind=(host, port), data_dir=data_dir, flush_interval_s=flush_interval_s
+        )
         self._timeout = start_timeout_s
         self._ready = threading.Event()
         self._loop: asyncio.AbstractEventLoop | None = None

@@ -1,0 +1,93 @@
+"""The optional listeners: MQTT over WebSocket and MQTT over TLS, with the same authentication."""
+
+from __future__ import annotations
+
+import datetime
+import ipaddress
+import ssl
+import threading
+from pathlib import Path
+
+import paho.mqtt.client as mqtt
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import NameOID
+from paho.mqtt.enums import CallbackAPIVersion
+from paho.mqtt.reasoncodes import ReasonCode
+
+from broker.amqtt_config import BrokerOptions, TlsListener
+from broker.embedded import BrokerThread
+from tests.site_fixtures import tiny_site
+from tests.test_broker_helpers import TIMEOUT
+
+
+def self_signed(directory: Path) -> tuple[Path, Path]:
+    """A throw-away certificate for 127.0.0.1 (it is its own CA)."""
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "127.0.0.1")])
+    now = datetime.datetime.now(datetime.UTC)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - datetime.timedelta(minutes=5))
+        .not_valid_after(now + datetime.timedelta(days=1))
+        .add_extension(
+            x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]), False
+        )
+        .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
+        .sign(key, hashes.SHA256())
+    )
+    certfile, keyfile = directory / "server.crt", directory / "server.key"
+    certfile.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    keyfile.write_bytes(
+        key.private_bytes(
+            serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+        )
+    )
+    return certfile, keyfile
+
+
+def connack(client: mqtt.Client, host: str, port: int) -> ReasonCode:
+    result: list[ReasonCode] = []
+    done = threading.Event()
+
+    def on_connect(_c: object, _u: object, _f: object, reason: ReasonCode, _p: object) -> None:
+        result.append(reason)
+        done.set()
+
+    client.on_connect = on_connect
+    client.connect(host, port, keepalive=30)
+    client.loop_start()
+    try:
+        assert done.wait(TIMEOUT), "no CONNACK"
+        return result[0]
+    finally:
+        client.disconnect()
+        client.loop_stop()
+
+
+def test_websocket_and_tls_listeners_authenticate(tmp_path: Path) -> None:
+    site = tiny_site(tmp_path / "site")
+    certfile, keyfile = self_signed(tmp_path)
+    options = BrokerOptions(
+        bind=("127.0.0.1", 0),
+        ws_bind=("127.0.0.1", 0),
+        tls=TlsListener(("127.0.0.1", 0), certfile, keyfile),
+    )
+    with BrokerThread(site, options=options) as broker:
+        assert broker.info is not None
+        password = broker.credentials("robot1").password
+        ws_host, ws_port = broker.info.extra["ws"]
+        tls_host, tls_port = broker.info.extra["tls"]
+        for creds in [("robot1", password), ("robot1", "wrong-password-wrong-password")]:
+            ws = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="robot1", transport="websockets")
+            ws.username_pw_set(*creds)
+            assert connack(ws, ws_host, ws_port).is_failure == (creds[1] != password)
+            tls = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="robot1")
+            tls.tls_set(ca_certs=str(certfile), cert_reqs=ssl.CERT_REQUIRED)
+            tls.username_pw_set(*creds)
+            assert connack(tls, tls_host, tls_port).is_failure == (creds[1] != password)
