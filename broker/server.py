@@ -3,6 +3,8 @@
 - Fact 1 (a connecting client receives the retained messages matching *other* clients' subscriptions) and
   fact 2 (a retained QoS 0 message is delivered at the subscriber's QoS): `WsnavBroker` sends retained messages
   only for the session's own subscriptions, at min(granted QoS, stored QoS).
+- Authentication before session lookup: see `WsnavBroker._initialize_client_session` (an unauthenticated
+  client could otherwise blind a connected robot by reusing its client id).
 - Fact 4 (silent clients are never dropped): a client that sends nothing for 1.5 x its keepalive (MQTT 3.1.1
   section 3.1.2.10) is disconnected as abnormal, so its last will (`offline`) is published: a node that loses
   power is reported within seconds, not never.
@@ -27,9 +29,12 @@ from pathlib import Path
 
 from amqtt.adapters import ReaderAdapter, WriterAdapter
 from amqtt.broker import Broker
-from amqtt.errors import AMQTTError, BrokerError, PluginError, PluginLoadError
+from amqtt.contexts import ListenerConfig
+from amqtt.errors import AMQTTError, BrokerError, MQTTError, NoDataError, PluginError, PluginLoadError
 from amqtt.mqtt.protocol.broker_handler import BrokerProtocolHandler
-from amqtt.session import Session
+from amqtt.mqtt.puback import PubackPacket
+from amqtt.session import OUTGOING, IncomingApplicationMessage, OutgoingApplicationMessage, Session
+from amqtt.utils import gen_client_id
 
 from broker.amqtt_config import BrokerOptions, amqtt_config, bind_text
 from broker.credentials import PASSWORD_FILE, CredentialsError, read_password_file
@@ -52,21 +57,111 @@ class _DropStartupTraceback(logging.Filter):
 logging.getLogger("amqtt.broker").addFilter(_DropStartupTraceback())
 
 
+_PREAUTHORIZED = "_wsnav_preauthorized"
+
+
+class WsnavProtocolHandler(BrokerProtocolHandler):
+    """amqtt's per-client handler with the QoS 1 send race fixed.
+
+    amqtt 0.12.1 sends PUBLISH and only then registers the PUBACK waiter; on a fast link the PUBACK can come
+    first ("Received PUBACK for unknown pending message"), and the send then hangs 5 s and fails. Registering
+    the waiter first removes the race.
+    """
+
+    async def _handle_qos1_message_flow(
+        self, app_message: OutgoingApplicationMessage | IncomingApplicationMessage
+    ) -> None:
+        if app_message.direction != OUTGOING or self.session is None or app_message.packet_id is None:
+            await super()._handle_qos1_message_flow(app_message)
+            return
+        if app_message.puback_packet:
+            raise AMQTTError(f"Message '{app_message.packet_id}' has already been acknowledged")
+        packet_id = app_message.packet_id
+        if packet_id not in self.session.inflight_out and isinstance(app_message, OutgoingApplicationMessage):
+            self.session.inflight_out[packet_id] = app_message
+        dup = app_message.publish_packet is not None
+        publish_packet = app_message.build_publish_packet(dup=dup)
+        waiter: asyncio.Future[PubackPacket] = asyncio.get_running_loop().create_future()
+        self._puback_waiters[packet_id] = waiter
+        try:
+            await self._send_packet(publish_packet)
+            app_message.publish_packet = publish_packet
+            app_message.puback_packet = await asyncio.wait_for(waiter, timeout=5)
+        except TimeoutError:
+            msg = f"Timeout waiting for PUBACK for packet ID {packet_id}"
+            self.logger.warning(msg)
+            raise TimeoutError(msg) from None
+        finally:
+            self._puback_waiters.pop(packet_id, None)
+            self.session.inflight_out.pop(packet_id, None)
+
+
 class WsnavBroker(Broker):
     """amqtt's Broker with retained-message delivery (facts 1, 2) and keepalive (fact 4) fixed."""
 
     async def _initialize_client_session(
         self, reader: ReaderAdapter, writer: WriterAdapter, remote_address: str, remote_port: int
     ) -> tuple[BrokerProtocolHandler, Session]:
-        handler, session = await super()._initialize_client_session(
-            reader, writer, remote_address, remote_port
-        )
+        """amqtt's version, but authenticating *before* the client id is looked up.
+
+        amqtt 0.12.1 deletes the old session of a clean-session client id (or merges username, password and
+        will into a persistent one) before it checks the password: any unauthenticated client could silently
+        cut a connected robot off its subscriptions, or plant a will on its session, by using its client id.
+        """
+        try:
+            handler, session = await BrokerProtocolHandler.init_from_connect(
+                reader, writer, self.plugins_manager
+            )
+        except AMQTTError as exc:
+            raise AMQTTError(exc) from exc
+        except MQTTError as exc:
+            await writer.close()
+            raise MQTTError(exc) from exc
+        except NoDataError as exc:
+            raise AMQTTError(exc) from exc
+        session.parent = 0
+        if not await self._authenticate_first(session):
+            handler.attach(session, reader, writer)
+            await handler.mqtt_connack_authorize(False)
+            await writer.close()
+            raise AMQTTError(f"connection refused: not authorized (client id {session.client_id!r})")
+
+        if session.clean_session:
+            if session.client_id:
+                await self._delete_session(session.client_id)
+            else:
+                session.client_id = gen_client_id()
+        elif session.client_id in self._sessions:
+            existing, _ = self._sessions[session.client_id]
+            for name in (
+                "will_flag",
+                "will_message",
+                "will_topic",
+                "will_qos",
+                "keep_alive",
+                "username",
+                "password",
+            ):
+                setattr(existing, name, getattr(session, name))
+            session = existing
+            session.parent = 1
         if session.keep_alive > 0:
-            # amqtt's reader already times out after keep_alive seconds, then calls a handler hook that does
-            # nothing: stretch the timeout to the spec's 1.5x and make the hook end the session abnormally.
+            # amqtt's reader times out after keep_alive seconds, then calls a handler hook that does nothing:
+            # stretch the timeout to the spec's 1.5x and make the hook end the session abnormally (fact 4).
             session.keep_alive = math.ceil(session.keep_alive * 1.5)
             setattr(handler, "handle_read_timeout", partial(_drop_silent_client, handler))  # noqa: B010
+        setattr(session, _PREAUTHORIZED, True)
         return handler, session
+
+    async def _authenticate_first(self, session: Session) -> bool:
+        return await super()._authenticate(session, ListenerConfig())
+
+    async def _authenticate(self, session: Session, _: ListenerConfig) -> bool:
+        """Already decided in `_initialize_client_session`; answering again would cost a second argon2 run."""
+        if getattr(session, _PREAUTHORIZED, False):
+            setattr(session, _PREAUTHORIZED, False)
+            return True
+        return await super()._authenticate(session, _)
 
     async def _publish_retained_messages_for_subscription(
         self, subscription: tuple[str, int], session: Session

@@ -199,3 +199,19 @@ def test_client_id_of_another_id_is_refused_by_amqtt(endpoint: Endpoint) -> None
     assert not connect_reason(
         endpoint, "robot1", endpoint.password("robot1"), client_id="robot1-x"
     ).is_failure
+
+
+def test_refused_client_cannot_hijack_a_connected_clients_id(endpoint: Endpoint) -> None:
+    """amqtt 0.12.1 dropped the old session of a client id *before* checking the password: a refused
+    client using `robot1` as its client id left the real robot1 connected but deaf."""
+    state = topics.zone_state(SITE, "z1", "n1")
+    with client(endpoint, "robot1") as robot, client(endpoint, "n1") as node:
+        assert robot.subscribe(topics.all_zone_states(SITE)) == [1]
+        assert connect_reason(endpoint, None, None, client_id="robot1").is_failure
+        assert connect_reason(endpoint, "robot1", "wrong-password-wrong", client_id="robot1").is_failure
+        node.publish(state, b"still-heard")
+        robot.wait_for(state, b"still-heard")
+        if endpoint.kind == "amqtt":  # Mosquitto would let n2 take the id over (and disconnect robot1)
+            assert connect_reason(endpoint, "n2", endpoint.password("n2"), client_id="robot1").is_failure
+            node.publish(state, b"still-heard-2")
+            robot.wait_for(state, b"still-heard-2")
