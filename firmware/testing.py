@@ -1,23 +1,24 @@
 """Host-side helpers for testing the firmware: a killable MQTT broker process and the MicroPython runner.
 
-The broker is the one place to switch from a plain amqtt broker to the project's secure broker
-(`wsnav broker run`, in broker/) once it has landed: `BrokerProcess.start` is all the tests call.
-Run as `python -m firmware.testing broker PORT` to serve a plain auth-less amqtt 0.12.1 broker on loopback.
+The tests run the firmware against the project's own broker (`wsnav broker run`) with the node's real
+credentials (`wsnav broker credentials`); `SiteBroker` is the one place that chooses and starts it.
 """
 
 from __future__ import annotations
 
-import asyncio
 import os
-import signal
-import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from broker.embedded import BrokerProcess as EmbeddedBroker
 
 DEVICE = Path(__file__).resolve().parent / "device"
-HOST_STUBS = Path(__file__).resolve().parent / "host_stubs"
+HOST_STUBS = DEVICE / "host_stubs"
+"""Test-only fakes and drivers for the unix port; never built or deployed (build takes device/*.py only)."""
 HEAP = "38k"
 """The ESP8266's GC heap (DESIGN.md); on the 64-bit unix port objects are bigger, so this is conservative."""
 
@@ -28,80 +29,57 @@ def micropython_exe() -> str:
     return str(here) if here.exists() else "micropython"
 
 
-def micropython_env(build_dir: Path, pins_dir: Path | None = None) -> dict[str, str]:
-    """Environment for the unix port: the built .mpy files (what goes on the board), then the fake
+def micropython_env(device: Path, stubs: Path, pins_dir: Path | None = None) -> dict[str, str]:
+    """Environment for the unix port: the built .mpy files (what goes on the board), then the compiled fake
     machine/network modules, on MICROPYPATH. Source would not do: compiling app.py needs more than 38 KiB."""
     env = dict(os.environ)
-    env["MICROPYPATH"] = f"{build_dir}:{HOST_STUBS}:.frozen"
+    env["MICROPYPATH"] = f"{device}:{stubs}"
     if pins_dir is not None:
         env["WSNAV_PINS"] = str(pins_dir)
     return env
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+class SiteBroker:
+    """The project's broker (`wsnav broker run`, broker/) for a site, as a process a test can kill -9 and
+    restart on the same port with the same data folder. The one place that decides which broker the firmware
+    tests talk to."""
 
-
-def wait_port(host: str, port: int, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        try:
-            with socket.create_connection((host, port), timeout=1.0):
-                return True
-        except OSError:
-            time.sleep(0.1)
-    return False
-
-
-class BrokerProcess:
-    """An MQTT broker in its own process on a fixed loopback port, so a test can kill -9 and restart it."""
-
-    def __init__(self, port: int | None = None, log: Path | None = None) -> None:
+    def __init__(self, site: Path, credentials: Path, data: Path) -> None:
+        self.site = site
+        self.credentials = credentials
+        self.data = data
         self.host = "127.0.0.1"
-        self.port = port or free_port()
-        self.log = log
-        self.proc: subprocess.Popen[bytes] | None = None
+        self.port = 0
+        self._proc: EmbeddedBroker | None = None
 
-    def start(self, timeout_s: float = 60.0) -> None:
-        cmd = [sys.executable, "-m", "firmware.testing", "broker", str(self.port)]
-        out = open(self.log, "ab") if self.log else subprocess.DEVNULL  # noqa: SIM115
-        root = Path(__file__).resolve().parent.parent
-        self.proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, cwd=root)
-        if not wait_port(self.host, self.port, timeout_s):
-            self.kill()
-            raise RuntimeError(f"broker did not listen on {self.host}:{self.port} within {timeout_s} s")
+    def start(self, timeout_s: float = 120.0) -> None:
+        """Start (first time on a free port, then on the same port) and wait for its ready line."""
+        from broker.embedded import BrokerProcess as EmbeddedBroker
+
+        proc = EmbeddedBroker(
+            self.site,
+            self.credentials,
+            host=self.host,
+            port=self.port,
+            data_dir=self.data,
+            start_timeout_s=timeout_s,
+        )
+        self._proc = proc.start()
+        self.port = proc.port
 
     def kill(self) -> None:
         """SIGKILL: no clean shutdown, no DISCONNECT to the clients, like a Raspberry Pi losing power."""
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGKILL)
-            self.proc.wait(timeout=30)
-        self.proc = None
+        if self._proc is not None:
+            self._proc.kill()
+        self._proc = None
 
 
-def _serve_amqtt(port: int) -> None:
-    from amqtt.broker import Broker
-
-    config = {
-        "listeners": {"default": {"type": "tcp", "bind": f"127.0.0.1:{port}"}},
-        "plugins": {"amqtt.plugins.authentication.AnonymousAuthPlugin": {"allow_anonymous": True}},
-    }
-
-    async def serve() -> None:
-        broker = Broker(config)
-        await broker.start()
-        await asyncio.Event().wait()
-
-    asyncio.run(serve())
-
-
-if __name__ == "__main__":
-    if len(sys.argv) == 3 and sys.argv[1] == "broker":
-        _serve_amqtt(int(sys.argv[2]))
-    else:
-        sys.exit("usage: python -m firmware.testing broker PORT")
+def write_credentials(site: Path, out: Path) -> None:
+    """`wsnav broker credentials --site SITE --out OUT`, the command installers run."""
+    cmd = [sys.executable, "-m", "wsnav.cli", "broker", "credentials", "--site", str(site), "--out", str(out)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, check=False)
+    if proc.returncode != 0:
+        raise RuntimeError(f"broker credentials failed: {proc.stderr.strip()}")
 
 
 def build_for_host(out: Path) -> tuple[Path, Path]:

@@ -84,8 +84,7 @@ class FakeBroker:
 
 def run_probe(build: tuple[Path, Path], port: int, case: str) -> str:
     device, stubs = build
-    env = micropython_env(device)
-    env["MICROPYPATH"] = f"{device}:{stubs}"
+    env = micropython_env(device, stubs)
     proc = subprocess.run(
         micropython_cmd("mqtt_probe", str(port), case), env=env, capture_output=True, text=True, timeout=60
     )
@@ -104,7 +103,7 @@ def test_connect_carries_will_credentials_and_keepalive(host_build: tuple[Path, 
 
     def script(conn: socket.socket) -> None:
         seen["connect"] = connect_and_ack(conn)
-        kind, body = read_packet(conn)  # QoS 1 publish
+        _kind, body = read_packet(conn)  # QoS 1 publish
         conn.sendall(bytes([0x40, 2]) + body[-7:-5])  # pid sits after the topic, before b"hello"
         read_packet(conn)  # QoS 0
         seen["last"] = bytes([read_packet(conn)[0]])
@@ -184,7 +183,10 @@ def test_missing_pingresp_is_detected(host_build: tuple[Path, Path]) -> None:
 
 
 def test_refused_connack_and_silent_broker_fail_fast(host_build: tuple[Path, Path]) -> None:
-    broker = FakeBroker(lambda conn: connect_and_ack(conn, 5) and None)
+    def refuse(conn: socket.socket) -> None:
+        connect_and_ack(conn, 5)
+
+    broker = FakeBroker(refuse)
     out = run_probe(host_build, broker.port, "publish")
     assert "error connection refused, code 5" in out, out
 

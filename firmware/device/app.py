@@ -57,28 +57,27 @@ class Node:
     """A running node. `sensor` has `occupied()`, `wifi` has `start()`/`connected()` (or is None: wired)."""
 
     def __init__(self, cfg, sensor, wifi=None, wdt=None, clock=None, log=print) -> None:
-        self.cfg = cfg
         self.sensor = sensor
         self.wifi = wifi
         self.wdt = wdt
         self.clock = clock if clock is not None else Clock()
         self.log = log
         self.logic = NodeLogic(
-            cfg.site,
-            cfg.zone,
-            cfg.node,
-            cfg.on_delay_ms,
-            cfg.off_delay_ms,
-            cfg.heartbeat_ms,
+            cfg["site"],
+            cfg["zone"],
+            cfg["node"],
+            cfg["on_delay_ms"],
+            cfg["off_delay_ms"],
+            cfg["heartbeat_ms"],
             random.getrandbits(20),
         )
         self.client = MQTTClient(
-            cfg.node,
-            cfg.broker_host,
-            cfg.broker_port,
-            cfg.username,
-            cfg.password,
-            cfg.keepalive_s,
+            cfg["node"],
+            cfg["broker_host"],
+            cfg["broker_port"],
+            cfg["username"],
+            cfg["password"],
+            cfg["keepalive_s"],
             _SOCKET_TIMEOUT_MS,
         )
         self.wifi_backoff = Backoff(1000, 60000, _rand16)
@@ -206,6 +205,6 @@ def main(cfg) -> None:
     import sensors
     import wifi
 
-    node = Node(cfg, sensors.from_config(cfg), wifi.Wifi(cfg.wifi_ssid, cfg.wifi_password), machine.WDT())
+    node = Node(cfg, sensors.from_config(cfg), wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"]), machine.WDT())
     gc.collect()
     node.run()

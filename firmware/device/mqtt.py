@@ -76,7 +76,8 @@ class MQTTClient:
         self._poller = None
         self._pid = 0
         self._last_tx = 0
-        self._ping_sent = -1
+        self._ping_sent = 0
+        self._ping_pending = False
         self.pings = 0
         self.ignored = 0
 
@@ -156,7 +157,7 @@ class MQTTClient:
             if k == kind and (body is None or b == body):
                 return b
             if k == _PINGRESP:
-                self._ping_sent = -1
+                self._ping_pending = False
         raise MQTTError("timed out waiting for packet type " + str(kind >> 4))
 
     # -- the protocol -----------------------------------------------------------------------------------
@@ -192,7 +193,7 @@ class MQTTClient:
         poller = select.poll()
         poller.register(sock, select.POLLIN)
         self._poller = poller
-        self._ping_sent = -1
+        self._ping_pending = False
 
     def publish(self, topic: str, payload: bytes, retain: bool = False, qos: int = 0) -> None:
         """Send a PUBLISH; with qos=1 wait (bounded) for the matching PUBACK. No retry: the caller reconnects."""
@@ -210,6 +211,7 @@ class MQTTClient:
         """Send PINGREQ; the PINGRESP is collected by `poll` or any later wait."""
         self._send(bytes((_PINGREQ, 0)))
         self._ping_sent = ticks_ms()
+        self._ping_pending = True
         self.pings += 1
 
     def poll(self) -> None:
@@ -225,13 +227,13 @@ class MQTTClient:
                 raise MQTTError("connection lost")
             kind, _body = self._read_packet()
             if kind == _PINGRESP:
-                self._ping_sent = -1
+                self._ping_pending = False
 
     def maintain(self) -> None:
         """Keepalive: ping after half the keepalive period without sending; fail if a PINGRESP is overdue."""
         now = ticks_ms()
         half = self.keepalive_s * 500
-        if self._ping_sent >= 0:
+        if self._ping_pending:
             if ticks_diff(now, self._ping_sent) > max(half, self.timeout_ms):
                 raise MQTTError("no PINGRESP from broker")
         elif ticks_diff(now, self._last_tx) >= half:

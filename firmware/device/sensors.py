@@ -55,7 +55,7 @@ class Ultrasonic:
 
 
 def from_config(cfg):
-    """The sensor described by a nodeconfig.NodeConfig."""
-    if cfg.sensor_type == "hcsr04":
-        return Ultrasonic(cfg.trigger_pin, cfg.echo_pin, cfg.threshold_mm, cfg.samples)
-    return DigitalSensor(cfg.pin, cfg.invert)
+    """The sensor described by a parsed config (nodeconfig.parse)."""
+    if cfg["sensor_type"] == "hcsr04":
+        return Ultrasonic(cfg["trigger_pin"], cfg["echo_pin"], cfg["threshold_mm"], cfg["samples"])
+    return DigitalSensor(cfg["pin"], cfg["invert"])

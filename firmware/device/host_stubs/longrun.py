@@ -4,7 +4,7 @@
 
 An accelerated clock: each 50 ms loop period advances simulated time without sleeping, so heartbeats, debounce
 delays and backoffs follow simulated time; the MQTT link is real (pings follow real time). The sensor follows a
-fixed pattern of simulated time. Prints "heap ..." with the lowest free heap seen after each simulated minute.
+fixed pattern of simulated time. Prints "stat KEY VALUE ..." lines, among them the lowest free heap seen after each simulated minute.
 """
 
 import gc
@@ -46,7 +46,7 @@ class PatternSensor:
 
 
 clock = FastClock()
-node = app.Node(CFG, PatternSensor(clock), wifi.Wifi(CFG.wifi_ssid, CFG.wifi_password), machine.WDT(), clock)
+node = app.Node(CFG, PatternSensor(clock), wifi.Wifi(CFG["wifi_ssid"], CFG["wifi_password"]), machine.WDT(), clock)
 node.broker_backoff = Backoff(100, 1000, app._rand16)
 sim_ms = int(sys.argv[2]) * 1000
 gc.collect()
@@ -60,7 +60,7 @@ while until <= sim_ms:
     if free < lowest:
         lowest = free
     until += 60000
-print("heap start", start_free, "lowest", lowest, "end", gc.mem_free())
-print("publications", node.logic.publications, "connects", node.connects, "errors", node.errors)
-print("pings", node.client.pings, "feeds", machine.WDT.feeds, "sim_s", clock.t // 1000)
+print("stat heap_start", start_free, "heap_lowest", lowest, "heap_end", gc.mem_free())
+print("stat publications", node.logic.publications, "connects", node.connects, "errors", node.errors)
+print("stat pings", node.client.pings, "feeds", getattr(machine.WDT, "feeds", -1), "sim_s", clock.t // 1000)
 node.client.disconnect()

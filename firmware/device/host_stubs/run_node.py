@@ -23,7 +23,7 @@ import sensors  # noqa: E402
 import wifi  # noqa: E402
 from backoff import Backoff  # noqa: E402
 
-node = app.Node(CFG, sensors.from_config(CFG), wifi.Wifi(CFG.wifi_ssid, CFG.wifi_password), machine.WDT())
+node = app.Node(CFG, sensors.from_config(CFG), wifi.Wifi(CFG["wifi_ssid"], CFG["wifi_password"]), machine.WDT())
 node.broker_backoff = Backoff(100, 1000, app._rand16)
 gc.collect()
 print("heap free", gc.mem_free())

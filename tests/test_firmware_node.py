@@ -1,0 +1,320 @@
+"""The zone-node firmware end to end: the built .mpy files on the MicroPython unix port with a 38 KiB heap,
+fake pins and Wi-Fi, against the project's broker (`wsnav broker run`) with the node's real credentials.
+
+Every payload the node sends is checked byte for byte against schemas.messages. Waits are on conditions with
+generous timeouts (a busy 2-core machine), never fixed sleeps that decide the outcome, except the glitch itself.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import paho.mqtt.client as mqtt
+import pytest
+from paho.mqtt.enums import CallbackAPIVersion
+
+from firmware.testing import (
+    NodeProcess,
+    SiteBroker,
+    build_for_host,
+    micropython_cmd,
+    micropython_env,
+    write_credentials,
+)
+from schemas import topics
+from schemas.credentials import Credentials, NodeConfig
+from schemas.messages import NodeStatus, ZoneState, parse_payload
+from tests.conftest import REPO
+
+SITE_DIR = REPO / "sites" / "school"
+SITE = "school"
+NODE, ZONE, PIN = "n1", "z1", 5
+STATE_TOPIC = topics.zone_state(SITE, ZONE, NODE)
+STATUS_TOPIC = topics.node_status(SITE, NODE)
+WAIT = 60.0
+
+
+@dataclass
+class Msg:
+    topic: str
+    payload: bytes
+    retain: bool
+
+
+class Subscriber:
+    """The operator's paho client over TCP, subscribed to the whole site; collects every message."""
+
+    def __init__(self, broker: SiteBroker, creds: Path) -> None:
+        op = Credentials.model_validate_json((creds / "operator.json").read_text())
+        self.messages: list[Msg] = []
+        self._lock = threading.Lock()
+        self.client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=f"fwtest-{time.monotonic_ns()}")
+        self.client.username_pw_set(op.username, op.password)
+        self.client.on_message = self._on_message
+        subscribed = threading.Event()
+        self.client.on_subscribe = lambda *_a: subscribed.set()
+        self.client.connect(broker.host, broker.port)
+        self.client.loop_start()
+        self.client.subscribe(f"wsn/{SITE}/#", qos=1)
+        assert subscribed.wait(WAIT), "subscription not acknowledged"
+
+    def _on_message(self, _c: object, _u: object, msg: mqtt.MQTTMessage) -> None:
+        with self._lock:
+            self.messages.append(Msg(msg.topic, bytes(msg.payload), bool(msg.retain)))
+
+    def snapshot(self) -> list[Msg]:
+        with self._lock:
+            return list(self.messages)
+
+    def wait(self, pred: Callable[[Msg], bool], timeout: float = WAIT, after: int = 0) -> Msg:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for m in self.snapshot()[after:]:
+                if pred(m):
+                    return m
+            time.sleep(0.05)
+        raise AssertionError(f"no matching message within {timeout} s; got {self.snapshot()[after:]}")
+
+    def close(self) -> None:
+        self.client.loop_stop()
+        self.client.disconnect()
+
+
+def state_of(m: Msg) -> ZoneState | None:
+    """The validated zone state, checking the exact bytes the firmware sent against the model's own."""
+    if m.topic != STATE_TOPIC or not m.payload:
+        return None
+    zs = parse_payload(ZoneState, m.payload)
+    assert zs.to_payload() == m.payload, m.payload
+    return zs
+
+
+def is_state(value: str) -> Callable[[Msg], bool]:
+    return lambda m: (s := state_of(m)) is not None and s.state == value
+
+
+def is_status(value: str) -> Callable[[Msg], bool]:
+    def pred(m: Msg) -> bool:
+        if m.topic != STATUS_TOPIC:
+            return False
+        st = parse_payload(NodeStatus, m.payload)
+        assert st.to_payload() == m.payload, m.payload
+        return st.status == value
+
+    return pred
+
+
+@pytest.fixture(scope="module")
+def host_build(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    return build_for_host(tmp_path_factory.mktemp("fw"))
+
+
+@pytest.fixture(scope="module")
+def creds(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("creds")
+    write_credentials(SITE_DIR, out)
+    return out
+
+
+@pytest.fixture
+def broker(creds: Path, tmp_path: Path) -> Iterator[SiteBroker]:
+    b = SiteBroker(SITE_DIR, creds, tmp_path / "broker-data")
+    b.start()
+    yield b
+    b.kill()
+
+
+@pytest.fixture
+def subscriber(broker: SiteBroker, creds: Path) -> Iterator[Subscriber]:
+    s = Subscriber(broker, creds)
+    yield s
+    s.close()
+
+
+def node_config(creds: Path, broker: SiteBroker, out: Path, **overrides: object) -> Path:
+    """The node's credentials file as written by `wsnav broker credentials`, with the broker address filled in
+    at deploy time (and test timings); validated by the schema before the firmware sees it."""
+    data = json.loads((creds / f"{NODE}.json").read_text())
+    data["broker"] = {"host": broker.host, "port": broker.port}
+    data.update(overrides)
+    cfg = NodeConfig.model_validate(data)
+    assert (cfg.node, cfg.zone, cfg.sensor.type) == (NODE, ZONE, "pir")
+    out.write_text(cfg.model_dump_json())
+    return out
+
+
+class Pins:
+    def __init__(self, folder: Path) -> None:
+        folder.mkdir(exist_ok=True)
+        self.folder = folder
+
+    def set(self, pin: int, level: int) -> None:
+        tmp = self.folder / f".{pin}.tmp"
+        tmp.write_text(str(level))
+        tmp.replace(self.folder / str(pin))  # atomic: the node never reads a half-written file
+
+
+@pytest.fixture
+def pins(tmp_path: Path) -> Pins:
+    p = Pins(tmp_path / "pins")
+    p.set(PIN, 0)
+    return p
+
+
+@pytest.fixture
+def start_node(
+    host_build: tuple[Path, Path], pins: Pins, tmp_path: Path
+) -> Iterator[Callable[[Path], NodeProcess]]:
+    started: list[NodeProcess] = []
+
+    def start(config: Path) -> NodeProcess:
+        device, stubs = host_build
+        env = micropython_env(device, stubs, pins.folder)
+        node = NodeProcess(micropython_cmd("run_node", str(config)), env, tmp_path / "node.log")
+        started.append(node)
+        return node
+
+    yield start
+    for node in started:
+        node.stop()
+
+
+def test_sensor_change_reaches_a_subscriber(
+    broker: SiteBroker, creds: Path, subscriber: Subscriber, pins: Pins, start_node, tmp_path: Path
+) -> None:
+    cfg = node_config(
+        creds, broker, tmp_path / "config.json", on_delay_ms=200, off_delay_ms=400, heartbeat_s=30
+    )
+    node = start_node(cfg)
+    subscriber.wait(is_status("online"))
+    first = subscriber.wait(is_state("clear"))
+    pins.set(PIN, 1)
+    blocked = subscriber.wait(is_state("blocked"))
+    pins.set(PIN, 0)
+    cleared = subscriber.wait(is_state("clear"), after=subscriber.snapshot().index(blocked))
+    seqs = [s.seq for s in (state_of(first), state_of(blocked), state_of(cleared)) if s is not None]
+    assert seqs == sorted(seqs) and len(set(seqs)) == 3
+    # Retained: a late subscriber gets the node's current word and its birth at once.
+    late = Subscriber(broker, creds)
+    try:
+        assert late.wait(is_state("clear")).retain
+        assert late.wait(is_status("online")).retain
+    finally:
+        late.close()
+    assert "MemoryError" not in node.output()
+
+
+def test_heartbeat_republishes_the_state(
+    broker: SiteBroker, creds: Path, subscriber: Subscriber, start_node, tmp_path: Path
+) -> None:
+    cfg = node_config(creds, broker, tmp_path / "config.json", heartbeat_s=0.5)
+    start_node(cfg)
+    first = subscriber.wait(is_state("clear"))
+    after = subscriber.snapshot().index(first) + 1
+    for _ in range(3):
+        beat = subscriber.wait(is_state("clear"), after=after)
+        after = subscriber.snapshot().index(beat) + 1
+
+
+def test_debouncing_holds_a_glitch_back(
+    broker: SiteBroker, creds: Path, subscriber: Subscriber, pins: Pins, start_node, tmp_path: Path
+) -> None:
+    cfg = node_config(
+        creds, broker, tmp_path / "config.json", on_delay_ms=3000, off_delay_ms=500, heartbeat_s=0.5
+    )
+    start_node(cfg)
+    subscriber.wait(is_state("clear"))
+    pins.set(PIN, 1)
+    time.sleep(0.2)  # a person walking past the PIR
+    pins.set(PIN, 0)
+    mark = len(subscriber.snapshot())
+    # Heartbeats keep coming for well past the on-delay: every one of them still says clear.
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline:
+        time.sleep(0.1)
+    later = [s for m in subscriber.snapshot()[mark:] if (s := state_of(m)) is not None]
+    assert later and all(s.state == "clear" for s in later), later
+    # A sustained reading does get through.
+    pins.set(PIN, 1)
+    subscriber.wait(is_state("blocked"), after=mark)
+
+
+def test_broker_killed_and_restarted_node_reconnects_and_republishes(
+    broker: SiteBroker, creds: Path, pins: Pins, start_node, tmp_path: Path
+) -> None:
+    cfg = node_config(
+        creds, broker, tmp_path / "config.json", on_delay_ms=100, off_delay_ms=100, heartbeat_s=60
+    )
+    node = start_node(cfg)
+    before = Subscriber(broker, creds)
+    try:
+        last = state_of(before.wait(is_state("clear")))
+    finally:
+        before.close()
+    assert last is not None
+    assert node.wait_output("mqtt up 1", WAIT)
+    broker.kill()
+    assert node.wait_output("mqtt down:", WAIT), node.output()
+    pins.set(PIN, 1)  # changes while the broker is away must not be lost
+    time.sleep(1.0)
+    broker.start()
+    after = Subscriber(broker, creds)
+    try:
+        assert node.wait_output("mqtt up 2", WAIT), node.output()
+        # Heartbeat is 60 s: a blocked word within WAIT can only be the republish after reconnecting.
+        fresh = state_of(after.wait(is_state("blocked")))
+        after.wait(is_status("online"))
+    finally:
+        after.close()
+    assert fresh is not None and fresh.seq > last.seq
+    assert "MemoryError" not in node.output()
+
+
+def test_hours_of_simulated_time_on_a_38k_heap(
+    broker: SiteBroker, creds: Path, subscriber: Subscriber, host_build: tuple[Path, Path], tmp_path: Path
+) -> None:
+    hours = 24
+    cfg = node_config(
+        creds, broker, tmp_path / "config.json", heartbeat_s=10, on_delay_ms=500, off_delay_ms=3000
+    )
+    device, stubs = host_build
+    node = NodeProcess(
+        micropython_cmd("longrun", str(cfg), str(hours * 3600)),
+        micropython_env(device, stubs, tmp_path),
+        tmp_path / "longrun.log",
+    )
+    try:
+        node.proc.wait(timeout=600)
+    finally:
+        node.stop()
+    out = node.output()
+    assert node.proc.returncode == 0, out
+    assert "MemoryError" not in out and "Traceback" not in out, out
+    stats: dict[str, int] = {}
+    for line in out.splitlines():
+        words = line.split()
+        if words[:1] == ["stat"]:
+            stats.update(zip(words[1::2], map(int, words[2::2]), strict=True))
+    print(out)
+    assert stats["errors"] == 0 and stats["connects"] == 1, out
+    # 10 s heartbeats plus two changes per 97 s pattern period: at least the heartbeats.
+    assert stats["publications"] >= hours * 360, out
+    assert stats["heap_lowest"] > 2048, out  # free heap after GC never fell below 2 KiB
+    assert stats["heap_lowest"] >= stats["heap_start"] - 1024, out  # and did not creep down: no leak
+    # Everything it sent reached the broker and is valid (QoS 1, acked one by one).
+    deadline = time.monotonic() + WAIT
+    states: list[ZoneState] = []
+    while time.monotonic() < deadline:
+        states = [s for m in subscriber.snapshot() if (s := state_of(m)) is not None]
+        if len(states) >= stats["publications"]:
+            break
+        time.sleep(0.1)
+    assert len(states) == stats["publications"]
+    assert {s.state for s in states} == {"clear", "blocked"}
+    seqs = [s.seq for s in states]
+    assert seqs == sorted(seqs)
