@@ -125,6 +125,13 @@ def run_command(args: argparse.Namespace) -> int:
 
     def ready(running: RunningBroker) -> None:
         print(running.ready_line(), flush=True)
+        missing = _ids_without_password(site, args.credentials)
+        if missing:
+            print(
+                f"wsnav: note: no password for {', '.join(missing)} in {args.credentials}: they cannot log in "
+                "(rerun `wsnav broker credentials`)",
+                file=sys.stderr,
+            )
         if args.data is None:
             print("wsnav: note: no --data folder: retained messages are kept in memory only", file=sys.stderr)
 
@@ -134,6 +141,16 @@ def run_command(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     print("broker stopped", flush=True)
     return 0
+
+
+def _ids_without_password(site: Site, credentials: Path) -> list[str]:
+    from broker.credentials import PASSWORD_FILE, CredentialsError, read_password_file, site_ids
+
+    try:
+        users = read_password_file(credentials / PASSWORD_FILE)
+    except CredentialsError:
+        return []
+    return [ident for ident in site_ids(site.spec) if ident not in users]
 
 
 def credentials_command(args: argparse.Namespace) -> int:

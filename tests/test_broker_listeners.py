@@ -9,10 +9,7 @@ import threading
 from pathlib import Path
 
 import paho.mqtt.client as mqtt
-from cryptography import x509
-from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
-from cryptography.x509.oid import NameOID
+import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.reasoncodes import ReasonCode
 
@@ -24,6 +21,12 @@ from tests.test_broker_helpers import TIMEOUT
 
 def self_signed(directory: Path) -> tuple[Path, Path]:
     """A throw-away certificate for 127.0.0.1 (it is its own CA)."""
+    pytest.importorskip("cryptography")  # installed with the firmware tools (esptool), not a core dependency
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
     key = ec.generate_private_key(ec.SECP256R1())
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "127.0.0.1")])
     now = datetime.datetime.now(datetime.UTC)
