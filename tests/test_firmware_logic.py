@@ -1,0 +1,146 @@
+"""The firmware's pure logic modules (firmware/device) under CPython, as the zone simulator imports them, and
+the same checks on the MicroPython VM with the ESP8266's heap."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import random
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import firmware
+from firmware.testing import HOST_STUBS, build_for_host, micropython_cmd, micropython_env
+from schemas import topics
+from schemas.credentials import NodeConfig
+from schemas.messages import NodeStatus, ZoneState, ZoneStateValue
+
+firmware.add_device_path()
+sys.path.append(str(HOST_STUBS))
+
+# Imported by their board names, as the zone simulator does (pyright cannot see sys.path changes).
+logic_checks: Any = importlib.import_module("logic_checks")
+nodeconfig: Any = importlib.import_module("nodeconfig")
+payloads: Any = importlib.import_module("payloads")
+
+
+@pytest.mark.parametrize("check", logic_checks.CHECKS, ids=lambda c: c.__name__)
+def test_logic_on_cpython(check: Callable[[], None]) -> None:
+    check()
+
+
+def test_logic_on_micropython(tmp_path: Path) -> None:
+    device, stubs = build_for_host(tmp_path)
+    proc = subprocess.run(
+        micropython_cmd("logic_checks"),
+        env=micropython_env(device, stubs),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.stdout.strip() == f"ok {len(logic_checks.CHECKS)}", proc.stdout + proc.stderr
+
+
+STATES: list[ZoneStateValue] = ["blocked", "clear", "caution"]
+
+
+def test_payloads_match_the_schema_models_byte_for_byte() -> None:
+    rng = random.Random(7)
+    alphabet = "abcXYZ019_-"
+    for _ in range(500):
+        site, zone, node = ("".join(rng.choices(alphabet, k=rng.randint(1, 32))) for _ in range(3))
+        state: ZoneStateValue = rng.choice(STATES)
+        seq = rng.randint(0, payloads.SEQ_MAX)
+        assert (
+            payloads.zone_state_payload(zone, node, state, seq)
+            == ZoneState(zone=zone, node=node, state=state, seq=seq).to_payload()
+        )
+        assert payloads.zone_state_topic(site, zone, node) == topics.zone_state(site, zone, node)
+        assert payloads.node_status_topic(site, node) == topics.node_status(site, node)
+        for status in ("online", "offline"):
+            assert (
+                payloads.node_status_payload(node, status)
+                == NodeStatus(node=node, status=status).to_payload()
+            )
+
+
+def test_the_only_modules_simulators_may_import_are_pure() -> None:
+    """No board module sneaks into PURE_MODULES: each imports on CPython without machine/network."""
+    for name in firmware.PURE_MODULES:
+        importlib.import_module(name)
+    for name in ("machine", "network"):
+        assert name not in sys.modules
+
+
+def base_config(**changes: Any) -> dict[str, Any]:
+    data: dict[str, Any] = {
+        "username": "n1",
+        "password": "x" * 24,
+        "role": "node",
+        "site": "school",
+        "broker": {"host": "10.0.0.2", "port": 1883},
+        "node": "n1",
+        "zone": "z1",
+        "sensor": {"type": "pir", "pin": 5},
+        "heartbeat_s": 5.0,
+        "on_delay_ms": 500,
+        "off_delay_ms": 3000,
+    }
+    data.update(changes)
+    return data
+
+
+@pytest.mark.parametrize(
+    "sensor",
+    [
+        {"type": "pir", "pin": 5},
+        {"type": "ir_beam", "pin": 4, "invert": True},
+        {"type": "hcsr04", "trigger_pin": 12, "echo_pin": 14, "threshold_m": 0.8, "samples": 7},
+    ],
+)
+def test_config_accepts_what_the_schema_accepts(sensor: dict[str, Any], tmp_path: Path) -> None:
+    model = NodeConfig.model_validate(base_config(sensor=sensor))
+    path = tmp_path / "config.json"
+    path.write_text(model.model_dump_json())
+    cfg = nodeconfig.load(str(path))
+    assert (cfg["site"], cfg["node"], cfg["zone"]) == ("school", "n1", "z1")
+    assert cfg["heartbeat_ms"] == 5000 and cfg["keepalive_s"] == 30 and cfg["broker_port"] == 1883
+    assert cfg["sensor_type"] == sensor["type"]
+    if sensor["type"] == "hcsr04":
+        assert (cfg["trigger_pin"], cfg["echo_pin"], cfg["threshold_mm"], cfg["samples"]) == (12, 14, 800, 7)
+    else:
+        assert (cfg["pin"], cfg["invert"]) == (sensor["pin"], sensor.get("invert", False))
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"node": "n/1"}, "node is not a valid id"),
+        ({"broker": {"host": "", "port": 1883}}, "broker.host is empty"),
+        ({"heartbeat_s": True}, "heartbeat_s must be a number"),
+        ({"on_delay_ms": 1.5}, "on_delay_ms must be an integer"),
+        ({"sensor": {"type": "pir"}}, "missing key sensor.pin"),
+        ({"sensor": {"type": "pir", "pin": 17}}, "sensor.pin must be a GPIO number"),
+        ({"sensor": {"type": "sonar", "pin": 1}}, "sensor.type must be pir, ir_beam or hcsr04"),
+        ({"keepalive_s": 2}, "keepalive_s must be in [5, 3600]"),
+    ],
+)
+def test_config_errors_name_the_key(changes: dict[str, Any], message: str, tmp_path: Path) -> None:
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(base_config(**changes)))
+    with pytest.raises(nodeconfig.ConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        nodeconfig.load(str(path))
+
+
+def test_config_file_problems(tmp_path: Path) -> None:
+    with pytest.raises(nodeconfig.ConfigError, match="cannot read"):
+        nodeconfig.load(str(tmp_path / "missing.json"))
+    bad = tmp_path / "bad.json"
+    bad.write_text("{")
+    with pytest.raises(nodeconfig.ConfigError, match="not valid JSON"):
+        nodeconfig.load(str(bad))
