@@ -7,6 +7,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from broker import cli as broker_cli
+from firmware import cli as firmware_cli
 from robot_agent import cli as robot_agent_cli
 from wsnav import site_commands
 from wsnav.cli_support import CliError, Parser
@@ -17,6 +18,7 @@ REGISTRARS: list[Registrar] = [
     site_commands.register,
     robot_agent_cli.register,
     broker_cli.register,
+    firmware_cli.register,
 ]
 
 

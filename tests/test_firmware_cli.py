@@ -1,0 +1,149 @@
+"""`wsnav firmware build|deploy|flash`: sizes, exact dry-run commands, one-line errors."""
+
+from __future__ import annotations
+
+import json
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from firmware.build import SIZE_TARGET
+from firmware.deploy import module_names
+
+
+def wsnav(*args: str | Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "wsnav.cli", "firmware", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+def one_line_error(proc: subprocess.CompletedProcess[str], text: str) -> None:
+    assert proc.returncode != 0
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and text in lines[0], proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def node_config(tmp_path: Path, **changes: Any) -> Path:
+    data: dict[str, Any] = {
+        "username": "n1",
+        "password": "p" * 24,
+        "role": "node",
+        "site": "school",
+        "broker": {"host": "192.168.4.2", "port": 1883},
+        "node": "n1",
+        "zone": "z1",
+        "sensor": {"type": "pir", "pin": 5},
+        "heartbeat_s": 5,
+        "on_delay_ms": 500,
+        "off_delay_ms": 3000,
+        "wifi": {"ssid": "site", "password": "wifi-secret"},
+    }
+    data.update(changes)
+    path = tmp_path / "n1.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_build_prints_sizes_under_target(tmp_path: Path) -> None:
+    out = tmp_path / "build"
+    proc = wsnav("build", "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    names = {p.name for p in out.iterdir()}
+    assert names == {n + ".mpy" for n in module_names()} | {"main.py", "boot.py"}
+    total = sum(p.stat().st_size for p in out.iterdir())
+    assert total <= SIZE_TARGET
+    assert f"{total:7d}  total (ok" in proc.stdout
+    for p in out.glob("*.mpy"):
+        assert p.read_bytes()[:2] == b"M\x06"  # .mpy version 6: loads on MicroPython >= 1.23 (ESP8266 too)
+
+
+def test_build_dry_run_prints_mpy_cross_commands(tmp_path: Path) -> None:
+    proc = wsnav("build", "--out", tmp_path, "--dry-run")
+    assert proc.returncode == 0
+    cmds = [shlex.split(line) for line in proc.stdout.splitlines()]
+    assert [Path(c[0]).name for c in cmds] == ["mpy-cross"] * len(module_names())
+    assert not list(tmp_path.iterdir())
+
+
+def test_deploy_dry_run_prints_the_mpremote_commands(tmp_path: Path) -> None:
+    cfg = node_config(tmp_path)
+    build = tmp_path / "b"
+    proc = wsnav("deploy", "--port", "/dev/ttyUSB0", "--config", cfg, "--build", build, "--dry-run")
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert lines[0] == "node n1 (zone z1, site school) -> broker 192.168.4.2:1883"
+    cmds = [shlex.split(line) for line in lines[1:]]
+    assert all(Path(c[0]).name == "mpremote" and c[1:3] == ["connect", "/dev/ttyUSB0"] for c in cmds)
+    assert cmds[0][3] == "exec" and "os.remove" in cmds[0][4]
+    copy = cmds[1]
+    assert copy[3:5] == ["fs", "cp"] and copy[-1] == ":"
+    assert {Path(f).name for f in copy[5:-1]} == {n + ".mpy" for n in module_names()} | {"main.py", "boot.py"}
+    assert cmds[2][3:] == ["fs", "cp", str(cfg), ":config.json"]
+    assert cmds[3][3:] == ["reset"]
+    assert not build.exists()
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"broker": {"host": "", "port": 1883}}, "broker.host is empty"),
+        ({"sensor": {"type": "pir"}}, "sensor.pir.pin: Field required"),
+        ({"password": "short"}, "password"),
+    ],
+)
+def test_deploy_refuses_bad_configs(tmp_path: Path, changes: dict[str, Any], message: str) -> None:
+    cfg = node_config(tmp_path, **changes)
+    one_line_error(wsnav("deploy", "--port", "/dev/ttyUSB0", "--config", cfg, "--dry-run"), message)
+
+
+def test_deploy_missing_config_and_bad_build(tmp_path: Path) -> None:
+    one_line_error(
+        wsnav("deploy", "--port", "p", "--config", tmp_path / "nope.json", "--dry-run"), "cannot read config"
+    )
+    cfg = node_config(tmp_path)
+    one_line_error(
+        wsnav("deploy", "--port", "p", "--config", cfg, "--build", tmp_path), "not a firmware build folder"
+    )
+
+
+def test_flash_dry_run_prints_esptool_commands(tmp_path: Path) -> None:
+    image = tmp_path / "ESP8266_GENERIC-v1.27.0.bin"
+    image.write_bytes(b"\xe9" + bytes(600 * 1024))
+    proc = wsnav("flash", "--port", "/dev/ttyUSB0", "--image", image, "--dry-run")
+    assert proc.returncode == 0, proc.stderr
+    cmds = [shlex.split(line) for line in proc.stdout.splitlines()]
+    assert [Path(c[0]).name for c in cmds] == ["esptool", "esptool"]
+    assert cmds[0][1:] == ["--chip", "esp8266", "--port", "/dev/ttyUSB0", "erase-flash"]
+    assert cmds[1][1:] == [
+        "--chip",
+        "esp8266",
+        "--port",
+        "/dev/ttyUSB0",
+        "--baud",
+        "460800",
+        "write-flash",
+        "--flash-size=detect",
+        "0",
+        str(image),
+    ]
+
+
+def test_flash_refuses_bad_images_and_args(tmp_path: Path) -> None:
+    one_line_error(
+        wsnav("flash", "--port", "p", "--image", tmp_path / "x.bin", "--dry-run"), "no such firmware"
+    )
+    small = tmp_path / "small.bin"
+    small.write_bytes(b"\xe9" * 100)
+    one_line_error(wsnav("flash", "--port", "p", "--image", small, "--dry-run"), "is not an ESP8266")
+    text = tmp_path / "readme.bin"
+    text.write_bytes(b"#" * 100_000)
+    one_line_error(wsnav("flash", "--port", "p", "--image", text, "--dry-run"), "first byte")
+    one_line_error(wsnav("flash", "--image", text), "--port")
