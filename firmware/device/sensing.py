@@ -29,5 +29,5 @@ def ultrasonic_occupied(pulses_us: list, threshold_mm: int) -> bool:
 
 
 def digital_occupied(level: int, invert: bool) -> bool:
-    """PIR / IR beam level to occupied; `invert` for active-low modules (a broken beam often reads 1)."""
+    """PIR / IR beam level to occupied; `invert` for active-low outputs (most IR beam receivers: 0 = broken)."""
     return (level != 0) != invert
