@@ -207,6 +207,10 @@ def test_sensor_change_reaches_a_subscriber(
     finally:
         late.close()
     assert "MemoryError" not in node.output()
+    # Power cut: no DISCONNECT, so the broker publishes the node's last will.
+    mark = len(subscriber.snapshot())
+    node.stop()
+    assert subscriber.wait(is_status("offline"), after=mark).topic == STATUS_TOPIC
 
 
 def test_heartbeat_republishes_the_state(
@@ -318,3 +322,24 @@ def test_hours_of_simulated_time_on_a_38k_heap(
     assert {s.state for s in states} == {"clear", "blocked"}
     seqs = [s.seq for s in states]
     assert seqs == sorted(seqs)
+
+
+def test_wifi_lost_and_back_node_reconnects(
+    broker: SiteBroker, creds: Path, subscriber: Subscriber, pins: Pins, start_node, tmp_path: Path
+) -> None:
+    cfg = node_config(
+        creds, broker, tmp_path / "config.json", on_delay_ms=100, off_delay_ms=100, heartbeat_s=60
+    )
+    node = start_node(cfg)
+    assert node.wait_output("mqtt up 1", WAIT), node.output()
+    subscriber.wait(is_state("clear"))
+    down = pins.folder / "wifi_down"
+    down.write_text("")
+    assert node.wait_output("mqtt down: wifi lost", WAIT), node.output()
+    pins.set(PIN, 1)
+    time.sleep(0.5)
+    mark = len(subscriber.snapshot())
+    down.unlink()
+    assert node.wait_output("mqtt up 2", WAIT), node.output()
+    subscriber.wait(is_status("online"), after=mark)
+    subscriber.wait(is_state("blocked"), after=mark)

@@ -1,5 +1,18 @@
 """Test-only stand-in for the ESP8266 `network` module: the station is connected as soon as it is active
-(the real ESP8266 also rejoins its saved access point by itself when config.json leaves wifi.ssid empty)."""
+(the real ESP8266 also rejoins its saved access point by itself when config.json leaves wifi.ssid empty),
+unless the file `$WSNAV_PINS/wifi_down` exists: then the access point is out of reach."""
+
+import os
+
+_DOWN = (os.getenv("WSNAV_PINS") or "/tmp/wsnav-pins") + "/wifi_down"
+
+
+def _reachable():
+    try:
+        os.stat(_DOWN)
+        return False
+    except OSError:
+        return True
 
 STA_IF = 0
 AP_IF = 1
@@ -21,4 +34,4 @@ class WLAN:
         pass
 
     def isconnected(self):
-        return self._active
+        return self._active and _reachable()
