@@ -12,7 +12,12 @@ $(STAMP): pyproject.toml constraints.txt
 	@touch $@
 
 demo: $(STAMP)
-	$(BIN)/wsnav demo
+	@mkdir -p out
+	$(BIN)/wsnav site check sites/school
+	$(BIN)/wsnav site render sites/school --png out/school.png
+	$(BIN)/wsnav plan --site sites/school --from A --to B --png out/plan_A_B.png > out/plan_A_B.json
+	$(BIN)/wsnav plan --site sites/school --from A --to B --block z4 --png out/plan_A_B_z4.png > out/plan_A_B_z4.json
+	@echo "demo: pictures and plans in out/"
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
@@ -34,7 +39,7 @@ school: $(STAMP)
 	$(BIN)/python sites/school/generate.py
 
 bench: $(STAMP)
-	$(BIN)/python -m bench
+	@for b in bench/*.py; do m=$$(basename $$b .py); echo "== bench.$$m"; $(BIN)/python -m bench.$$m || exit 1; done
 
 clean:
-	rm -rf $(VENV) build .pytest_cache .ruff_cache
+	rm -rf $(VENV) build out .pytest_cache .ruff_cache
