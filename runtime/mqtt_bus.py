@@ -1,0 +1,133 @@
+"""The bus over a real MQTT broker (paho-mqtt): one client, its own credentials, reconnects by itself.
+
+paho calls back on its network thread; messages are stamped with the clock and queued for `poll`.
+Subscriptions are remembered and renewed on every reconnect (a clean session forgets them at the broker).
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+
+import paho.mqtt.client as mqtt
+from paho.mqtt.enums import CallbackAPIVersion
+from paho.mqtt.reasoncodes import ReasonCode
+
+from runtime.bus import Message, Will
+from runtime.clock import Clock, WallClock
+
+
+class BusError(Exception):
+    """The broker refused us or could not be reached in time: one line for the user."""
+
+
+class MqttBus:
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        *,
+        client_id: str,
+        username: str,
+        password: str,
+        clock: Clock | None = None,
+        will: Will | None = None,
+        birth: Will | None = None,
+        keepalive_s: int = 30,
+        max_queue: int = 100_000,
+    ) -> None:
+        """`birth` is published at every (re)connect, the counterpart of `will` (e.g. `online` / `offline`)."""
+        self._clock = clock or WallClock()
+        self._host, self._port, self._keepalive = host, port, keepalive_s
+        self._birth = birth
+        self._filters: dict[str, int] = {}
+        self._queue: collections.deque[Message] = collections.deque(maxlen=max_queue)
+        self._arrived = threading.Condition()
+        self._connected = threading.Event()
+        self._refused: str | None = None
+        self.dropped_overflow = 0
+        self.connects = 0
+        self._client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=True)
+        self._client.username_pw_set(username, password)
+        if will is not None:
+            self._client.will_set(will.topic, will.payload, qos=will.qos, retain=will.retain)
+        self._client.reconnect_delay_set(min_delay=1, max_delay=8)
+        self._client.on_connect = self._on_connect
+        self._client.on_disconnect = self._on_disconnect
+        self._client.on_message = self._on_message
+
+    def connect(self, timeout_s: float = 30.0) -> MqttBus:
+        """Connect and wait for the broker's answer; afterwards the bus keeps reconnecting by itself."""
+        try:
+            self._client.connect_async(self._host, self._port, keepalive=self._keepalive)
+        except (OSError, ValueError) as exc:
+            raise BusError(f"cannot reach MQTT broker {self._host}:{self._port}: {exc}") from None
+        self._client.loop_start()
+        if not self._connected.wait(timeout_s):
+            self._client.loop_stop()
+            why = self._refused or "no answer"
+            raise BusError(f"cannot connect to MQTT broker {self._host}:{self._port}: {why}")
+        return self
+
+    def _on_connect(
+        self, client: mqtt.Client, _u: object, _f: object, reason: ReasonCode, _p: object
+    ) -> None:
+        if reason.is_failure:
+            self._refused = str(reason)
+            return
+        self.connects += 1
+        for topic_filter, qos in self._filters.items():
+            client.subscribe(topic_filter, qos)
+        if self._birth is not None:
+            client.publish(
+                self._birth.topic, self._birth.payload, qos=self._birth.qos, retain=self._birth.retain
+            )
+        self._connected.set()
+
+    def _on_disconnect(self, _c: object, _u: object, _f: object, reason: ReasonCode, _p: object) -> None:
+        self._connected.clear()
+
+    def _on_message(self, _c: object, _u: object, msg: mqtt.MQTTMessage) -> None:
+        item = Message(msg.topic, bytes(msg.payload), bool(msg.retain), self._clock.now())
+        with self._arrived:
+            if len(self._queue) == self._queue.maxlen:
+                self.dropped_overflow += 1
+            self._queue.append(item)
+            self._arrived.notify_all()
+
+    def publish(self, topic: str, payload: bytes, *, qos: int = 1, retain: bool = False) -> None:
+        """Queued by paho while disconnected (QoS 1 is sent after reconnecting)."""
+        self._client.publish(topic, payload, qos=qos, retain=retain)
+
+    def subscribe(self, topic_filter: str, qos: int = 1) -> None:
+        self._filters[topic_filter] = qos
+        if self._connected.is_set():
+            self._client.subscribe(topic_filter, qos)
+
+    def poll(self, max_messages: int | None = None) -> list[Message]:
+        with self._arrived:
+            n = len(self._queue) if max_messages is None else min(max_messages, len(self._queue))
+            return [self._queue.popleft() for _ in range(n)]
+
+    def wait(self, timeout_s: float) -> bool:
+        with self._arrived:
+            return self._arrived.wait_for(lambda: bool(self._queue), timeout_s)
+
+    @property
+    def connected(self) -> bool:
+        return self._connected.is_set()
+
+    def wait_connected(self, timeout_s: float) -> bool:
+        return self._connected.wait(timeout_s)
+
+    def close(self) -> None:
+        """A clean disconnect: the broker does not publish the will."""
+        self._client.disconnect()
+        self._client.loop_stop()
+
+    def abort(self) -> None:
+        """Drop the link without DISCONNECT, as a power cut would: the broker publishes the will."""
+        self._client.loop_stop()
+        sock = self._client.socket()
+        if sock is not None:
+            sock.close()

@@ -1,0 +1,107 @@
+"""The MQTT bus components talk through, against the real amqtt broker: delivery, retained state, the will on
+a dropped link, subscriptions renewed after the broker restarts, and a refused login as one line."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+
+from broker.credentials import write_credentials
+from broker.embedded import BrokerThread
+from runtime.bus import Message, Will, topic_matches
+from runtime.clock import Clock, SimClock
+from runtime.mqtt_bus import BusError, MqttBus
+from schemas import topics
+from schemas.site import load_site
+from tests.site_fixtures import tiny_site
+
+SITE = "tiny"
+
+
+def bus_for(
+    broker: BrokerThread,
+    ident: str,
+    *,
+    clock: Clock | None = None,
+    will: Will | None = None,
+    birth: Will | None = None,
+) -> MqttBus:
+    creds = broker.credentials(ident)
+    return MqttBus(
+        broker.host,
+        broker.port,
+        client_id=ident,
+        username=creds.username,
+        password=creds.password,
+        clock=clock,
+        will=will,
+        birth=birth,
+    ).connect()
+
+
+def receive(bus: MqttBus, count: int, timeout_s: float = 30.0) -> list[Message]:
+    got: list[Message] = []
+    deadline = time.monotonic() + timeout_s
+    while len(got) < count and time.monotonic() < deadline:
+        bus.wait(0.2)
+        got += bus.poll()
+    return got
+
+
+def test_messages_are_queued_in_order_and_stamped_with_the_bus_clock(tmp_path: Path) -> None:
+    clock = SimClock(start=100.0)
+    with BrokerThread(tiny_site(tmp_path / "site")) as broker:
+        robot = bus_for(broker, "robot1", clock=clock)
+        node = bus_for(broker, "n1")
+        robot.subscribe(topics.all_zone_states(SITE))
+        time.sleep(0.3)  # the SUBACK; the bus subscribes asynchronously
+        for i in range(20):
+            node.publish(topics.zone_state(SITE, "z1", "n1"), str(i).encode())
+        got = receive(robot, 20)
+        assert [m.payload for m in got] == [str(i).encode() for i in range(20)]
+        assert all(m.received_at == 100.0 and not m.retain for m in got)
+        node.close()
+        robot.close()
+
+
+def test_abort_publishes_the_will_and_a_restarted_broker_gets_the_subscriptions_again(tmp_path: Path) -> None:
+    site = tiny_site(tmp_path / "site")
+    status = topics.node_status(SITE, "n1")
+    creds = tmp_path / "creds"
+    write_credentials(load_site(site).spec, creds)
+    with BrokerThread(site, creds, data_dir=tmp_path / "data", port=0) as broker:
+        port = broker.port
+        robot = bus_for(broker, "robot1")
+        robot.subscribe(topics.all_node_statuses(SITE))
+        node = bus_for(broker, "n1", will=Will(status, b"offline"), birth=Will(status, b"online"))
+        assert [m.payload for m in receive(robot, 1)] == [b"online"]
+        node.abort()
+        assert [m.payload for m in receive(robot, 1)] == [b"offline"]
+    with BrokerThread(site, creds, data_dir=tmp_path / "data", port=port) as broker:
+        assert robot.wait_connected(30.0)
+        got = receive(robot, 1)  # the retained `offline`, through the subscription renewed on reconnect
+        assert [(m.payload, m.retain) for m in got] == [(b"offline", True)]
+        robot.close()
+
+
+def test_a_wrong_password_is_one_line(tmp_path: Path) -> None:
+    with BrokerThread(tiny_site(tmp_path / "site")) as broker:
+        bus = MqttBus(broker.host, broker.port, client_id="robot1", username="robot1", password="x" * 16)
+        with pytest.raises(BusError, match=r"cannot connect to MQTT broker 127\.0\.0\.1:\d+: ") as err:
+            bus.connect(timeout_s=5.0)
+        assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("flt", "topic", "expected"),
+    [
+        ("wsn/s/zones/+/state/+", "wsn/s/zones/z1/state/n1", True),
+        ("wsn/s/zones/+/state/+", "wsn/s/zones/z1/state", False),
+        ("wsn/s/#", "wsn/s/zones/z1/state/n1", True),
+        ("wsn/s/nodes/n1/status", "wsn/s/nodes/n2/status", False),
+    ],
+)
+def test_topic_filters_match_as_in_mqtt(flt: str, topic: str, expected: bool) -> None:
+    assert topic_matches(flt, topic) is expected
