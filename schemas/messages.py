@@ -16,7 +16,7 @@ CONTRACT_VERSION = 1
 MAX_PAYLOAD_BYTES = 1024
 """Anything larger is dropped unread: an ESP8266 never sends more than ~120 bytes."""
 MAX_OPERATOR_PAYLOAD_BYTES = 8192
-"""Operator blocks may carry a polygon, so they get a larger allowance."""
+"""Operator blocks and the simulated world carry polygons, so they get a larger allowance."""
 
 ZoneStateValue = Literal["blocked", "clear", "caution"]
 NodeStatusValue = Literal["online", "offline"]
@@ -98,6 +98,26 @@ class OperatorBlock(_Message):
         return self
 
 
+class SimObstacle(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    id: Id
+    zone: Id | None = None
+    """The zone the scenario placed it in, if any (the paper's obstacles fill a zone)."""
+    polygon: Annotated[list[Point2], Field(min_length=3, max_length=64)]
+
+
+class SimWorld(_Message):
+    """`sim/world`: simulation only, retained: the obstacles the zone simulator placed, for simulated lidars.
+
+    The whole set every time, so a late subscriber needs only the retained copy.
+    """
+
+    t: float
+    """Simulated time of the change."""
+    obstacles: Annotated[list[SimObstacle], Field(max_length=256)] = Field(default_factory=list)
+
+
 M = TypeVar("M", bound=_Message)
 
 MESSAGE_MODELS: dict[str, type[_Message]] = {
@@ -106,6 +126,7 @@ MESSAGE_MODELS: dict[str, type[_Message]] = {
     "robot_status": RobotStatus,
     "robot_goal": RobotGoal,
     "operator_block": OperatorBlock,
+    "sim_world": SimWorld,
 }
 
 
