@@ -1,0 +1,76 @@
+"""The experiment report: confidence intervals as a statistician computes them, failed runs kept out of the
+means but counted, and the report written with its three charts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from experiments.report import markdown_table, mean_ci, summarise, write_report
+from experiments.run_plan import plan_runs
+from schemas.site import load_site
+from tests.conftest import SITES
+
+
+def test_mean_ci_is_student_t() -> None:
+    mean, low, high = mean_ci([1.0, 2.0, 3.0])
+    assert mean == 2.0
+    assert high - mean == pytest.approx(4.302653 / np.sqrt(3), rel=1e-5)
+    assert mean - low == pytest.approx(high - mean)
+    assert mean_ci([5.0]) == (5.0, 5.0, 5.0)
+
+
+def table() -> pd.DataFrame:
+    rows = []
+    for config, dist in (("default", 50.0), ("full", 31.0)):
+        for i in range(4):
+            rows.append(
+                {
+                    "config": config,
+                    "route": "A->B",
+                    "blocked": "z4",
+                    "success": not (config == "default" and i == 3),
+                    "collisions": 0,
+                    "time_s": dist / 0.2 + i,
+                    "distance_m": 1000.0 if (config == "default" and i == 3) else dist + i,
+                    "replans": 3,
+                    "agent_cpu_s": 2.0 if config == "default" else 0.5,
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+def test_failed_runs_are_counted_but_kept_out_of_the_means(tmp_path: Path) -> None:
+    summary = summarise(table()).set_index("config")
+    assert summary.loc["default", "runs"] == 4
+    assert summary.loc["default", "success"] == 3
+    assert summary.loc["default", "distance_m_mean"] == pytest.approx(51.0)  # the 1000 m failure is out
+    assert summary.loc["full", "distance_m_mean"] == pytest.approx(32.5)
+    assert summary.loc["full", "cpu_per_sim_s_mean"] < summary.loc["default", "cpu_per_sim_s_mean"]
+    text = markdown_table(summarise(table()))
+    assert "| A->B | default | 4 | 3 | 0 |" in text
+
+
+def test_report_has_table_and_the_three_charts(tmp_path: Path) -> None:
+    report = write_report(table(), tmp_path, "# test")
+    body = report.read_text()
+    for name in ("distance_m.png", "time_s.png", "cpu_per_sim_s.png"):
+        assert f"]({name})" in body
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_run_plan_pairs_configurations_and_follows_the_seed() -> None:
+    spec = load_site(SITES / "school").spec
+    runs = plan_runs(spec, ["default", "full"], runs=20, seed=7)
+    assert len(runs) == 2 * 3 * 20
+    by_key = {(r.config, r.route, r.run): r for r in runs}
+    for r in runs:
+        twin = by_key[("full" if r.config == "default" else "default", r.route, r.run)]
+        assert (twin.blocked, twin.seed) == (r.blocked, r.seed)
+    ab = {r.blocked for r in runs if r.route == "A->B"}
+    assert ab == {("z1",), ("z4",)}  # both raffle outcomes occur in 20 runs
+    assert plan_runs(spec, ["default", "full"], runs=20, seed=7) == runs
+    assert plan_runs(spec, ["default", "full"], runs=20, seed=8) != runs
