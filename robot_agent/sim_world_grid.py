@@ -1,0 +1,55 @@
+"""The simulated world as the robot's sensors and bumper see it: the site's static map plus placed obstacles.
+
+The zone simulator publishes the obstacles it placed (schemas.messages.SimWorld, the whole set each time);
+`apply` rasterises them onto a copy of the map's occupied cells, touching only the obstacles' windows.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from robot_agent.inflation import LETHAL_OBSTACLE, static_layer
+from robot_agent.zone_geometry import CellWindow, GridFrame, polygon_window
+from schemas.messages import SimWorld
+from schemas.ros_map import OccupancyGrid
+
+
+class SimWorldGrid:
+    """Occupied cells (row 0 = map bottom) of the map plus the current obstacles."""
+
+    def __init__(self, grid: OccupancyGrid) -> None:
+        self.frame = GridFrame(grid.width, grid.height, grid.resolution, grid.origin[0], grid.origin[1])
+        self._static: NDArray[np.bool_] = static_layer(grid) == LETHAL_OBSTACLE
+        self.occupied: NDArray[np.bool_] = self._static.copy()
+        self._windows: dict[str, CellWindow] = {}
+        self.version = 0
+        """Bumped on every change of `occupied`, so a reader can cache what it derives from it."""
+
+    @property
+    def obstacle_ids(self) -> list[str]:
+        return sorted(self._windows)
+
+    def apply(self, world: SimWorld) -> None:
+        """Replace the obstacle set with `world.obstacles` (an empty list clears them all)."""
+        windows = {ob.id: polygon_window(ob.polygon, self.frame) for ob in world.obstacles}
+        windows = {k: w for k, w in windows.items() if not w.empty}
+        if windows.keys() == self._windows.keys() and all(
+            _same(windows[k], self._windows[k]) for k in windows
+        ):
+            return
+        for old in self._windows.values():
+            self.occupied[old.rows, old.cols] = self._static[old.rows, old.cols]
+        for new in windows.values():
+            self.occupied[new.rows, new.cols] |= new.mask
+        self._windows = windows
+        self.version += 1
+
+    def is_occupied(self, x: float, y: float) -> bool:
+        """Whether the cell holding world point (x, y) is occupied; outside the map counts as free."""
+        row, col = self.frame.world_to_cell(x, y)
+        return self.frame.contains_cell(row, col) and bool(self.occupied[row, col])
+
+
+def _same(a: CellWindow, b: CellWindow) -> bool:
+    return a.row0 == b.row0 and a.col0 == b.col0 and np.array_equal(a.mask, b.mask)
