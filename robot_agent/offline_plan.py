@@ -1,5 +1,6 @@
-"""The offline plan behind `wsnav plan`: the costmap the agent would hold with some zones `blocked` (static
-layer, zones lethal, inflation for the robot's footprint), A* over it, and the JSON and picture of the result.
+"""The offline plan behind `wsnav plan`: the costmap the agent would hold with some zones `blocked` (the agent's
+own LayeredCostmap: static layer, zones lethal, inflation for the robot's footprint), A* over it, and the JSON
+and picture of the result.
 
 Kept apart from robot_agent.cli so that every other wsnav command starts without loading scipy and pyastar2d.
 """
@@ -17,8 +18,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robot_agent.global_planner import Plan, PlannerParams, plan_path, simplify
-from robot_agent.inflation import LETHAL_OBSTACLE, InflationParams, inflate, static_layer
+from robot_agent.inflation import InflationParams
+from robot_agent.layered_costmap import LayeredCostmap
 from robot_agent.zone_geometry import GridFrame, polygon_window
+from robot_agent.zone_layer import ZoneLayer
+from schemas.messages import OperatorBlock
 from schemas.ros_map import FREE
 from schemas.site import Site, SiteError, load_site
 from wsnav.cli_support import CliError
@@ -41,10 +45,12 @@ def zone_lethal(site: Site, blocked: Sequence[str]) -> NDArray[np.bool_]:
 
 
 def site_costmap(site: Site, blocked: Sequence[str], inflation: InflationParams) -> NDArray[np.uint8]:
-    """Static layer, blocked zones lethal, then inflation: the agent's global costmap for these zone states."""
-    costs = static_layer(site.grid)
-    costs[zone_lethal(site, blocked)] = LETHAL_OBSTACLE
-    return inflate(costs, site.grid.resolution, inflation)
+    """The agent's global costmap for these zone states: the robot's own LayeredCostmap, each blocked zone set
+    as an operator block (so a zone no node watches can be blocked too), no lidar."""
+    layer = ZoneLayer(site.spec, frame_of(site))
+    for zone_id in blocked:
+        layer.on_operator_block(f"plan-{zone_id}", OperatorBlock(zone=zone_id), 0.0)
+    return LayeredCostmap(site.grid, inflation, zone_layer=layer, obstacle_layer=False).master
 
 
 def parse_point(site: Site, text: str, what: str) -> tuple[float, float, float]:

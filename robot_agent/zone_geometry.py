@@ -62,6 +62,83 @@ class CellWindow:
         return self.mask.size == 0 or not bool(self.mask.any())
 
 
+@dataclass(frozen=True)
+class Bounds:
+    """A rectangle of cells, rows [row0, row1) x cols [col0, col1): what a costmap update touched."""
+
+    row0: int
+    col0: int
+    row1: int
+    col1: int
+
+    @property
+    def rows(self) -> slice:
+        return slice(self.row0, self.row1)
+
+    @property
+    def cols(self) -> slice:
+        return slice(self.col0, self.col1)
+
+    @property
+    def empty(self) -> bool:
+        return self.row1 <= self.row0 or self.col1 <= self.col0
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return max(self.row1 - self.row0, 0), max(self.col1 - self.col0, 0)
+
+    def grow(self, cells: int, frame: GridFrame) -> Bounds:
+        """These bounds widened by `cells` on every side, clipped to the grid."""
+        return Bounds(
+            max(self.row0 - cells, 0),
+            max(self.col0 - cells, 0),
+            min(self.row1 + cells, frame.height),
+            min(self.col1 + cells, frame.width),
+        )
+
+    def union(self, other: Bounds | None) -> Bounds:
+        if other is None or other.empty:
+            return self
+        if self.empty:
+            return other
+        return Bounds(
+            min(self.row0, other.row0),
+            min(self.col0, other.col0),
+            max(self.row1, other.row1),
+            max(self.col1, other.col1),
+        )
+
+    def intersects(self, other: Bounds) -> bool:
+        return (
+            self.row0 < other.row1
+            and other.row0 < self.row1
+            and self.col0 < other.col1
+            and other.col0 < self.col1
+        )
+
+    def intersection(self, other: Bounds) -> Bounds:
+        """The common cells (empty bounds if none)."""
+        return Bounds(
+            max(self.row0, other.row0),
+            max(self.col0, other.col0),
+            min(self.row1, other.row1),
+            min(self.col1, other.col1),
+        )
+
+    def within(self, outer: Bounds) -> tuple[slice, slice]:
+        """Slices that pick these bounds out of an array covering `outer` (which must contain them)."""
+        return (
+            slice(self.row0 - outer.row0, self.row1 - outer.row0),
+            slice(self.col0 - outer.col0, self.col1 - outer.col0),
+        )
+
+    @staticmethod
+    def of_window(window: CellWindow) -> Bounds:
+        return Bounds(
+            window.row0, window.col0, window.row0 + window.mask.shape[0], window.col0 + window.mask.shape[1]
+        )
+
+
 def polygon_window(polygon: Polygon, frame: GridFrame) -> CellWindow:
     """The polygon's cells, clipped to the grid, in the smallest window that holds them.
 

@@ -1,0 +1,163 @@
+"""MQTT intake of the zone layer: every inbound message validated, and dropped and counted when it is bad.
+
+Malformed JSON, wrong types, unknown zones or nodes, a node writing a zone it does not watch, a payload that
+disagrees with its topic, an old `seq`, an oversized payload: each is dropped with a reason in `dropped` and a
+one-line log, never reaches the zone layer, and never raises (DESIGN.md, "MQTT contract").
+
+The `seq` rule, matching the firmware (firmware/device/node_logic.py): a node's seq increases with every state
+it publishes and starts from a random base when it boots, and every (re)connect publishes the birth `online`
+before the state. So a state is accepted when its seq is above the last accepted one, or when it is the first
+state after the node's birth (a reboot restarts seq), or when it lies more than half the firmware's seq space
+below the last one (the counter wrapped past 2**30 - 1 to 0).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections import Counter
+from typing import TypeVar
+
+from robot_agent.zone_layer import ZoneLayer
+from runtime.bus import Message
+from schemas import topics
+from schemas.messages import (
+    MAX_OPERATOR_PAYLOAD_BYTES,
+    MAX_PAYLOAD_BYTES,
+    NodeStatus,
+    OperatorBlock,
+    PayloadError,
+    ZoneState,
+    parse_payload,
+)
+from schemas.site_file import SiteFile
+
+log = logging.getLogger(__name__)
+
+M = TypeVar("M", ZoneState, NodeStatus, OperatorBlock)
+
+SEQ_WRAP_GAP = 2**29
+"""A drop of seq larger than this is a wrap-around of the firmware's counter (which wraps at 2**30), not a replay."""
+
+
+class ZoneIntake:
+    """Validates zone states, node statuses and operator blocks of one site and feeds them to a ZoneLayer."""
+
+    def __init__(self, spec: SiteFile, layer: ZoneLayer) -> None:
+        self.spec = spec
+        self.layer = layer
+        self._zones = {z.id for z in spec.zones}
+        self._watches = {n.id: n.zone for n in spec.nodes}
+        self._last_seq: dict[str, int] = {}
+        self._reborn: set[str] = set()
+        self.dropped: Counter[str] = Counter()
+        self.accepted = 0
+
+    def subscriptions(self) -> list[str]:
+        """Topic filters to subscribe: every zone state, node status and operator block of the site."""
+        site = self.spec.name
+        return [
+            topics.all_zone_states(site),
+            topics.all_node_statuses(site),
+            topics.all_operator_blocks(site),
+        ]
+
+    def handle(self, message: Message) -> bool:
+        """Validate and apply one message; True if effective zone costs changed. Never raises."""
+        try:
+            return self._handle(message)
+        except Exception as exc:  # a bug here must not stop the robot; count it and keep going
+            log.exception("zone intake: %s: internal error", message.topic)
+            return self._drop("internal_error", message, f"{type(exc).__name__}: {exc}")
+
+    def _handle(self, message: Message) -> bool:
+        topic = topics.parse(message.topic)
+        if topic is None:
+            return self._drop("unknown_topic", message, "not a contract topic")
+        if topic.site != self.spec.name:
+            return self._drop("wrong_site", message, f"site {topic.site!r} is not {self.spec.name!r}")
+        match topic.kind:
+            case "zone_state":
+                assert topic.zone is not None and topic.node is not None
+                return self._zone_state(message, topic.zone, topic.node)
+            case "node_status":
+                assert topic.node is not None
+                return self._node_status(message, topic.node)
+            case "operator_block":
+                assert topic.block_id is not None
+                return self._operator_block(message, topic.block_id)
+            case _:
+                return self._drop("unknown_topic", message, f"not a zone-layer topic ({topic.kind})")
+
+    def _zone_state(self, message: Message, zone: str, node: str) -> bool:
+        if zone not in self._zones:
+            return self._drop("unknown_zone", message, f"no zone {zone!r} in the site")
+        if node not in self._watches:
+            return self._drop("unknown_node", message, f"no node {node!r} in the site")
+        if self._watches[node] != zone:
+            return self._drop(
+                "wrong_node", message, f"node {node!r} watches {self._watches[node]!r}, not {zone!r}"
+            )
+        msg = self._parse(ZoneState, message, MAX_PAYLOAD_BYTES)
+        if msg is None:
+            return False
+        if msg.zone != zone or msg.node != node:
+            return self._drop("mismatch", message, f"payload says zone {msg.zone!r} node {msg.node!r}")
+        last = self._last_seq.get(node)
+        if (
+            last is not None
+            and node not in self._reborn
+            and msg.seq <= last
+            and last - msg.seq <= SEQ_WRAP_GAP
+        ):
+            return self._drop("old_seq", message, f"seq {msg.seq} after {last}")
+        self._last_seq[node] = msg.seq
+        self._reborn.discard(node)
+        self.accepted += 1
+        return self.layer.on_zone_state(msg, message.received_at)
+
+    def _node_status(self, message: Message, node: str) -> bool:
+        if node not in self._watches:
+            return self._drop("unknown_node", message, f"no node {node!r} in the site")
+        msg = self._parse(NodeStatus, message, MAX_PAYLOAD_BYTES)
+        if msg is None:
+            return False
+        if msg.node != node:
+            return self._drop("mismatch", message, f"payload says node {msg.node!r}")
+        if msg.status == "online":
+            self._reborn.add(node)
+        self.accepted += 1
+        return self.layer.on_node_status(msg, message.received_at)
+
+    def _operator_block(self, message: Message, block_id: str) -> bool:
+        if not message.payload:
+            self.accepted += 1
+            return self.layer.on_operator_block(block_id, None, message.received_at)
+        msg = self._parse(OperatorBlock, message, MAX_OPERATOR_PAYLOAD_BYTES)
+        if msg is None:
+            return False
+        if msg.zone is not None and msg.zone not in self._zones:
+            return self._drop("unknown_zone", message, f"no zone {msg.zone!r} in the site")
+        self.accepted += 1
+        return self.layer.on_operator_block(block_id, msg, message.received_at)
+
+    def _parse(self, model: type[M], message: Message, max_bytes: int) -> M | None:
+        payload = message.payload
+        if len(payload) > max_bytes:
+            self._drop("oversized", message, f"{len(payload)} bytes exceed {max_bytes}")
+            return None
+        try:
+            json.loads(payload)
+        except (ValueError, UnicodeDecodeError):
+            self._drop("malformed", message, "not JSON")
+            return None
+        try:
+            return parse_payload(model, payload, max_bytes=max_bytes)
+        except PayloadError as exc:
+            self._drop("invalid", message, str(exc))
+            return None
+
+    def _drop(self, reason: str, message: Message, detail: str) -> bool:
+        self.dropped[reason] += 1
+        log.warning("zone intake: dropped %s (%s): %s", message.topic, reason, detail)
+        return False

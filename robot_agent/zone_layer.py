@@ -1,0 +1,265 @@
+"""The WSN zone layer: what the nodes say about their zones, turned into one costmap cost per zone.
+
+Pure state (no MQTT, no threads, no clock of its own): the intake feeds it validated messages with the time they
+arrived, the costmap asks it which areas changed and paints their costs. Rules (DESIGN.md, "Costmap and
+planning"): `blocked` -> lethal, `caution` -> `policy.caution_cost`; a node silent for
+`policy.stale_after_heartbeats` heartbeat periods, or `offline`, is stale and read by `policy.stale` (keep its
+last word, unknown, or lethal): freshness is judged by message age because amqtt never drops a silent client.
+Several nodes on one zone are fused by `policy.fuse`; operator blocks (a zone or a polygon) are lethal until
+they expire or are removed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from robot_agent.inflation import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION
+from robot_agent.zone_geometry import Bounds, CellWindow, GridFrame, polygon_window
+from schemas.messages import NodeStatus, OperatorBlock, ZoneState
+from schemas.site_file import SiteFile, ZonePolicy
+
+Word = Literal["clear", "caution", "unknown", "blocked"]
+"""What one node says about its zone once staleness is applied; ordered by precedence."""
+_RANK: dict[Word, int] = {"clear": 0, "caution": 1, "unknown": 2, "blocked": 3}
+
+AreaKey = tuple[Literal["zone", "block"], str]
+
+
+@dataclass
+class _NodeView:
+    """What the layer knows of one node: its last zone state and when any message last came from it."""
+
+    zone: str
+    heartbeat_s: float
+    state: str | None = None
+    heard_at: float | None = None
+    online: bool = True
+
+
+@dataclass(frozen=True)
+class _Block:
+    zone: str | None
+    window: CellWindow | None
+    expires_at: float | None
+
+
+class ZoneLayer:
+    """Effective cost per zone (and per operator polygon) from node messages, fused and aged by the policy."""
+
+    def __init__(self, spec: SiteFile, frame: GridFrame, policy: ZonePolicy | None = None) -> None:
+        self.spec = spec
+        self.frame = frame
+        self.policy = policy if policy is not None else spec.policy
+        self._zone_ids = [z.id for z in spec.zones]
+        self._windows: dict[str, CellWindow] = {z.id: polygon_window(z.polygon, frame) for z in spec.zones}
+        self._nodes: dict[str, _NodeView] = {
+            n.id: _NodeView(n.zone, spec.heartbeat_of(n)) for n in spec.nodes
+        }
+        self._watchers: dict[str, list[str]] = {z: [] for z in self._zone_ids}
+        for n in spec.nodes:
+            self._watchers[n.zone].append(n.id)
+        self._blocks: dict[str, _Block] = {}
+        self._now: float | None = None
+        self._started: float | None = None
+        self._costs: dict[str, int] = dict.fromkeys(self._zone_ids, FREE_SPACE)
+        self._polys: dict[str, CellWindow] = {}
+        self._pending: dict[AreaKey, Bounds] = {}
+
+    # -- inputs ---------------------------------------------------------------------------------------------
+
+    def on_zone_state(self, msg: ZoneState, received_at: float) -> bool:
+        """A validated zone state (the intake checked node, zone and seq); True if zone costs changed."""
+        view = self._nodes.get(msg.node)
+        if view is None or view.zone != msg.zone:
+            return False
+        self._tick(received_at)
+        view.state = msg.state
+        view.heard_at = received_at
+        view.online = True
+        return self._reevaluate()
+
+    def on_node_status(self, msg: NodeStatus, received_at: float) -> bool:
+        """Birth (`online`) or will (`offline`); an offline node is stale at once."""
+        view = self._nodes.get(msg.node)
+        if view is None:
+            return False
+        self._tick(received_at)
+        view.online = msg.status == "online"
+        if view.online:
+            view.heard_at = received_at
+        return self._reevaluate()
+
+    def on_operator_block(self, block_id: str, msg: OperatorBlock | None, received_at: float) -> bool:
+        """Set (or with None remove) an operator block; a block on an unknown zone is ignored."""
+        self._tick(received_at)
+        self._blocks.pop(block_id, None)
+        if msg is not None:
+            if msg.zone is not None:
+                if msg.zone not in self._windows:
+                    return self._reevaluate()
+                self._blocks[block_id] = _Block(msg.zone, None, msg.expires_at)
+            else:
+                assert msg.polygon is not None
+                window = polygon_window(msg.polygon, self.frame)
+                self._blocks[block_id] = _Block(None, window, msg.expires_at)
+        return self._reevaluate()
+
+    def refresh(self, now: float) -> bool:
+        """Age the nodes (staleness) and expire operator blocks at `now`; True if zone costs changed."""
+        self._tick(now)
+        return self._reevaluate()
+
+    # -- outputs --------------------------------------------------------------------------------------------
+
+    def zone_costs(self) -> dict[str, int]:
+        """Effective cost per zone id: 0 clear, caution cost, LETHAL (254) or NO_INFORMATION (255)."""
+        return dict(self._costs)
+
+    def blocked_zones(self) -> list[str]:
+        """Zone ids treated as lethal now (blocked, operator-blocked, or stale under the lethal policy)."""
+        return [z for z in self._zone_ids if self._costs[z] == LETHAL_OBSTACLE]
+
+    def active_blocks(self) -> list[str]:
+        """Operator block ids in force now (zone or polygon)."""
+        return sorted(self._blocks)
+
+    def zone_window(self, zone_id: str) -> CellWindow:
+        return self._windows[zone_id]
+
+    def block_window(self, block_id: str) -> CellWindow | None:
+        """The cells of an operator polygon block in force, or None (zone blocks use the zone's window)."""
+        block = self._blocks.get(block_id)
+        return block.window if block is not None else None
+
+    def node_word(self, node_id: str) -> Word:
+        """What one node says now, staleness applied (for status and tests)."""
+        return self._word(self._nodes[node_id])
+
+    def take_changes(self) -> list[Bounds]:
+        """The cell windows whose zone cost changed since the last call (the costmap repaints only these)."""
+        out = [b for b in self._pending.values() if not b.empty]
+        self._pending.clear()
+        return out
+
+    def paint(self, bounds: Bounds) -> NDArray[np.uint8]:
+        """The zone layer's costs inside `bounds` (numeric maximum where areas overlap; 0 outside every area)."""
+        out = np.zeros(bounds.shape, dtype=np.uint8)
+        for zone_id, cost in self._costs.items():
+            if cost != FREE_SPACE:
+                self._paint_window(out, bounds, self._windows[zone_id], cost)
+        for window in self._polys.values():
+            self._paint_window(out, bounds, window, LETHAL_OBSTACLE)
+        return out
+
+    # -- internals ------------------------------------------------------------------------------------------
+
+    @staticmethod
+    def _paint_window(out: NDArray[np.uint8], bounds: Bounds, window: CellWindow, cost: int) -> None:
+        if window.empty:
+            return
+        area = Bounds.of_window(window)
+        common = area.intersection(bounds)
+        if common.empty:
+            return
+        dst = out[common.within(bounds)]
+        src = window.mask[common.within(area)]
+        np.maximum(dst, np.where(src, np.uint8(cost), np.uint8(0)), out=dst)
+
+    def _tick(self, t: float) -> None:
+        if self._started is None:
+            self._started = t
+        self._now = t if self._now is None else max(self._now, t)
+
+    def _mark(self, key: AreaKey, window: CellWindow) -> None:
+        bounds = Bounds.of_window(window)
+        self._pending[key] = bounds.union(self._pending.get(key))
+
+    def _stale(self, view: _NodeView) -> bool:
+        if not view.online:
+            return True
+        if self._now is None:
+            return False
+        since = view.heard_at if view.heard_at is not None else self._started
+        assert since is not None
+        return self._now - since > self.policy.stale_after_heartbeats * view.heartbeat_s
+
+    def _word(self, view: _NodeView) -> Word:
+        fresh: Word = "clear" if view.state is None else _as_word(view.state)
+        if not self._stale(view):
+            return fresh
+        match self.policy.stale:
+            case "keep":
+                return fresh
+            case "unknown":
+                return "unknown"
+            case "lethal":
+                return "blocked"
+
+    def _fuse(self, words: list[Word]) -> Word:
+        if not words:
+            return "clear"
+        if self.policy.fuse == "any_blocked":
+            return max(words, key=_RANK.__getitem__)
+        # majority: blocked only when more than half the zone's nodes say so; a minority report is a caution
+        blocked = words.count("blocked")
+        if 2 * blocked > len(words):
+            return "blocked"
+        if 2 * words.count("unknown") > len(words):
+            return "unknown"
+        return "caution" if blocked or "caution" in words else "clear"
+
+    def _cost(self, word: Word) -> int:
+        match word:
+            case "clear":
+                return FREE_SPACE
+            case "caution":
+                return self.policy.caution_cost
+            case "unknown":
+                return NO_INFORMATION
+            case "blocked":
+                return LETHAL_OBSTACLE
+
+    def _reevaluate(self) -> bool:
+        """Recompute every zone's cost and the blocks in force; remember the areas that changed."""
+        now = self._now
+        if now is not None:
+            for block_id, block in list(self._blocks.items()):
+                if block.expires_at is not None and now >= block.expires_at:
+                    del self._blocks[block_id]
+        zone_blocked = {b.zone for b in self._blocks.values() if b.zone is not None}
+        costs: dict[str, int] = {}
+        for zone_id in self._zone_ids:
+            if zone_id in zone_blocked:
+                costs[zone_id] = LETHAL_OBSTACLE
+            else:
+                words: list[Word] = [self._word(self._nodes[n]) for n in self._watchers[zone_id]]
+                costs[zone_id] = self._cost(self._fuse(words))
+        polys = {i: b.window for i, b in self._blocks.items() if b.window is not None}
+        changed = False
+        for zone_id, cost in costs.items():
+            if cost != self._costs[zone_id]:
+                self._mark(("zone", zone_id), self._windows[zone_id])
+                changed = True
+        for block_id in polys.keys() | self._polys.keys():
+            before, after = self._polys.get(block_id), polys.get(block_id)
+            if before is after:
+                continue
+            for window in (before, after):
+                if window is not None:
+                    self._mark(("block", block_id), window)
+            changed = True
+        self._costs = costs
+        self._polys = polys
+        return changed
+
+
+def _as_word(state: str) -> Word:
+    if state == "blocked":
+        return "blocked"
+    if state == "caution":
+        return "caution"
+    return "clear"
