@@ -1,0 +1,318 @@
+"""The robot agent: MQTT in (zone states through the validating intake, goals, the simulated world), the
+layered costmap, the navigator, and the robot's status out on `robots/<id>/status`.
+
+`step(now)` does everything due at `now` and never blocks, so the experiment can drive it in lock-step with a
+simulated robot on a SimClock; `run` is the real-time loop, asleep on the bus between ticks so a zone message
+is acted on as soon as it arrives. Nothing a message carries can raise out of `step`: bad payloads are dropped
+and counted by reason.
+
+Status is published retained (an operator's dashboard that connects late sees at once where each robot is and
+what it is doing, and `t` says how old that is): QoS 1 on every change (state, reason, goal, replans, blocked
+zones), QoS 0 for the 2 Hz repeats in between.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from robot_agent.agent_config import AgentConfig
+from robot_agent.backend import Pose, RobotBackend
+from robot_agent.controller import ControllerParams, PathFollower
+from robot_agent.costmap_planner import GlobalPlanner
+from robot_agent.layered_costmap import LayeredCostmap
+from robot_agent.navigator import Every, GoalLabel, Navigator, NavigatorParams
+from robot_agent.zone_intake import ZoneIntake
+from robot_agent.zone_layer import ZoneLayer
+from runtime.bus import Bus, Message
+from runtime.clock import Clock
+from schemas import topics
+from schemas.messages import (
+    MAX_OPERATOR_PAYLOAD_BYTES,
+    PayloadError,
+    RobotGoal,
+    RobotStatus,
+    SimWorld,
+    parse_payload,
+)
+from schemas.site import Site
+
+
+class SimWorldSink(Protocol):
+    """The simulated world the sim backend's lidar and bumper see (robot_agent.sim_world_grid.SimWorldGrid)."""
+
+    def apply(self, world: SimWorld) -> None: ...
+
+
+@dataclass(frozen=True)
+class ZoneReaction:
+    """A batch of zone messages that changed the costmap, and when the agent had acted on it."""
+
+    received_at: float
+    """The bus's stamp on the earliest message of the batch that changed the zone layer."""
+    done_at: float
+    """Clock time once the navigator had decided (replanned, waited or cancelled)."""
+    replanned: bool
+
+
+@dataclass
+class AgentStats:
+    steps: int = 0
+    messages: int = 0
+    cpu_s: float = 0.0
+    """CPU time of the agent's own work (thread time inside `step`), what the experiment compares."""
+    costmap_scans: int = 0
+    zone_updates: int = 0
+    statuses: int = 0
+    goals: int = 0
+    sim_worlds: int = 0
+    dropped: Counter[str] = field(default_factory=Counter)
+    """Messages the agent itself dropped (goals, simulated world, unexpected topics), by reason."""
+
+
+class RobotAgent:
+    def __init__(
+        self,
+        site: Site,
+        config: AgentConfig,
+        backend: RobotBackend,
+        bus: Bus,
+        clock: Clock,
+        robot_id: str | None = None,
+        *,
+        sim_world: SimWorldSink | None = None,
+        on_status: Callable[[RobotStatus, bool], None] | None = None,
+    ) -> None:
+        """`sim_world`: where `sim/world` messages go when the backend is the simulator (subscribed only then).
+        `on_status(status, changed)` sees every status published (for a console line, a test, a log)."""
+        self.site = site
+        self.config = config
+        self.backend = backend
+        self.bus = bus
+        self.clock = clock
+        self.robot_id = robot_id or backend.robot_id
+        robots = {r.id: r for r in site.spec.robots}
+        if self.robot_id not in robots:
+            known = ", ".join(robots) or "none"
+            raise ValueError(f"robot {self.robot_id!r} is not in site {site.name!r} (robots: {known})")
+        radius = max(robots[self.robot_id].footprint_radius, backend.radius)
+        inflation = config.inflation.params(radius)
+        self.zone_layer: ZoneLayer | None = None
+        self.intake: ZoneIntake | None = None
+        self.costmap = LayeredCostmap(site.grid, inflation, obstacle_layer=config.obstacle_layer)
+        if config.zone_layer:
+            self.zone_layer = ZoneLayer(site.spec, self.costmap.frame, site.spec.policy)
+            self.costmap = LayeredCostmap(
+                site.grid, inflation, zone_layer=self.zone_layer, obstacle_layer=config.obstacle_layer
+            )
+            self.intake = ZoneIntake(site.spec, self.zone_layer)
+        controller = PathFollower(
+            ControllerParams(
+                inscribed_radius=radius,
+                inflation_cost_scaling_factor=config.inflation.cost_scaling_factor,
+                control_dt=1.0 / config.controller_rate_hz,
+            )
+        )
+        self.navigator = Navigator(
+            self.costmap,
+            GlobalPlanner(config.planner.params(), config.planner.downsample),
+            controller,
+            backend,
+            NavigatorParams(
+                controller_rate_hz=config.controller_rate_hz,
+                replan_rate_hz=config.replan_rate_hz,
+                waiting_retry_s=config.waiting_retry_s,
+                blocked_replan_interval_s=config.blocked_replan_interval_s,
+                local_costmap_size_m=config.local_costmap_size_m,
+            ),
+            blocked_zones=self.blocked_zones,
+        )
+        self.sim_world = sim_world
+        self.on_status = on_status
+        self.stats = AgentStats()
+        self.zone_reactions: list[ZoneReaction] = []
+        self.status_topic = topics.robot_status(site.name, self.robot_id)
+        self.goal_topic = topics.robot_goal(site.name, self.robot_id)
+        self.sim_world_topic = topics.sim_world(site.name)
+        self._costmap_timer = Every(config.global_costmap_rate_hz)
+        self._zone_timer = Every(config.zone_refresh_rate_hz)
+        self._status_timer = Every(config.status_rate_hz)
+        self._last_status: tuple[object, ...] | None = None
+        for topic_filter in self.subscriptions():
+            bus.subscribe(topic_filter, qos=1)
+
+    def subscriptions(self) -> list[str]:
+        subs = list(self.intake.subscriptions()) if self.intake is not None else []
+        subs.append(self.goal_topic)
+        if self.sim_world is not None:
+            subs.append(self.sim_world_topic)
+        return subs
+
+    # -- what the experiment and the status read ---------------------------------------------------------
+
+    def blocked_zones(self) -> list[str]:
+        return self.zone_layer.blocked_zones() if self.zone_layer is not None else []
+
+    def dropped(self) -> Counter[str]:
+        """Every message dropped so far, by reason: the intake's and the agent's own."""
+        out: Counter[str] = Counter(self.stats.dropped)
+        if self.intake is not None:
+            out.update(self.intake.dropped)
+        return out
+
+    def status(self, now: float) -> RobotStatus:
+        nav = self.navigator
+        x, y, yaw = self.backend.pose()
+        goal = nav.goal_label
+        return RobotStatus(
+            robot=self.robot_id,
+            state=nav.state,
+            pose=(round(x, 3), round(y, 3), round(yaw, 3)),
+            goal=goal if isinstance(goal, str) or goal is None else (goal[0], goal[1], goal[2]),
+            blocked_zones=self.blocked_zones(),
+            replans=nav.replans,
+            plan_length_m=round(nav.plan_length_m, 3) if nav.plan_length_m is not None else None,
+            reason=nav.reason[:200] if nav.reason else None,
+            t=round(now, 3),
+        )
+
+    # -- commands from code (the CLI, the experiment) ----------------------------------------------------
+
+    def set_goal(self, goal: Pose, label: GoalLabel, now: float) -> None:
+        self.stats.goals += 1
+        self.navigator.set_goal(goal, label, now)
+
+    # -- the loop -----------------------------------------------------------------------------------------
+
+    def step(self, now: float) -> None:
+        """Everything due at `now`: inbound messages, costmap updates, navigation, status. Never blocks."""
+        t0 = time.thread_time()
+        self.stats.steps += 1
+        goal: tuple[Pose, GoalLabel] | None = None
+        cancel = False
+        zones_changed_at = math.inf
+        for message in self.bus.poll():
+            self.stats.messages += 1
+            if message.topic == self.goal_topic:
+                parsed = self._goal_of(message)
+                if isinstance(parsed, tuple):
+                    goal, cancel = parsed, False
+                elif parsed == "cancel":
+                    goal, cancel = None, True
+            elif message.topic == self.sim_world_topic and self.sim_world is not None:
+                self._apply_world(message)
+            elif self.intake is not None:
+                if self.intake.handle(message):
+                    zones_changed_at = min(zones_changed_at, message.received_at)
+            else:
+                self.stats.dropped["unexpected_topic"] += 1
+        if self.zone_layer is not None and (zones_changed_at < math.inf or self._zone_timer.due(now)):
+            self._update_zones(now, zones_changed_at, react=goal is None and not cancel)
+        if cancel:
+            self.navigator.cancel(now, "cancelled by the operator")
+        elif goal is not None:
+            self.set_goal(goal[0], goal[1], now)
+        if self.config.obstacle_layer and self._costmap_timer.due(now):
+            scan = self.backend.scan()
+            if scan is not None:
+                self.stats.costmap_scans += 1
+                self.costmap.update_scan(scan)
+        self.navigator.step(now)
+        self._publish_status(now)
+        self.stats.cpu_s += time.thread_time() - t0
+
+    def _update_zones(self, now: float, changed_at: float, *, react: bool) -> None:
+        """Fold the zone layer into the costmap; on a change, let the navigator act at once (unless a goal
+        arriving in the same batch is about to be planned over the new costs anyway)."""
+        if self.costmap.update_zones(now) is None:
+            return
+        self.stats.zone_updates += 1
+        if react:
+            replans = self.navigator.replans
+            self.navigator.on_zones_changed(now)
+            self.zone_reactions.append(
+                ZoneReaction(min(changed_at, now), self.clock.now(), self.navigator.replans > replans)
+            )
+
+    def next_due(self) -> float:
+        """The earliest clock time at which `step` has timed work to do."""
+        due = min(self.navigator.next_due(), self._status_timer.next)
+        if self.config.obstacle_layer:
+            due = min(due, self._costmap_timer.next)
+        if self.zone_layer is not None:
+            due = min(due, self._zone_timer.next)
+        return due
+
+    def run(
+        self,
+        stop: threading.Event,
+        world_tick: Callable[[float], float] | None = None,
+        max_sleep_s: float = 0.1,
+    ) -> None:
+        """Real time: step whenever work is due or a message arrives, sleeping on the bus in between.
+
+        `world_tick(now) -> next time it wants to run` lets the owner of a simulated robot advance it in the
+        same loop (the agent itself never steps a robot).
+        """
+        while not stop.is_set():
+            now = self.clock.now()
+            world_next = world_tick(now) if world_tick is not None else math.inf
+            self.step(now)
+            wait = min(self.next_due(), world_next) - self.clock.now()
+            if wait > 0:
+                self.bus.wait(min(wait, max_sleep_s))
+
+    # -- inbound ------------------------------------------------------------------------------------------
+
+    def _goal_of(self, message: Message) -> tuple[Pose, GoalLabel] | str | None:
+        """The goal a goal message names, "cancel", or None (dropped and counted)."""
+        try:
+            msg = parse_payload(RobotGoal, message.payload)
+        except PayloadError:
+            self.stats.dropped["goal_invalid"] += 1
+            return None
+        if msg.cancel:
+            return "cancel"
+        if isinstance(msg.goal, str):
+            if msg.goal not in self.site.spec.points:
+                self.stats.dropped["goal_unknown_point"] += 1
+                return None
+            return self.site.point(msg.goal), msg.goal
+        assert msg.goal is not None
+        x, y, yaw = msg.goal
+        if not all(math.isfinite(v) for v in (x, y, yaw)):
+            self.stats.dropped["goal_invalid"] += 1
+            return None
+        return (x, y, yaw), (x, y, yaw)
+
+    def _apply_world(self, message: Message) -> None:
+        assert self.sim_world is not None
+        try:
+            world = parse_payload(SimWorld, message.payload, max_bytes=MAX_OPERATOR_PAYLOAD_BYTES * 8)
+        except PayloadError:
+            self.stats.dropped["sim_world_invalid"] += 1
+            return
+        self.sim_world.apply(world)
+        self.stats.sim_worlds += 1
+
+    # -- outbound -----------------------------------------------------------------------------------------
+
+    def _publish_status(self, now: float) -> None:
+        nav = self.navigator
+        key = (nav.state, nav.reason, nav.goal_label, nav.replans, tuple(self.blocked_zones()))
+        changed = key != self._last_status
+        if not changed and not self._status_timer.due(now):
+            return
+        if changed:
+            self._last_status = key
+            self._status_timer.start(now)
+        status = self.status(now)
+        self.bus.publish(self.status_topic, status.to_payload(), qos=1 if changed else 0, retain=True)
+        self.stats.statuses += 1
+        if self.on_status is not None:
+            self.on_status(status, changed)

@@ -1,0 +1,319 @@
+"""The navigator: goal -> global plan -> path follower, and when to plan again (the paper's Algorithm 3, improved).
+
+Pure logic over the costmap, planner, controller and robot backend, driven by `step(now)` and by
+`on_zones_changed(now)`; it never reads a clock or the bus, so lock-step simulation is deterministic.
+
+- A zone-layer change: if the goal lies in a blocked zone, stop and cancel naming the zone; else replan at once
+  (a path that appeared may be shorter, one that vanished must be replaced); no path: stop and wait.
+- Waiting resumes by itself: every later zone change retries, and so (configurably) does a timer.
+- The controller reports its path blocked (the lidar saw something): replan over the obstacle marks.
+- Configurably, replan at a fixed rate too (stock move_base's planner_frequency).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from robot_agent.backend import Pose, RobotBackend, Velocity
+from robot_agent.costmap_planner import GlobalPlanner
+from robot_agent.global_planner import Plan
+from robot_agent.zone_geometry import GridFrame
+
+NavState = Literal["idle", "navigating", "waiting", "arrived", "cancelled"]
+Trigger = Literal["goal", "zone", "blocked", "periodic", "retry"]
+EventKind = Literal["goal", "plan", "replan", "waiting", "resumed", "cancelled", "arrived", "blocked"]
+GoalLabel = str | Pose
+
+
+class Costmap(Protocol):
+    """What the navigator reads of robot_agent.layered_costmap.LayeredCostmap."""
+
+    @property
+    def frame(self) -> GridFrame: ...
+    @property
+    def master(self) -> NDArray[np.uint8]: ...
+    def in_lethal(self, x: float, y: float) -> bool: ...
+    def zones_at(self, x: float, y: float) -> list[str]:
+        """Blocked zones (and operator blocks) the robot's footprint would touch at this point."""
+        ...
+
+    def local_window(self, pose: Pose, size_m: float) -> tuple[NDArray[np.uint8], GridFrame]: ...
+
+
+class ControlOutput(Protocol):
+    @property
+    def velocity(self) -> Velocity: ...
+    @property
+    def status(self) -> str: ...
+    @property
+    def reason(self) -> str | None: ...
+
+
+class Controller(Protocol):
+    """What the navigator needs of robot_agent.controller.PathFollower."""
+
+    def set_path(self, path: NDArray[np.float64], goal_yaw: float | None = None) -> None: ...
+    def clear(self) -> None: ...
+    def compute(
+        self, pose: Pose, odom: Velocity, costs: NDArray[np.uint8], frame: GridFrame
+    ) -> ControlOutput: ...
+
+
+@dataclass(frozen=True)
+class NavigatorParams:
+    controller_rate_hz: float = 10.0
+    replan_rate_hz: float = 0.0
+    """0: replan only on events."""
+    waiting_retry_s: float = 2.0
+    """0: while waiting, retry only when a zone changes."""
+    blocked_replan_interval_s: float = 0.5
+    local_costmap_size_m: float = 3.0
+    settle_m: float = 0.25
+    """Algorithm 3's tolerance: this near the goal a zone change no longer triggers a replan."""
+
+
+@dataclass(frozen=True)
+class NavEvent:
+    """One thing the navigator did, for status, tests and the experiment's log."""
+
+    t: float
+    kind: EventKind
+    trigger: Trigger | None = None
+    detail: str | None = None
+    pose: Pose | None = None
+
+
+class Every:
+    """A fixed-rate timer in the caller's time: `due(now)` is true once per period (0 Hz: never)."""
+
+    def __init__(self, rate_hz: float) -> None:
+        self.period = 1.0 / rate_hz if rate_hz > 0 else math.inf
+        self.next = -math.inf
+
+    def start(self, now: float) -> None:
+        self.next = now + self.period
+
+    def due(self, now: float) -> bool:
+        if now < self.next:
+            return False
+        # Late by more than a period (a stalled loop): skip the missed ticks rather than bursting them.
+        self.next = self.next + self.period if now - self.next < self.period else now + self.period
+        return True
+
+
+class Navigator:
+    def __init__(
+        self,
+        costmap: Costmap,
+        planner: GlobalPlanner,
+        controller: Controller,
+        backend: RobotBackend,
+        params: NavigatorParams | None = None,
+        blocked_zones: Callable[[], list[str]] | None = None,
+    ) -> None:
+        """`blocked_zones` tells which zones the zone layer holds lethal now (none without a zone layer)."""
+        self.costmap = costmap
+        self.planner = planner
+        self.controller = controller
+        self.backend = backend
+        self.params = params or NavigatorParams()
+        self._blocked_zones = blocked_zones or list
+        self.state: NavState = "idle"
+        self.reason: str | None = None
+        self.goal: Pose | None = None
+        self.goal_label: GoalLabel | None = None
+        self.path: NDArray[np.float64] = np.zeros((0, 2))
+        self.plan_length_m: float | None = None
+        self.plans = 0
+        """Global plans computed, all goals."""
+        self.replans = 0
+        """Plans after the first for the current goal (reset with each goal)."""
+        self.replans_by: Counter[str] = Counter()
+        self.planning_ms = 0.0
+        self.last_plan: Plan | None = None
+        self.events: deque[NavEvent] = deque(maxlen=10_000)
+        """The newest events (a long-running agent must not grow without bound)."""
+        self._control = Every(self.params.controller_rate_hz)
+        self._periodic = Every(self.params.replan_rate_hz)
+        self._retry = Every(1.0 / self.params.waiting_retry_s if self.params.waiting_retry_s > 0 else 0.0)
+        self._last_blocked_replan = -math.inf
+
+    @property
+    def active(self) -> bool:
+        return self.state in ("navigating", "waiting")
+
+    def next_due(self) -> float:
+        """The earliest time `step` has work to do (for a real-time loop's sleep)."""
+        if self.state == "navigating":
+            return min(self._control.next, self._periodic.next)
+        if self.state == "waiting":
+            return self._retry.next
+        return math.inf
+
+    def set_goal(self, goal: Pose, label: GoalLabel, now: float) -> None:
+        """A new goal replaces the old one; planned at once."""
+        self.goal, self.goal_label = goal, label
+        self.replans = 0
+        self.replans_by.clear()
+        self.reason = None
+        self._record(now, "goal", detail=_label_text(label))
+        self._periodic.start(now)
+        self._control.next = now
+        zone = self._goal_blocked_zone()
+        if zone is not None:
+            self._cancel(now, zone)
+            return
+        self.state = "navigating"
+        self._plan(now, "goal")
+
+    def cancel(self, now: float, reason: str) -> None:
+        if self.active:
+            self._cancel(now, reason)
+
+    def on_zones_changed(self, now: float) -> None:
+        """The zone layer changed the costmap: Algorithm 3, run at once rather than on the planner's timer."""
+        if not self.active or self.goal is None:
+            return
+        zone = self._goal_blocked_zone()
+        if zone is not None:
+            self._cancel(now, zone)
+            return
+        x, y, _ = self.backend.pose()
+        if (
+            self.state == "navigating"
+            and math.hypot(self.goal[0] - x, self.goal[1] - y) <= self.params.settle_m
+        ):
+            return
+        self._plan(now, "zone")
+
+    def step(self, now: float) -> None:
+        """Timers: periodic replanning, retries while waiting, and the controller at its rate."""
+        if self.state == "waiting":
+            if self._retry.due(now):
+                self._plan(now, "retry")
+            return
+        if self.state != "navigating":
+            return
+        if self._periodic.due(now):
+            self._plan(now, "periodic")
+            if self.state != "navigating":
+                return
+        if self._control.due(now):
+            self._control_tick(now)
+
+    def _control_tick(self, now: float) -> None:
+        pose = self.backend.pose()
+        costs, frame = self.costmap.local_window(pose, self.params.local_costmap_size_m)
+        result = self.controller.compute(pose, self.backend.velocity(), costs, frame)
+        if result.status == "arrived":
+            self._stop()
+            self.state, self.reason = "arrived", None
+            self._record(now, "arrived")
+        elif result.status == "blocked":
+            self.backend.stop()
+            if now - self._last_blocked_replan >= self.params.blocked_replan_interval_s:
+                self._last_blocked_replan = now
+                self._record(now, "blocked", detail=result.reason)
+                self._plan(now, "blocked")
+        else:
+            self.backend.command(result.velocity)
+
+    def _plan(self, now: float, trigger: Trigger) -> None:
+        assert self.goal is not None
+        pose = self.backend.pose()
+        costmap = self.costmap
+        plan = self.planner.plan(
+            costmap.master, costmap.frame, (pose[0], pose[1]), (self.goal[0], self.goal[1])
+        )
+        self.plans += 1
+        self.planning_ms += plan.plan_ms
+        self.last_plan = plan
+        if trigger != "goal":
+            self.replans += 1
+            self.replans_by[trigger] += 1
+        if plan.reachable:
+            self.path = plan.path
+            self.plan_length_m = plan.length_m
+            self.controller.set_path(plan.path, self.goal[2])
+            resumed = self.state == "waiting"
+            self.state, self.reason = "navigating", None
+            if resumed:
+                self._control.start(now)
+                self._periodic.start(now)
+            kind = "resumed" if resumed else ("plan" if trigger == "goal" else "replan")
+            self._record(now, kind, trigger, f"{plan.length_m:.2f} m")
+            return
+        if plan.reason == "goal_outside":
+            self._cancel(now, "the goal lies outside the map")
+            return
+        if plan.reason == "start_outside":
+            self._cancel(now, "the robot is outside the map")
+            return
+        self._wait(now, trigger, self._no_path_reason(plan))
+
+    def _no_path_reason(self, plan: Plan) -> str:
+        blocked = self._blocked_zones()
+        why = {
+            "goal_blocked": "the goal is occupied",
+            "start_blocked": "the robot stands in lethal space",
+            "no_path": "no path to the goal",
+        }.get(plan.reason, plan.reason)
+        if self.goal is not None and plan.reason == "goal_blocked" and self.costmap.in_lethal(*self.goal[:2]):
+            why = "the goal is occupied by an obstacle"
+        if plan.reason == "start_blocked":
+            here = self.costmap.zones_at(*self.backend.pose()[:2])
+            if here:
+                why = f"the robot stands in blocked zone {', '.join(here)}"
+        return f"{why} (blocked zones: {', '.join(blocked)})" if blocked else why
+
+    def _goal_blocked_zone(self) -> str | None:
+        """The cancel reason when the goal lies in lethal space of a blocked zone, else None."""
+        if self.goal is None:
+            return None
+        x, y = self.goal[0], self.goal[1]
+        if not self.costmap.frame.contains_cell(*self.costmap.frame.world_to_cell(x, y)):
+            return None
+        if not self.costmap.in_lethal(x, y):
+            return None
+        zones = self.costmap.zones_at(x, y)
+        if not zones:
+            return None
+        return f"goal {_label_text(self.goal_label)} lies in blocked zone {', '.join(zones)}"
+
+    def _wait(self, now: float, trigger: Trigger, reason: str) -> None:
+        self._stop()
+        if self.state != "waiting" or self.reason != reason:
+            self._record(now, "waiting", trigger, reason)
+        if self.state != "waiting":
+            self._retry.start(now)
+        self.state, self.reason = "waiting", reason
+
+    def _cancel(self, now: float, reason: str) -> None:
+        self._stop()
+        self.state, self.reason = "cancelled", reason
+        self._record(now, "cancelled", detail=reason)
+
+    def _stop(self) -> None:
+        self.backend.stop()
+        self.controller.clear()
+        self.path = np.zeros((0, 2))
+
+    def _record(
+        self, now: float, kind: EventKind, trigger: Trigger | None = None, detail: str | None = None
+    ) -> None:
+        self.events.append(NavEvent(now, kind, trigger, detail, self.backend.pose()))
+
+
+def _label_text(label: GoalLabel | None) -> str:
+    if label is None:
+        return "?"
+    if isinstance(label, str):
+        return label
+    return "[" + ", ".join(f"{v:.2f}" for v in label) + "]"
