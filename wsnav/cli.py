@@ -12,6 +12,7 @@ from firmware import cli as firmware_cli
 from robot_agent import cli as robot_agent_cli
 from wsnav import site_commands
 from wsnav.cli_support import CliError, Parser
+from zone_sim import cli as zone_sim_cli
 
 Registrar = Callable[["argparse._SubParsersAction[Parser]"], None]
 
@@ -20,6 +21,7 @@ REGISTRARS: list[Registrar] = [
     robot_agent_cli.register,
     broker_cli.register,
     firmware_cli.register,
+    zone_sim_cli.register,
 ]
 
 
