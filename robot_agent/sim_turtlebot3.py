@@ -59,7 +59,10 @@ class SimTurtleBot3:
         self._next_scan: float | None = None
         self._in_contact = False
         self.collisions = 0
-        """Collision events: each time the bumper meets something after having been free of contact."""
+        """Collision events: each time the bumper meets something after having been free of contact.
+
+        An obstacle placed on top of the robot is not a collision: the robot may drive out of it freely.
+        """
         self.distance_m = 0.0
         """Odometry: path length travelled (m)."""
         self.time_s = 0.0
@@ -132,7 +135,7 @@ class SimTurtleBot3:
             return
         x1, y1, yaw1 = _arc(self._x, self._y, self._yaw, self._v, self._w, h)
         moved = math.hypot(x1 - self._x, y1 - self._y)
-        if moved == 0.0 or not self.overlaps(x1, y1) or self._escaping(x1, y1):
+        if moved == 0.0 or not self.overlaps(x1, y1) or self.overlaps(self._x, self._y):
             self._x, self._y, self._yaw = x1, y1, yaw1
             self.distance_m += moved
             if moved > 0.0:
@@ -155,12 +158,6 @@ class SimTurtleBot3:
         if not self._in_contact:
             self.collisions += 1
         self._in_contact = True
-
-    def _escaping(self, x1: float, y1: float) -> bool:
-        """An obstacle placed on top of the robot: let it move if the move gets it out (more clearance)."""
-        if not self.overlaps(self._x, self._y):
-            return False
-        return self.clearance(x1, y1) > self.clearance(self._x, self._y)
 
     def overlaps(self, x: float, y: float) -> bool:
         """Whether the footprint circle at (x, y) overlaps an occupied cell's square."""
