@@ -18,6 +18,8 @@ import logging
 from collections import Counter
 from typing import TypeVar
 
+from pydantic import ValidationError
+
 from robot_agent.zone_layer import ZoneLayer
 from runtime.bus import Message
 from schemas import topics
@@ -26,9 +28,7 @@ from schemas.messages import (
     MAX_PAYLOAD_BYTES,
     NodeStatus,
     OperatorBlock,
-    PayloadError,
     ZoneState,
-    parse_payload,
 )
 from schemas.site_file import SiteFile
 
@@ -152,9 +152,12 @@ class ZoneIntake:
             self._drop("malformed", message, "not JSON")
             return None
         try:
-            return parse_payload(model, payload, max_bytes=max_bytes)
-        except PayloadError as exc:
-            self._drop("invalid", message, str(exc))
+            # strict: a node that sends "seq": "9" or "state": 1 has a bug worth seeing, not a value to coerce
+            return model.model_validate_json(payload, strict=True)
+        except ValidationError as exc:
+            first = exc.errors()[0]
+            where = ".".join(str(p) for p in first.get("loc", ())) or "payload"
+            self._drop("invalid", message, f"{model.__name__}: {where}: {first.get('msg', 'invalid')}")
             return None
 
     def _drop(self, reason: str, message: Message, detail: str) -> bool:

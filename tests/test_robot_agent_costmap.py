@@ -1,0 +1,235 @@
+"""The layered costmap: bounded zone updates give exactly the whole-map result, the lidar marks and clears, and
+the queries (goal check, zones at a point, rolling window, planner weights) read the merged, inflated map."""
+
+from __future__ import annotations
+
+import math
+import random
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from robot_agent.backend import LaserScan
+from robot_agent.global_planner import PlannerParams, plan_path, weights_for
+from robot_agent.inflation import (
+    FREE_SPACE,
+    INSCRIBED_INFLATED_OBSTACLE,
+    LETHAL_OBSTACLE,
+    NO_INFORMATION,
+    InflationParams,
+    inflate,
+    static_layer,
+)
+from robot_agent.layered_costmap import Bounds, LayeredCostmap
+from robot_agent.offline_plan import frame_of, zone_lethal
+from robot_agent.zone_layer import ZoneLayer
+from schemas.messages import NodeStatus, OperatorBlock, ZoneState
+from schemas.site import Site, load_site
+from schemas.site_file import ZonePolicy
+from tests.conftest import SITES
+from tests.site_fixtures import tiny_site
+
+INFLATION = InflationParams(inscribed_radius=0.105, inflation_radius=1.0, cost_scaling_factor=3.0)
+
+
+@pytest.fixture(scope="module")
+def school() -> Site:
+    return load_site(SITES / "school")
+
+
+@pytest.fixture
+def tiny(tmp_path: Path) -> Site:
+    return load_site(tiny_site(tmp_path / "tiny"))
+
+
+def school_costmap(site: Site, policy: ZonePolicy | None = None) -> tuple[LayeredCostmap, ZoneLayer]:
+    layer = ZoneLayer(site.spec, frame_of(site), policy)
+    return LayeredCostmap(site.grid, INFLATION, zone_layer=layer), layer
+
+
+def test_a_blocked_zone_gives_the_static_map_with_the_zone_lethal_inflated(school: Site) -> None:
+    costmap, layer = school_costmap(school)
+    empty = costmap.master.copy()
+    assert layer.on_zone_state(ZoneState(zone="z1", node="n1", state="blocked", seq=1), 10.0)
+    bounds = costmap.update_zones(10.0)
+    assert bounds is not None
+    # An independent reference: costmap_2d's static layer, the zone's cells lethal, the whole map inflated.
+    reference = static_layer(school.grid)
+    reference[zone_lethal(school, ["z1"])] = LETHAL_OBSTACLE
+    reference = inflate(reference, school.grid.resolution, INFLATION)
+    assert np.array_equal(costmap.master, reference)
+    # The update stayed inside the bounds it reported, and those are the zone grown by the inflation radius.
+    outside = np.ones(empty.shape, dtype=bool)
+    outside[bounds.rows, bounds.cols] = False
+    assert np.array_equal(costmap.master[outside], empty[outside])
+    zone = Bounds.of_window(layer.zone_window("z1"))
+    reach = math.ceil(INFLATION.inflation_radius / school.grid.resolution) + 1
+    assert bounds == zone.grow(reach, costmap.frame)
+    assert costmap.update_zones(10.5) is None, "nothing changed, nothing to do"
+
+
+def test_incremental_updates_equal_whole_map_recomputation_after_random_zone_changes(school: Site) -> None:
+    policy = ZonePolicy(stale="unknown", caution_cost=180)
+    costmap, layer = school_costmap(school, policy)
+    rng = random.Random(6)
+    nodes = [(n.id, n.zone) for n in school.spec.nodes]
+    seq = dict.fromkeys((n for n, _ in nodes), 0)
+    now = 0.0
+    updates = 0
+    seen: set[int] = set()
+    for step in range(60):
+        now += rng.choice([0.5, 1.0, 4.0, 16.0])
+        kind = rng.random()
+        if kind < 0.6:
+            node, zone = rng.choice(nodes)
+            seq[node] += 1
+            state = rng.choice(["blocked", "clear", "caution"])
+            msg = ZoneState.model_validate({"zone": zone, "node": node, "state": state, "seq": seq[node]})
+            layer.on_zone_state(msg, now)
+        elif kind < 0.7:
+            node, _ = rng.choice(nodes)
+            layer.on_node_status(NodeStatus(node=node, status=rng.choice(["online", "offline"])), now)
+        elif kind < 0.85:
+            x, y = rng.uniform(2, 45), rng.uniform(2, 25)
+            square = [(x, y), (x + 1.5, y), (x + 1.5, y + 1.5), (x, y + 1.5)]
+            block = OperatorBlock(polygon=square, expires_at=now + rng.choice([1.0, 30.0]))
+            layer.on_operator_block(f"b{step % 3}", block, now)
+        else:
+            zone = rng.choice([z.id for z in school.spec.zones])
+            layer.on_operator_block("zone-block", OperatorBlock(zone=zone, expires_at=now + 5.0), now)
+        if costmap.update_zones(now) is not None:
+            updates += 1
+        seen |= set(layer.zone_costs().values())
+        incremental = costmap.master.copy()
+        costmap.rebuild()
+        assert np.array_equal(incremental, costmap.master), (
+            f"step {step}: bounded update differs from whole map"
+        )
+    assert updates >= 30, "the sequence must actually change the map"
+    assert {FREE_SPACE, 180, LETHAL_OBSTACLE, NO_INFORMATION} <= seen, "every kind of zone cost was exercised"
+
+
+def test_zone_costs_are_painted_by_policy(school: Site) -> None:
+    costmap, layer = school_costmap(school, ZonePolicy(caution_cost=150))
+    layer.on_zone_state(ZoneState(zone="z4", node="n5", state="caution", seq=1), 1.0)
+    costmap.update_zones(1.0)
+    window = layer.zone_window("z4")
+    zone_cells = costmap.zones[window.rows, window.cols][window.mask]
+    assert set(np.unique(zone_cells).tolist()) == {150}
+    x, y = 25.0, 15.0  # the middle of z4, the middle corridor
+    assert costmap.cost_at(x, y) == 150
+    assert not costmap.in_lethal(x, y)
+    assert costmap.zones_at(x, y) == []
+    layer.on_zone_state(ZoneState(zone="z4", node="n5", state="blocked", seq=2), 2.0)
+    costmap.update_zones(2.0)
+    assert costmap.cost_at(x, y) == LETHAL_OBSTACLE
+    assert costmap.in_lethal(x, y)
+    assert costmap.zones_at(x, y) == ["z4"]
+    assert costmap.cost_at(-100.0, -100.0) == NO_INFORMATION
+
+
+def test_zones_at_names_a_zone_the_robot_would_touch_and_operator_polygons(school: Site) -> None:
+    costmap, layer = school_costmap(school)
+    layer.on_operator_block("spill", OperatorBlock(polygon=[(30, 22), (31, 22), (31, 23.5), (30, 23.5)]), 0.0)
+    layer.on_zone_state(ZoneState(zone="z1", node="n2", state="blocked", seq=7), 0.0)
+    costmap.update_zones(0.0)
+    assert costmap.zones_at(30.5, 22.8) == ["operator/spill"]
+    # just outside z1's west edge (x 17.0), within the robot's radius: the goal is lethal because of z1
+    assert costmap.in_lethal(16.95, 7.2)
+    assert costmap.zones_at(16.95, 7.2) == ["z1"]
+    assert costmap.zones_at(12.0, 7.2) == []
+
+
+def test_local_window_is_master_around_the_robot_and_unknown_beyond_the_map(school: Site) -> None:
+    costmap, _ = school_costmap(school)
+    local, frame = costmap.local_window((12.0, 7.2, 0.0), 3.0)
+    assert local.shape == (60, 60)
+    row, col = costmap.frame.world_to_cell(frame.origin_x + 0.01, frame.origin_y + 0.01)
+    assert np.array_equal(local, costmap.master[row : row + 60, col : col + 60])
+    assert frame.cell_to_world(30, 30) == pytest.approx(
+        costmap.frame.cell_to_world(*costmap.frame.world_to_cell(12.0, 7.2))
+    )
+    corner, _ = costmap.local_window((-1.0, -1.0, 0.0), 3.0)  # the map's bottom-left corner
+    assert (corner[:30, :] == NO_INFORMATION).all() and (corner[:, :30] == NO_INFORMATION).all()
+
+
+def test_planner_weights_follow_the_updates_and_plans_avoid_a_blocked_zone(school: Site) -> None:
+    costmap, layer = school_costmap(school)
+    params = PlannerParams()
+    grid = school.grid
+    start, goal = school.point("A")[:2], school.point("B")[:2]
+    free = plan_path(
+        costmap.master, grid.resolution, grid.origin, start, goal, params, costmap.planner_weights()
+    )
+    layer.on_zone_state(ZoneState(zone="z1", node="n1", state="blocked", seq=1), 1.0)
+    costmap.update_zones(1.0)
+    weights = costmap.planner_weights(params)
+    assert np.array_equal(weights, weights_for(costmap.master, params))
+    around = plan_path(costmap.master, grid.resolution, grid.origin, start, goal, params, weights)
+    assert free.reachable and around.reachable
+    assert around.length_m > free.length_m + 5.0
+    crossed = [costmap.zones[r, c] for r, c in around.cells]
+    assert LETHAL_OBSTACLE not in crossed
+
+
+def scan_from(pose: tuple[float, float, float], ranges: dict[int, float], beams: int = 360) -> LaserScan:
+    """An LDS-01-like sweep: beam i at yaw + i degrees; beams not given see nothing (+inf)."""
+    r = np.full(beams, np.inf, dtype=np.float32)
+    for i, value in ranges.items():
+        r[i] = value
+    return LaserScan(0.0, pose, 0.0, 2 * math.pi / beams, 0.12, 3.5, r)
+
+
+def test_a_scan_marks_an_obstacle_and_a_later_scan_through_it_clears_it(tiny: Site) -> None:
+    costmap = LayeredCostmap(tiny.grid, INFLATION)
+    before = costmap.master.copy()
+    pose = (2.0, 1.25, 0.0)
+    assert costmap.update_scan(scan_from(pose, {0: 1.0})) is not None
+    assert costmap.cost_at(3.0, 1.25) == LETHAL_OBSTACLE
+    assert costmap.cost_at(2.95, 1.25) == INSCRIBED_INFLATED_OBSTACLE  # next cell: within the robot radius
+    assert costmap.in_lethal(3.0, 1.25)
+    marked = costmap.master.copy()
+    costmap.rebuild()
+    assert np.array_equal(marked, costmap.master)
+    # The obstacle went away: the same beam now reaches 2.5 m, and nothing sees the old spot.
+    bounds = costmap.update_scan(scan_from(pose, {0: 2.5}))
+    assert bounds is not None
+    assert costmap.cost_at(3.0, 1.25) < INSCRIBED_INFLATED_OBSTACLE
+    assert costmap.cost_at(4.5, 1.25) == LETHAL_OBSTACLE, "the new hit is marked"
+    costmap.update_scan(scan_from(pose, {}))
+    assert np.array_equal(costmap.master, before), "a clear sweep leaves exactly the static map"
+    assert costmap.update_scan(scan_from(pose, {})) is None
+
+
+def test_clearing_never_erases_the_static_map_and_far_hits_are_not_marked(tiny: Site) -> None:
+    costmap = LayeredCostmap(tiny.grid, INFLATION, obstacle_range_m=2.0)
+    static = costmap.master.copy()
+    # From just above the bottom wall, beams pointing down pass through it with no return.
+    costmap.update_scan(scan_from((3.0, 0.3, 0.0), {}))
+    assert np.array_equal(costmap.master, static)
+    assert costmap.cost_at(3.0, 0.02) == LETHAL_OBSTACLE
+    assert costmap.update_scan(scan_from((2.0, 1.25, 0.0), {0: 2.5})) is None, (
+        "beyond obstacle_range: no mark"
+    )
+    assert costmap.cost_at(4.5, 1.25) == FREE_SPACE
+
+
+def test_without_obstacle_layer_scans_are_ignored(tiny: Site) -> None:
+    costmap = LayeredCostmap(tiny.grid, INFLATION, obstacle_layer=False)
+    assert costmap.update_scan(scan_from((2.0, 1.25, 0.0), {0: 1.0})) is None
+    assert costmap.cost_at(3.0, 1.25) == FREE_SPACE
+    assert costmap.update_zones(0.0) is None
+
+
+@pytest.mark.parametrize("name", ["depot", "depot_keepout", "warehouse", "warehouse_keepout", "tb3_sandbox"])
+def test_real_maps_block_each_zone_incrementally_as_the_whole_map_would(name: str) -> None:
+    site = load_site(SITES / name)
+    costmap, layer = school_costmap(site)
+    for i, zone in enumerate(site.spec.zones):
+        layer.on_operator_block(f"b{i}", OperatorBlock(zone=zone.id), float(i))
+        assert costmap.update_zones(float(i)) is not None
+        assert zone.id in layer.blocked_zones()
+    incremental = costmap.master.copy()
+    costmap.rebuild()
+    assert np.array_equal(incremental, costmap.master)

@@ -1,0 +1,258 @@
+"""MQTT intake of the zone layer: each kind of bad message is dropped and counted and leaves the costmap
+byte-identical; the seq rule tolerates reboots and wrap-around; and the same holds through the real broker with
+a node's own credentials, the firmware's own payloads, and a node that tries to speak for another."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import firmware
+from broker.embedded import BrokerThread
+from robot_agent.inflation import LETHAL_OBSTACLE, InflationParams
+from robot_agent.layered_costmap import LayeredCostmap
+from robot_agent.offline_plan import frame_of
+from robot_agent.zone_intake import ZoneIntake
+from robot_agent.zone_layer import ZoneLayer
+from runtime.bus import Message, Will
+from runtime.mqtt_bus import MqttBus
+from schemas import topics
+from schemas.messages import NodeStatus, OperatorBlock, ZoneState
+from schemas.site import Site, load_site
+from tests.conftest import SITES
+from tests.site_fixtures import tiny_site
+
+firmware.add_device_path()
+# The firmware's own state machine, by its board name (pyright cannot see sys.path changes).
+NodeLogic: Any = importlib.import_module("node_logic").NodeLogic
+
+SCHOOL = "school"
+
+
+@pytest.fixture(scope="module")
+def school() -> Site:
+    return load_site(SITES / "school")
+
+
+class Agent:
+    """The agent's zone pipeline: intake -> zone layer -> layered costmap."""
+
+    def __init__(self, site: Site) -> None:
+        self.layer = ZoneLayer(site.spec, frame_of(site))
+        self.intake = ZoneIntake(site.spec, self.layer)
+        self.costmap = LayeredCostmap(
+            site.grid, InflationParams(), zone_layer=self.layer, obstacle_layer=False
+        )
+
+    def feed(self, topic: str, payload: bytes | str, t: float = 0.0, retain: bool = True) -> bool:
+        raw = payload.encode() if isinstance(payload, str) else payload
+        changed = self.intake.handle(Message(topic, raw, retain, t))
+        self.costmap.update_zones(t)
+        return changed
+
+
+def state(zone: str, node: str, word: str, seq: int) -> bytes:
+    return ZoneState.model_validate({"zone": zone, "node": node, "state": word, "seq": seq}).to_payload()
+
+
+def z_topic(zone: str, node: str, site: str = SCHOOL) -> str:
+    return topics.zone_state(site, zone, node)
+
+
+BAD = [
+    (
+        "oversized",
+        z_topic("z1", "n1"),
+        b'{"v":1,"zone":"z1","node":"n1","state":"blocked","seq":9' + b" " * 2000 + b"}",
+    ),
+    ("malformed", z_topic("z1", "n1"), b'{"v":1,"zone":"z1","node":"n1","state":"blocked",'),
+    ("malformed", z_topic("z1", "n1"), b"\xff\xfe"),
+    ("invalid", z_topic("z1", "n1"), b'{"v":1,"zone":"z1","node":"n1","state":"blocked","seq":"9"}'),
+    ("invalid", z_topic("z1", "n1"), b'{"v":1,"zone":"z1","node":"n1","state":"on_fire","seq":9}'),
+    ("invalid", z_topic("z1", "n1"), b'{"v":2,"zone":"z1","node":"n1","state":"blocked","seq":9}'),
+    ("invalid", z_topic("z1", "n1"), b'["blocked"]'),
+    ("malformed", z_topic("z1", "n1"), b""),
+    ("invalid", z_topic("z1", "n1"), b'{"v":1,"zone":"z1","node":"n1","state":"blocked","seq":9.5}'),
+    ("invalid", z_topic("z1", "n1"), b'{"v":1,"zone":"z1","node":"n1","state":"blocked","seq":9,"extra":1}'),
+    ("unknown_zone", z_topic("z9", "n1"), state("z9", "n1", "blocked", 9)),
+    ("unknown_node", z_topic("z1", "n99"), state("z1", "n99", "blocked", 9)),
+    ("wrong_node", z_topic("z1", "n3"), state("z1", "n3", "blocked", 9)),
+    ("mismatch", z_topic("z1", "n1"), state("z2", "n1", "blocked", 9)),
+    ("mismatch", z_topic("z1", "n1"), state("z1", "n2", "blocked", 9)),
+    ("old_seq", z_topic("z1", "n1"), state("z1", "n1", "blocked", 5)),
+    ("old_seq", z_topic("z1", "n1"), state("z1", "n1", "blocked", 4)),
+    ("wrong_site", z_topic("z1", "n1", site="other"), state("z1", "n1", "blocked", 9)),
+    ("unknown_topic", "wsn/school/zones/z1/state", state("z1", "n1", "blocked", 9)),
+    ("unknown_topic", "elsewhere/school/zones/z1/state/n1", state("z1", "n1", "blocked", 9)),
+    ("unknown_topic", topics.robot_status(SCHOOL, "robot1"), b"{}"),
+    (
+        "unknown_node",
+        topics.node_status(SCHOOL, "n99"),
+        NodeStatus(node="n99", status="offline").to_payload(),
+    ),
+    ("mismatch", topics.node_status(SCHOOL, "n1"), NodeStatus(node="n2", status="offline").to_payload()),
+    ("invalid", topics.node_status(SCHOOL, "n1"), b'{"v":1,"node":"n1","status":"gone"}'),
+    ("unknown_zone", topics.operator_block(SCHOOL, "b1"), OperatorBlock(zone="z9").to_payload()),
+    ("invalid", topics.operator_block(SCHOOL, "b1"), b'{"v":1,"zone":"z1","polygon":[[0,0],[1,0],[1,1]]}'),
+    ("invalid", topics.operator_block(SCHOOL, "b1"), b'{"v":1,"polygon":[[0,0],[1,0]]}'),
+    (
+        "oversized",
+        topics.operator_block(SCHOOL, "b1"),
+        b'{"v":1,"zone":"z1","reason":"' + b"x" * 9000 + b'"}',
+    ),
+]
+
+
+@pytest.mark.parametrize(("reason", "topic", "payload"), BAD, ids=[f"{i}-{b[0]}" for i, b in enumerate(BAD)])
+def test_each_bad_message_is_dropped_counted_and_leaves_the_costmap_identical(
+    school: Site, reason: str, topic: str, payload: bytes
+) -> None:
+    agent = Agent(school)
+    assert agent.feed(z_topic("z1", "n1"), state("z1", "n1", "clear", 5)) is False
+    before = agent.costmap.master.tobytes()
+    version = agent.costmap.version
+    costs = agent.layer.zone_costs()
+    assert agent.feed(topic, payload, t=1.0) is False
+    assert dict(agent.intake.dropped) == {reason: 1}
+    assert agent.intake.accepted == 1
+    assert agent.costmap.master.tobytes() == before
+    assert agent.costmap.version == version
+    assert agent.layer.zone_costs() == costs
+
+
+def test_a_flood_of_garbage_never_raises(school: Site) -> None:
+    agent = Agent(school)
+    rng = np.random.default_rng(3)
+    before = agent.costmap.master.tobytes()
+    for i in range(300):
+        payload = rng.integers(0, 256, size=int(rng.integers(0, 200)), dtype=np.uint8).tobytes()
+        topic = [
+            z_topic("z1", "n1"),
+            topics.node_status(SCHOOL, "n2"),
+            topics.operator_block(SCHOOL, f"b{i}"),
+        ][i % 3]
+        agent.feed(topic, payload, t=float(i))
+    agent.feed(z_topic("z1", "n1"), '{"v":1,"zone":"z1","node":"n1","state":"blocked","seq":1e400}')
+    agent.feed(z_topic("z1", "n1"), '{"v":1,"zone":"z1","node":"n1","state":"blocked","seq":-1}')
+    agent.feed(
+        z_topic("z1", "n1"),
+        json.dumps({"v": 1, "zone": "z1", "node": "n1", "state": "blocked", "seq": 2**40}),
+    )
+    assert agent.costmap.master.tobytes() == before
+    assert agent.intake.accepted == 0
+    assert sum(agent.intake.dropped.values()) == 303
+    assert set(agent.intake.dropped) <= {"malformed", "invalid"}
+
+
+def test_good_messages_change_the_map_and_an_empty_retained_payload_removes_a_block(school: Site) -> None:
+    agent = Agent(school)
+    assert agent.feed(z_topic("z4", "n5"), state("z4", "n5", "blocked", 1)) is True
+    assert agent.layer.blocked_zones() == ["z4"]
+    assert agent.costmap.cost_at(25.0, 15.0) == LETHAL_OBSTACLE
+    block = OperatorBlock(zone="z2", expires_at=100.0).to_payload()
+    assert agent.feed(topics.operator_block(SCHOOL, "wet-floor"), block) is True
+    assert agent.layer.blocked_zones() == ["z2", "z4"]
+    assert agent.feed(topics.operator_block(SCHOOL, "wet-floor"), b"") is True
+    assert agent.layer.blocked_zones() == ["z4"]
+    assert agent.intake.accepted == 3 and not agent.intake.dropped
+    assert sorted(agent.intake.subscriptions()) == sorted(
+        ["wsn/school/zones/+/state/+", "wsn/school/nodes/+/status", "wsn/school/operator/blocks/+"]
+    )
+
+
+def test_seq_must_increase_but_a_reboot_after_its_birth_and_a_wrap_are_accepted(school: Site) -> None:
+    agent = Agent(school)
+    topic, status = z_topic("z2", "n3"), topics.node_status(SCHOOL, "n3")
+    agent.feed(topic, state("z2", "n3", "clear", 1000))
+    assert agent.intake.accepted == 1
+    agent.feed(topic, state("z2", "n3", "blocked", 1000))
+    assert agent.intake.dropped["old_seq"] == 1, "a replay of the same seq is old"
+    # The node reboots: birth, then a state from a new random base below the old seq.
+    agent.feed(status, NodeStatus(node="n3", status="online").to_payload(), t=1.0)
+    assert agent.feed(topic, state("z2", "n3", "blocked", 17), t=1.0) is True
+    assert agent.layer.blocked_zones() == ["z2"]
+    assert agent.feed(topic, state("z2", "n3", "clear", 16), t=2.0) is False, (
+        "only the first state after birth"
+    )
+    assert agent.intake.dropped["old_seq"] == 2
+    # Wrap-around at the firmware's 2**30 - 1.
+    assert agent.feed(topic, state("z2", "n3", "clear", 2**30 - 1), t=3.0) is True
+    assert agent.feed(topic, state("z2", "n3", "blocked", 2**30 - 1000), t=3.5) is False, "not a wrap: old"
+    assert agent.feed(topic, state("z2", "n3", "blocked", 0), t=4.0) is True
+    assert agent.layer.blocked_zones() == ["z2"]
+
+
+def receive_into(agent: Agent, bus: MqttBus, until: object, timeout_s: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        bus.wait(0.1)
+        for message in bus.poll():
+            agent.intake.handle(message)
+        agent.costmap.update_zones(time.monotonic())
+        if callable(until) and until():
+            return
+    raise AssertionError("timed out waiting for the broker's messages")
+
+
+def node_bus(broker: BrokerThread, node: str, logic: Any) -> MqttBus:
+    creds = broker.credentials(node)
+    will_topic, will_payload, _, _ = logic.will()
+    birth_topic, birth_payload, _, _ = logic.birth()
+    return MqttBus(
+        broker.host,
+        broker.port,
+        client_id=node,
+        username=creds.username,
+        password=creds.password,
+        will=Will(will_topic, will_payload),
+        birth=Will(birth_topic, birth_payload),
+    ).connect()
+
+
+def test_through_the_real_broker_a_node_blocks_its_zone_and_a_spoofing_node_changes_nothing(
+    tmp_path: Path,
+) -> None:
+    site = load_site(tiny_site(tmp_path / "site"))
+    agent = Agent(site)
+    with BrokerThread(site.directory) as broker:
+        creds = broker.credentials("robot1")
+        robot = MqttBus(
+            broker.host, broker.port, client_id="robot1", username=creds.username, password=creds.password
+        ).connect()
+        for topic_filter in agent.intake.subscriptions():
+            robot.subscribe(topic_filter)
+        time.sleep(0.3)  # the SUBACKs
+        n1 = NodeLogic("tiny", "z1", "n1", 0, 0, 5000, seq_base=41)
+        n1_bus = node_bus(broker, "n1", n1)
+        for topic, payload, retain, qos in n1.on_connect(0):  # the birth again, and the current state
+            n1_bus.publish(topic, payload, qos=qos, retain=retain)
+        n1.step(True, 10)  # debounced at once: the sensor sees someone
+        topic, payload, retain, qos = n1.state_message(10)
+        n1_bus.publish(topic, payload, qos=qos, retain=retain)
+        receive_into(agent, robot, lambda: agent.layer.blocked_zones() == ["z1"])
+        before = agent.costmap.master.tobytes()
+        accepted = agent.intake.accepted
+
+        # n2 watches z2: it tries to clear z1 under n1's topic (the broker refuses it silently), then under its
+        # own topic with a payload naming z1 (the intake drops it), then replays n1's old payload on its own topic.
+        n2 = NodeLogic("tiny", "z2", "n2", 0, 0, 5000)
+        n2_bus = node_bus(broker, "n2", n2)
+        n2_bus.publish(topics.zone_state("tiny", "z1", "n1"), state("z1", "n1", "clear", 10**6), retain=True)
+        n2_bus.publish(topics.zone_state("tiny", "z2", "n2"), state("z1", "n2", "clear", 10**6), retain=True)
+        n2_bus.publish(topics.zone_state("tiny", "z2", "n2"), state("z1", "n1", "clear", 10**6), retain=True)
+        n2_bus.publish(topics.zone_state("tiny", "z2", "n2"), b"not json at all", retain=True)
+        receive_into(agent, robot, lambda: sum(agent.intake.dropped.values()) >= 3)
+        time.sleep(0.5)
+        receive_into(agent, robot, lambda: True)
+        assert agent.intake.dropped == {"mismatch": 2, "malformed": 1}
+        assert agent.layer.blocked_zones() == ["z1"]
+        assert agent.costmap.master.tobytes() == before
+        assert agent.intake.accepted == accepted + 1, "only n2's birth was accepted"
+        for bus in (n2_bus, n1_bus, robot):
+            bus.close()
