@@ -36,6 +36,8 @@ from zone_sim.sensor_model import SensorSettings, SimulatedSensor
 from zone_sim.world import World, WorldError
 
 OPERATOR = "operator"
+OPERATOR_CONNECT_TIMEOUT_S = 10.0
+"""How long start() waits for the broker before giving up with one line."""
 LOOP_MS = 50
 """firmware/device/app.py's _LOOP_MS: one sensor reading per loop iteration."""
 MAX_CONNECTING = 32
@@ -162,7 +164,7 @@ class ZoneSimulator:
             clock=self.clock,
         )
         try:
-            return bus.connect(timeout_s=30.0)
+            return bus.connect(timeout_s=OPERATOR_CONNECT_TIMEOUT_S)
         except BusError as exc:
             raise SimulatorError(str(exc)) from None
 
