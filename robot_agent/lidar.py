@@ -51,7 +51,7 @@ class LidarParams:
 @lru_cache(maxsize=16)
 def _samples(params: LidarParams, resolution: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Indices of the grid lines a ray may cross on one axis within range, and the beams' relative angles."""
-    lines = np.arange(math.ceil(params.range_max / resolution) + 1, dtype=np.float64)
+    lines = np.arange(math.ceil(params.range_max / resolution) + 2, dtype=np.float64)
     angles = params.angle_min + np.arange(params.beams, dtype=np.float64) * params.angle_increment
     return lines, angles
 
@@ -94,50 +94,69 @@ def cast_ranges(
     u0 = (x - frame.origin_x) / res
     v0 = (y - frame.origin_y) / res
     height, width = occupied.shape
-    row0, col0 = math.floor(v0), math.floor(u0)
-    if 0 <= row0 < height and 0 <= col0 < width and occupied[row0, col0]:
+    if not (0 <= u0 < width and 0 <= v0 < height):
+        return ranges  # a sensor off the map sees nothing it could be told about
+    if occupied[math.floor(v0), math.floor(u0)]:
         ranges[:] = -np.inf  # the sensor sits inside an obstacle
         return ranges
-    j, rel = _samples(params, res)
+    k, rel = _samples(params, res)
     angles = rel + yaw
     dx, dy = np.cos(angles), np.sin(angles)
-    reach = params.range_max / res
+    # Rays leave the grid (and with it every occupied cell) at t_exit; look no further than that or range_max.
+    with np.errstate(divide="ignore"):
+        t_exit = np.minimum(_exit(u0, dx, width), _exit(v0, dy, height))
+    limit = np.minimum(t_exit, params.range_max / res)
+    flat = occupied.ravel()
     # Every cell a ray enters, it enters across a vertical or a horizontal grid line: take both families.
-    t_x, cols_x, rows_x = _crossings(u0, v0, dx, dy, j)
-    t_y, rows_y, cols_y = _crossings(v0, u0, dy, dx, j)
-    first = np.minimum(_first_hit(occupied, t_x, rows_x, cols_x), _first_hit(occupied, t_y, rows_y, cols_y))
-    dist = first * res
-    ranges[:] = np.where(dist < params.range_min, -np.inf, np.where(first > reach, np.inf, dist))
+    t_x = _first_hit(flat, width, u0, v0, dx, dy, k, limit, vertical=True)
+    t_y = _first_hit(flat, width, v0, u0, dy, dx, k, limit, vertical=False)
+    first = np.minimum(t_x, t_y) * res
+    ranges[:] = np.where(first < params.range_min, -np.inf, first)
     return ranges
 
 
-def _crossings(
-    a0: float, b0: float, da: NDArray[np.float64], db: NDArray[np.float64], j: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.intp]]:
-    """Where each ray crosses the grid lines of axis a: ray parameter (cells), and the entered cell's (a, b).
-
-    With t the distance along the ray in cells, the k-th line crossed lies at a = floor(a0) + 1 + k going up
-    (floor(a0) - k going down); the cell entered there is that line's upper (lower) neighbour on axis a, and
-    floor(b0 + t * db) on axis b.
-    """
-    up = da > 0
-    base = math.floor(a0)
-    line = np.where(up[:, None], base + 1 + j[None, :], base - j[None, :])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (line - a0) / da[:, None]
-    t[da == 0] = np.inf
-    cell_a = np.where(up[:, None], line, line - 1).astype(np.intp)
-    cell_b = np.floor(b0 + t * db[:, None])
-    cell_b[da == 0] = -1
-    return t, cell_a, cell_b.astype(np.intp)
+def _exit(a0: float, da: NDArray[np.float64], size: int) -> NDArray[np.float64]:
+    """Ray parameter (cells) at which rays from a0 leave [0, size) on one axis."""
+    out = np.full(da.shape, np.inf)
+    up, down = da > 0, da < 0
+    out[up] = (size - a0) / da[up]
+    out[down] = -a0 / da[down]
+    return out
 
 
 def _first_hit(
-    occupied: NDArray[np.bool_], t: NDArray[np.float64], rows: NDArray[np.intp], cols: NDArray[np.intp]
+    flat: NDArray[np.bool_],
+    width: int,
+    a0: float,
+    b0: float,
+    da: NDArray[np.float64],
+    db: NDArray[np.float64],
+    k: NDArray[np.float64],
+    limit: NDArray[np.float64],
+    *,
+    vertical: bool,
 ) -> NDArray[np.float64]:
-    """Smallest ray parameter at which each ray enters an occupied cell (inf when none does)."""
-    height, width = occupied.shape
-    inside = (rows >= 0) & (rows < height) & (cols >= 0) & (cols < width)
-    flat = np.where(inside, rows * width + cols, 0)
-    hit = occupied.ravel()[flat] & inside
-    return np.where(hit, t, np.inf).min(axis=1)
+    """Smallest ray parameter (cells) at which each ray enters an occupied cell across a line of axis a.
+
+    Lines of axis a are crossed evenly, every 1/|da| along the ray, the first at floor(a0) + 1 going up
+    (floor(a0) going down); the cell entered there is the line's neighbour on axis a and floor(b0 + t db) on
+    axis b. `vertical`: axis a is x (columns), else y (rows). inf where no occupied cell is entered in range.
+    """
+    base = math.floor(a0)
+    step = np.sign(da)
+    first_line = np.where(da > 0, base + 1.0, float(base))
+    first_cell = np.where(da > 0, base + 1, base - 1).astype(np.intp)
+    # A ray parallel to these lines never crosses one: its t is inf or nan, and `valid` drops it.
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        t0 = (first_line - a0) / da
+        delta = np.abs(1.0 / da)
+        t = t0[:, None] + k[None, :] * delta[:, None]
+        valid = t < limit[:, None]
+        cell_a = first_cell[:, None] + (k[None, :] * step[:, None]).astype(np.intp)
+        cell_b = (b0 + t * db[:, None]).astype(np.intp)
+    index = cell_b * width + cell_a if vertical else cell_a * width + cell_b
+    hit = flat.take(index, mode="clip")
+    hit &= valid
+    j = hit.argmax(axis=1)
+    rows = np.arange(len(j))
+    return np.where(hit[rows, j], t[rows, j], np.inf)
