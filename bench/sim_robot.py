@@ -168,7 +168,7 @@ def main() -> None:
         "the lidar cast from random free poses (exact array grid traversal, NumPy), the regulated pure pursuit "
         "controller's `compute` on a 3 x 3 m local costmap window, and the whole loop (controller 20 Hz, physics "
         "0.05 s, lidar 5 Hz, static inflated costmap prepared once) driving A -> B. "
-        f"Measured {when} (machine shared with other jobs):\n\n"
+        f"Measured {when} (machine shared with other jobs, load {load:.1f}):\n\n"
         "| what | median | range |\n| --- | --- | --- |\n"
         f"| lidar scans/s (target >= 2000) | {statistics.median(scans):.0f} | {min(scans):.0f}-{max(scans):.0f} |\n"
         f"| controller steps/s | {statistics.median(steps):.0f} | {min(steps):.0f}-{max(steps):.0f} |\n"
