@@ -1,0 +1,198 @@
+"""Robot agent benchmark: zone message published -> agent has replanned, through amqtt, on the school map.
+
+    ./.venv/bin/python -m bench.replan_latency [--changes 200] [--no-write]
+
+The broker runs as its own process (`wsnav broker run`, full security model); the agent runs in real time
+(`RobotAgent.run` with a WallClock, asleep on the bus, the simulated TurtleBot3 stepped in the same loop as
+`wsnav robot --sim` does) driving A -> B. Node n5 publishes z4 (on the robot's route) alternately `blocked`
+and `clear`, QoS 1, one change at a time; each is timed from just before `publish()` to the moment the
+agent's navigator had its new plan (both clocks are time.monotonic in this one process). Printed per planner
+grid: p50/p99/max of the whole, of its delivery part, and of the A* time. Writes its BENCHMARKS.md section.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from broker.credentials import write_credentials
+from broker.embedded import BrokerProcess
+from robot_agent.agent import RobotAgent
+from robot_agent.agent_config import load_agent_config
+from robot_agent.sim_turtlebot3 import SimTurtleBot3
+from robot_agent.sim_world_grid import SimWorldGrid
+from runtime.clock import WallClock
+from runtime.mqtt_bus import MqttBus
+from schemas import topics
+from schemas.credentials import Credentials
+from schemas.messages import ZoneState
+from schemas.site import load_site
+
+REPO = Path(__file__).resolve().parent.parent
+SCHOOL = REPO / "sites" / "school"
+SECTION = "## Robot agent: zone message -> replanned (school map, amqtt)"
+WARMUP = 10
+SIM_DT_S = 0.02
+
+
+@dataclass
+class Result:
+    downsample: int
+    total_ms: list[float]
+    delivery_ms: list[float]
+    plan_ms: list[float]
+    replanned: int
+
+
+def pct(values: list[float], q: float) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, round(q / 100 * (len(ordered) - 1)))]
+
+
+def bus_for(host: str, port: int, creds: Credentials, clock: WallClock) -> MqttBus:
+    return MqttBus(
+        host, port, client_id=creds.username, username=creds.username, password=creds.password, clock=clock
+    ).connect()
+
+
+def measure(host: str, port: int, creds_dir: Path, downsample: int, changes: int, seq0: int) -> Result:
+    """One agent on a fresh connection; `seq0` lies above every seq the node published before."""
+    from broker.credentials import load_credentials
+
+    site = load_site(SCHOOL)
+    clock = WallClock()
+    config = load_agent_config("full").model_copy(
+        update={"planner": load_agent_config("full").planner.model_copy(update={"downsample": downsample})}
+    )
+    world = SimWorldGrid(site.grid)
+    robot = SimTurtleBot3("robot1", world, site.point("A"))
+    agent_bus = bus_for(host, port, load_credentials(creds_dir / "robot1.json"), clock)
+    node = bus_for(host, port, load_credentials(creds_dir / "n5.json"), clock)
+    agent = RobotAgent(site, config, robot, agent_bus, clock, "robot1", sim_world=world)
+    agent.set_goal(site.point("B"), "B", clock.now())
+    stop = threading.Event()
+    last = [clock.now()]
+
+    def world_tick(now: float) -> float:
+        robot.step(min(now - last[0], 0.1), now)
+        last[0] = now
+        return now + SIM_DT_S
+
+    loop = threading.Thread(target=agent.run, args=(stop, world_tick), daemon=True)
+    loop.start()
+    time.sleep(1.0)  # subscriptions in place
+    topic = topics.zone_state(site.name, "z4", "n5")
+    total: list[float] = []
+    delivery: list[float] = []
+    plan: list[float] = []
+    replanned = 0
+    try:
+        for i in range(changes + WARMUP):
+            seen = len(agent.zone_reactions)
+            plans = agent.navigator.plans
+            state = "blocked" if i % 2 == 0 else "clear"
+            payload = ZoneState(zone="z4", node="n5", state=state, seq=seq0 + i).to_payload()
+            t_pub = time.monotonic()
+            node.publish(topic, payload, qos=1, retain=True)
+            deadline = t_pub + 5.0
+            while len(agent.zone_reactions) == seen:
+                if time.monotonic() > deadline:
+                    raise SystemExit(f"bench: change {i} ({state}) got no reaction within 5 s")
+                time.sleep(0.0002)
+            reaction = agent.zone_reactions[seen]
+            if i >= WARMUP:
+                total.append((reaction.done_at - t_pub) * 1000.0)
+                delivery.append((reaction.received_at - t_pub) * 1000.0)
+                last_plan = agent.navigator.last_plan
+                if agent.navigator.plans > plans and last_plan is not None:
+                    plan.append(last_plan.plan_ms)
+                replanned += reaction.replanned
+            time.sleep(0.05)  # let the robot drive a little between changes
+    finally:
+        stop.set()
+        loop.join(5.0)
+        node.close()
+        agent_bus.close()
+    if agent.navigator.state != "navigating":
+        raise SystemExit(f"bench: the robot ended {agent.navigator.state} ({agent.navigator.reason})")
+    return Result(downsample, total, delivery, plan, replanned)
+
+
+def write_section(text: str) -> None:
+    path = REPO / "BENCHMARKS.md"
+    current = path.read_text()
+    pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.S | re.M)
+    block = f"{SECTION}\n\n{text.rstrip()}\n\n"
+    updated = (
+        pattern.sub(lambda _: block, current)
+        if pattern.search(current)
+        else current.rstrip() + "\n\n" + block
+    )
+    path.write_text(updated.rstrip() + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+    parser.add_argument("--changes", type=int, default=200)
+    parser.add_argument("--no-write", action="store_true")
+    args = parser.parse_args(argv)
+    results: list[Result] = []
+    with tempfile.TemporaryDirectory(prefix="wsnav-bench-") as tmp:
+        root = Path(tmp)
+        creds = root / "creds"
+        write_credentials(load_site(SCHOOL).spec, creds)
+        with BrokerProcess(SCHOOL, creds, data_dir=root / "amqtt-data") as proc:
+            for k, downsample in enumerate((2, 1)):
+                seq0 = 1000 + k * (args.changes + WARMUP)
+                results.append(measure(proc.host, proc.port, creds, downsample, args.changes, seq0))
+    rows = [
+        "| planner grid | changes | replanned | p50 | p99 | max | delivery p50 / p99 | A* p50 / p99 |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in results:
+        grid = f"{0.05 * r.downsample:.2f} m" + (" (`full`)" if r.downsample == 2 else "")
+        rows.append(
+            f"| {grid} | {len(r.total_ms)} | {r.replanned} | {pct(r.total_ms, 50):.2f} ms | "
+            f"{pct(r.total_ms, 99):.2f} ms | {max(r.total_ms):.2f} ms | "
+            f"{pct(r.delivery_ms, 50):.2f} / {pct(r.delivery_ms, 99):.2f} ms | "
+            f"{pct(r.plan_ms, 50):.2f} / {pct(r.plan_ms, 99):.2f} ms |"
+        )
+    table = "\n".join(rows)
+    print(
+        f"zone message -> replanned, school map (1040 x 640 cells), amqtt on loopback, {os.cpu_count()} CPUs"
+    )
+    print(table)
+    full = results[0]
+    text = f"""```
+./.venv/bin/python -m bench.replan_latency
+```
+
+Node n5 publishes z4 (on the robot's route A -> B) alternately `blocked` and `clear`, one change at a time
+({args.changes} changes after {WARMUP} warm-up, QoS 1), through `wsnav broker run` as its own process; the
+agent runs in real time (`RobotAgent.run`, the simulated TurtleBot3 stepped in the same loop, as `wsnav robot
+--sim` runs it). Timed from just before `publish()` to the navigator holding its new plan; "delivery" is the
+part until the agent's bus took the message in. Every change forces a replan (the detour round z4 is ~52 m,
+the way through it ~31 m). Measured {time.strftime("%Y-%m-%d")}, load {os.getloadavg()[0]:.1f}:
+
+{table}
+
+Target p99 <= 15 ms: {"met" if pct(full.total_ms, 99) <= 15.0 else "NOT met"} with the `full` configuration,
+which plans on a grid twice as coarse as the map (each coarse cell the highest cost of its four cells, so no
+path comes nearer a wall or a zone than at full resolution): A* on the school map's 0.05 m grid alone takes
+~11 ms (way through z4) to ~25 ms (detour), which is why the `default` (stock) configuration, planning at
+full resolution, would not meet it. Rerun rather than trust these numbers; on a loaded machine the tail
+grows with the scheduler's delays.
+"""
+    if not args.no_write:
+        write_section(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
