@@ -1,0 +1,148 @@
+"""Health checks for the containers of docker-compose.yml: what an MQTT client of the site would see.
+
+A live process is not a healthy service: the broker must accept a login, the zone simulator's nodes must be
+`online`, the robot agent must be reporting. Each check connects with real credentials, prints one line, and
+exits 0 (healthy) or 1 (not):
+
+    python -m wsnav.healthcheck broker --broker HOST:PORT --credentials FILE
+    python -m wsnav.healthcheck nodes --site DIR --broker HOST:PORT --credentials FILE   # operator's file
+    python -m wsnav.healthcheck robot --site DIR --robot ID --broker HOST:PORT --credentials FILE
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from broker.credentials import CredentialsError, load_credentials
+from runtime.mqtt_bus import BusError, MqttBus
+from schemas import topics
+from schemas.messages import NodeStatus, PayloadError, RobotStatus, parse_payload
+from schemas.site import Site, SiteError, load_site
+from wsnav.cli_support import Parser, host_port
+
+
+class Unhealthy(Exception):
+    """The service is not (yet) usable; str() is the one line to show."""
+
+
+def _bus(args: argparse.Namespace) -> MqttBus:
+    """A connected bus with the credentials file; a refused or unreachable broker is Unhealthy."""
+    try:
+        creds = load_credentials(args.credentials)
+    except CredentialsError as exc:
+        raise Unhealthy(str(exc)) from None
+    host, port = args.broker
+    bus = MqttBus(
+        host,
+        port,
+        client_id=f"health-{creds.username}-{os.getpid()}",
+        username=creds.username,
+        password=creds.password,
+    )
+    try:
+        return bus.connect(timeout_s=args.timeout)
+    except BusError as exc:
+        bus.close()
+        raise Unhealthy(str(exc)) from None
+
+
+def check_broker(args: argparse.Namespace) -> str:
+    bus = _bus(args)
+    bus.close()
+    return f"broker {args.broker[0]}:{args.broker[1]} accepts {args.credentials.stem}"
+
+
+def check_nodes(args: argparse.Namespace) -> str:
+    """Every node of the site has its retained status `online`."""
+    site = _site(args.site)
+    expected = {n.id for n in site.spec.nodes}
+    bus = _bus(args)
+    online: set[str] = set()
+    try:
+        bus.subscribe(topics.all_node_statuses(site.spec.name))
+        deadline = time.monotonic() + args.timeout
+        while online != expected and time.monotonic() < deadline:
+            bus.wait(0.2)
+            for msg in bus.poll():
+                try:
+                    status = parse_payload(NodeStatus, msg.payload)
+                except PayloadError:
+                    continue
+                (online.add if status.status == "online" else online.discard)(status.node)
+    finally:
+        bus.close()
+    missing = sorted(expected - online)
+    if missing:
+        raise Unhealthy(f"nodes not online: {', '.join(missing)}")
+    return f"{len(online)} nodes online"
+
+
+def check_robot(args: argparse.Namespace) -> str:
+    """The robot agent published a status within the timeout (it reports at 2 Hz)."""
+    site = _site(args.site)
+    bus = _bus(args)
+    try:
+        bus.subscribe(topics.robot_status(site.spec.name, args.robot))
+        deadline = time.monotonic() + args.timeout
+        while time.monotonic() < deadline:
+            bus.wait(0.2)
+            for msg in bus.poll():
+                if msg.retain:
+                    continue  # a retained status may be left over from a robot that is gone
+                try:
+                    status = parse_payload(RobotStatus, msg.payload)
+                except PayloadError:
+                    continue
+                return f"{args.robot} reports {status.state}"
+    finally:
+        bus.close()
+    raise Unhealthy(f"no status from {args.robot} within {args.timeout:g} s")
+
+
+def _site(path: Path) -> Site:
+    try:
+        return load_site(path)
+    except SiteError as exc:
+        raise Unhealthy(str(exc)) from None
+
+
+def build_parser() -> Parser:
+    parser = Parser(
+        prog="python -m wsnav.healthcheck", description=__doc__.splitlines()[0] if __doc__ else ""
+    )
+    sub = parser.add_subparsers(dest="check", required=True, parser_class=Parser)
+    checks = {
+        "broker": (check_broker, "the broker accepts a login with the credentials"),
+        "nodes": (check_nodes, "every node of the site is online (operator credentials)"),
+        "robot": (check_robot, "the robot agent is publishing its status"),
+    }
+    for name, (func, text) in checks.items():
+        p = sub.add_parser(name, help=text)
+        p.add_argument("--broker", type=host_port, default=("127.0.0.1", 1883), help="HOST:PORT")
+        p.add_argument("--credentials", type=Path, required=True, help="an <id>.json credentials file")
+        p.add_argument("--timeout", type=float, default=5.0, help="seconds (default 5)")
+        if name != "broker":
+            p.add_argument("--site", type=Path, required=True, help="site directory or site.yaml")
+        if name == "robot":
+            p.add_argument("--robot", required=True, help="robot id")
+        p.set_defaults(func=func)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        print(args.func(args))
+    except Unhealthy as exc:
+        print(f"unhealthy: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
