@@ -261,8 +261,8 @@ class RobotAgent:
         """
         while not stop.is_set():
             now = self.clock.now()
+            self.step(now)  # first: a message that woke us is acted on before the world moves on
             world_next = world_tick(now) if world_tick is not None else math.inf
-            self.step(now)
             wait = min(self.next_due(), world_next) - self.clock.now()
             if wait > 0:
                 self.bus.wait(min(wait, max_sleep_s))
