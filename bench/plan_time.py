@@ -1,0 +1,115 @@
+"""Global plan time on 1000 x 1000 and 2000 x 2000 synthetic floors: our planner vs a whole-map Dijkstra.
+
+Two routes per map on bench/synthetic_building.py's floor (corridors every 12.5 m, rooms with doors): `across`,
+corner to corner (the worst case for A* on a corridor grid: the straight-line heuristic is far below the real
+way round the blocks), and `along`, down one corridor. Reported: `plan_path` with the costmap's cached weights
+(what the agent does), the parts of a plan (building the weights from the costmap, compiled A* over the whole
+grid, path smoothing), and skimage's `MCP_Geometric` (Dijkstra over the whole map, then traceback). Writes its
+section of BENCHMARKS.md unless --no-write. Target: <= 100 ms at 2000 x 2000.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+from collections.abc import Callable
+
+import numpy as np
+import pyastar2d
+from skimage.graph import MCP_Geometric
+
+from bench.bench_report import write_section
+from bench.synthetic_building import BLOCK, building_grid
+from robot_agent.global_planner import PlannerParams, plan_path, weights_for
+from robot_agent.inflation import InflationParams
+from robot_agent.layered_costmap import LayeredCostmap
+
+SECTION = "## Global planner: plan time vs whole-map Dijkstra"
+COMMAND = "./.venv/bin/python -m bench.plan_time"
+
+
+def median_ms(fn: Callable[[], object], runs: int) -> float:
+    samples = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        fn()
+        samples.append(time.perf_counter() - t0)
+    return statistics.median(samples) * 1000.0
+
+
+def measure(cells: int, route: str, runs: int, dijkstra_runs: int) -> dict[str, float]:
+    grid = building_grid(cells)
+    costmap = LayeredCostmap(grid, InflationParams(), obstacle_layer=False)
+    res = grid.resolution
+    a = BLOCK // 2
+    b = cells - BLOCK // 2 - (cells % BLOCK)
+    s, g = ((a, a), (b, b)) if route == "across" else ((a, a), (a, b))
+    start = ((s[1] + 0.5) * res, (s[0] + 0.5) * res)
+    goal = ((g[1] + 0.5) * res, (g[0] + 0.5) * res)
+    params = PlannerParams()
+    weights = costmap.planner_weights(params)
+    plan = plan_path(costmap.master, res, grid.origin, start, goal, params, weights)
+    if not plan.reachable:
+        raise SystemExit(f"bench: {route} on {cells} x {cells} unreachable ({plan.reason})")
+    out = {
+        "length_m": plan.length_m,
+        "plan": median_ms(lambda: plan_path(costmap.master, res, grid.origin, start, goal, params, weights), runs),
+        "plan_uncached": median_ms(lambda: plan_path(costmap.master, res, grid.origin, start, goal, params), runs),
+        "weights": median_ms(lambda: weights_for(costmap.master, params), runs),
+        "astar_full": median_ms(lambda: pyastar2d.astar_path(weights, s, g, allow_diagonal=True), runs),
+    }
+    mcp_costs = np.where(np.isfinite(weights), weights, -1.0).astype(np.float64)
+
+    def dijkstra() -> None:
+        mcp = MCP_Geometric(mcp_costs, fully_connected=True)
+        mcp.find_costs([s])
+        mcp.traceback(g)
+
+    out["dijkstra"] = median_ms(dijkstra, dijkstra_runs)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser.add_argument("--runs", type=int, default=9)
+    parser.add_argument("--dijkstra-runs", type=int, default=3)
+    parser.add_argument("--no-write", action="store_true")
+    args = parser.parse_args()
+    rows = []
+    for cells in (1000, 2000):
+        for route in ("across", "along"):
+            r = measure(cells, route, args.runs, args.dijkstra_runs)
+            rows.append((cells, route, r))
+            print(
+                f"{cells} x {cells} {route:<6} ({r['length_m']:.1f} m): plan {r['plan']:.1f} ms "
+                f"(weights built too: {r['plan_uncached']:.1f}); weights {r['weights']:.1f}, "
+                f"whole-grid A* {r['astar_full']:.1f}; MCP Dijkstra {r['dijkstra']:.0f} ms"
+            )
+    if args.no_write:
+        return
+    load = os.getloadavg()[0]
+    table = "\n".join(
+        f"| {c} x {c} | {route} ({r['length_m']:.0f} m) | {r['plan']:.1f} ms | {r['plan_uncached']:.1f} ms | "
+        f"{r['weights']:.1f} ms | {r['astar_full']:.1f} ms | {r['dijkstra']:.0f} ms |"
+        for c, route, r in rows
+    )
+    write_section(
+        SECTION,
+        f"```\n{COMMAND}\n```\n\n"
+        "Plans on a synthetic building floor (bench/synthetic_building.py: 0.05 m cells, corridors every 12.5 m, "
+        "rooms with doors, inflation radius 1 m): `across` corner to corner, `along` one corridor. Columns: "
+        "`plan_path` given the costmap's cached weights (`LayeredCostmap.planner_weights`, updated in changed "
+        "bounds only: what the agent does), the same building the weights itself, building the weights alone, "
+        "pyastar2d over the whole grid (no hierarchy), and skimage 0.26 `MCP_Geometric` (whole-map Dijkstra, "
+        f"8-connected, then traceback). Median of {args.runs} runs ({args.dijkstra_runs} for Dijkstra), "
+        f"{os.cpu_count()} CPUs, load {load:.1f}, measured {time.strftime('%Y-%m-%d')}:\n\n"
+        "| map | route | plan (cached weights) | plan (weights built) | weights | whole-grid A* | MCP Dijkstra |\n"
+        "| --- | --- | --- | --- | --- | --- | --- |\n"
+        f"{table}\n",
+    )
+
+
+if __name__ == "__main__":
+    main()
