@@ -165,6 +165,23 @@ class RobotAgent:
             out.update(self.intake.dropped)
         return out
 
+    def counters(self) -> dict[str, float | int]:
+        """What the experiment records per run (planning time in ms, agent CPU in s)."""
+        nav = self.navigator
+        out: dict[str, float | int] = {
+            "plans": nav.plans,
+            "replans": nav.replans,
+            "planning_ms": round(nav.planning_ms, 3),
+            "cpu_s": self.stats.cpu_s,
+            "plan_length_m": nav.plan_length_m if nav.plan_length_m is not None else float("nan"),
+            "messages": self.stats.messages,
+            "zone_updates": self.stats.zone_updates,
+            "costmap_scans": self.stats.costmap_scans,
+        }
+        out.update({f"replans_{k}": v for k, v in nav.replans_by.items()})
+        out.update({f"dropped_{k}": v for k, v in self.dropped().items()})
+        return out
+
     def status(self, now: float) -> RobotStatus:
         nav = self.navigator
         x, y, yaw = self.backend.pose()

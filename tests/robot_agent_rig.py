@@ -90,7 +90,7 @@ class Rig:
     def __exit__(
         self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
-        for bus in [*self._nodes.values(), self.operator, self.agent_bus]:
+        for bus in [*self._nodes.values(), self.operator, self.agent_bus]:  # closing twice is harmless
             bus.close()
         self.broker.__exit__(kind, exc, tb)
 

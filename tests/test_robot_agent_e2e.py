@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from tests.robot_agent_rig import LIDAR_RANGE_M, Rig, distance_to_polygon
+from schemas.messages import RobotStatus
+from tests.robot_agent_rig import LIDAR_RANGE_M, Rig, connect, distance_to_polygon
 
 
 def z4_polygon(rig: Rig) -> list[tuple[float, float]]:
@@ -27,6 +28,14 @@ def test_z4_blocked_before_the_start_the_robot_plans_around_it_and_reaches_b(tmp
         path = rig.agent.navigator.path.copy()
         rig.drive(rig.finished)
         statuses = rig.collect_statuses()
+        # Status is retained: an operator who connects now still learns where the robot is and that it arrived.
+        rig.operator.close()
+        late = connect(rig.broker, "operator")
+        late.subscribe("wsn/school/robots/+/status")
+        assert late.wait(10.0)
+        retained = [RobotStatus.model_validate_json(m.payload) for m in late.poll()]
+        late.close()
+    assert [(s.state, s.goal, s.t) for s in retained] == [("arrived", "B", statuses[-1].t)]
     assert rig.state() == "arrived"
     assert rig.robot.collisions == 0
     assert not entered(rig, "z4")
