@@ -195,3 +195,23 @@ def test_garbage_and_spoofed_messages_change_nothing_and_are_counted(tmp_path: P
     assert rig.state() == "arrived"
     assert rig.robot.distance_m < 35.0  # straight through z4, which nobody honest blocked
     assert rig.robot.collisions == 0
+
+
+def test_an_operator_block_detours_the_robot_and_its_removal_brings_it_back(tmp_path: Path) -> None:
+    with Rig(tmp_path) as rig:
+        rig.send_goal("B")
+        rig.drive(lambda: rig.robot.distance_m > 2.0)
+        intake = rig.agent.intake
+        assert intake is not None
+        topic = "wsn/school/operator/blocks/spill"
+        for payload, length in ((b'{"v": 1, "zone": "z4", "reason": "spill"}', "detour"), (b"", "direct")):
+            accepted = intake.accepted
+            rig.operator.publish(topic, payload, qos=1, retain=True)
+            rig.settle(lambda a=accepted: intake.accepted > a, f"the operator block ({length})")
+            plan = rig.agent.navigator.plan_length_m
+            assert plan is not None
+            assert (plan > 45.0) if length == "detour" else (plan < 35.0)
+        rig.drive(rig.finished)
+    assert rig.state() == "arrived"
+    assert rig.agent.navigator.replans_by["zone"] == 2
+    assert rig.robot.distance_m < 35.0 and rig.robot.collisions == 0
