@@ -64,7 +64,7 @@ def robot_command(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     world = SimWorldGrid(site.grid)
     robot = SimTurtleBot3(creds.username, world, start)
-    printer = StatusPrinter()
+    printer = StatusPrinter(origin=clock.now())
     agent = RobotAgent(site, config, robot, bus, clock, creds.username, sim_world=world, on_status=printer)
     stop = threading.Event()
     last = [clock.now()]
@@ -128,7 +128,9 @@ def read_credentials(path: Path, site: Site) -> Credentials:
 class StatusPrinter:
     """One line per change of state, reason or blocked zones (not per replan: stock configs replan at 5 Hz)."""
 
-    def __init__(self) -> None:
+    def __init__(self, origin: float = 0.0) -> None:
+        """`origin`: the clock time printed as t=0 (a wall clock's origin is arbitrary)."""
+        self._origin = origin
         self._last: tuple[object, ...] | None = None
 
     def __call__(self, status: RobotStatus, changed: bool) -> None:
@@ -139,7 +141,7 @@ class StatusPrinter:
         x, y, yaw = status.pose
         goal = status.goal if isinstance(status.goal, str) or status.goal is None else list(status.goal)
         parts = [
-            f"t={status.t or 0.0:.1f}",
+            f"t={(status.t or self._origin) - self._origin:.1f}",
             status.state,
             f"pose=[{x:.2f}, {y:.2f}, {yaw:.2f}]",
             f"goal={goal}",

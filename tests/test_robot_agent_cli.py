@@ -4,6 +4,7 @@ bad arguments, files and an unreachable broker as one line."""
 from __future__ import annotations
 
 import json
+import signal
 import socket
 import subprocess
 import sys
@@ -120,3 +121,24 @@ def test_the_shipped_configs_are_the_stock_turtlebot3_and_the_full_system() -> N
     assert (full.zone_layer, full.replan_rate_hz) == (True, 0.0)
     assert full.local_costmap_size_m < default.local_costmap_size_m
     assert full.global_costmap_rate_hz < default.global_costmap_rate_hz
+
+
+@pytest.mark.parametrize(("sig", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 0)])
+def test_ctrl_c_and_sigterm_stop_the_robot_cleanly(sig: signal.Signals, code: int) -> None:
+    with BrokerThread(SCHOOL) as broker:
+        proc = subprocess.Popen(
+            [*WSNAV, *robot_args(broker, "--start", "A", "--goal", "B")],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            # A shell's background job inherits SIGINT ignored; a user's terminal delivers it.
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        )
+        assert proc.stdout is not None
+        proc.stdout.readline()  # the banner: connected
+        assert " navigating " in proc.stdout.readline()
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == code
+    assert err == ""
+    assert "Traceback" not in out
