@@ -28,6 +28,7 @@ import psutil
 import yaml
 from paho.mqtt.enums import CallbackAPIVersion
 
+from bench.benchmarks_md import write_section
 from broker.credentials import load_credentials, write_credentials
 from broker.embedded import BrokerProcess
 from schemas import topics
@@ -202,18 +203,6 @@ def report(r: dict[str, float]) -> str:
     )
 
 
-def write_section(body: str, path: Path = Path("BENCHMARKS.md")) -> None:
-    """Replace this benchmark's section (from its heading to the next `## `) or append it."""
-    text = path.read_text() if path.exists() else "# Benchmarks\n"
-    start = text.find(SECTION)
-    if start < 0:
-        text = text.rstrip("\n") + "\n\n" + body
-    else:
-        end = text.find("\n## ", start + len(SECTION))
-        text = text[:start] + body + ("" if end < 0 else text[end:])
-    path.write_text(text.rstrip("\n") + "\n")
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--nodes", type=int, default=1000)
@@ -236,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_write:
         load = os.getloadavg()[0]
         body = (
-            f"{SECTION}\n\n```\n{COMMAND}\n```\n\n"
+            f"```\n{COMMAND}\n```\n\n"
             f"{int(r['nodes'])} emulated nodes (firmware NodeLogic, one paho link each, all on one thread) publishing their\n"
             "zone state (QoS 1, retained) once a second; the broker and the simulator are separate processes; one\n"
             "robot-credential subscriber takes every zone state. Lag: simulator socket write -> subscriber callback.\n"
@@ -249,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
             "(`--nodes 200`) the same machine gave p99 7 ms; rerun on an idle machine before drawing conclusions,\n"
             "and see the broker section: above ~1000 messages/s sustained, use Mosquitto.\n"
         )
-        write_section(body)
+        write_section(SECTION, body)
     return 0
 
 
