@@ -20,7 +20,7 @@ import numpy as np
 import pyastar2d
 from skimage.graph import MCP_Geometric
 
-from bench.bench_report import write_section
+from bench.benchmarks_md import write_section
 from bench.synthetic_building import BLOCK, building_grid
 from robot_agent.global_planner import PlannerParams, plan_path, weights_for
 from robot_agent.inflation import InflationParams
