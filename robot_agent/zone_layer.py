@@ -80,7 +80,7 @@ class ZoneLayer:
         view.state = msg.state
         view.heard_at = received_at
         view.online = True
-        return self._reevaluate()
+        return self._reevaluate(view.zone)
 
     def on_node_status(self, msg: NodeStatus, received_at: float) -> bool:
         """Birth (`online`) or will (`offline`); an offline node is stale at once."""
@@ -91,7 +91,7 @@ class ZoneLayer:
         view.online = msg.status == "online"
         if view.online:
             view.heard_at = received_at
-        return self._reevaluate()
+        return self._reevaluate(view.zone)
 
     def on_operator_block(self, block_id: str, msg: OperatorBlock | None, received_at: float) -> bool:
         """Set (or with None remove) an operator block; a block on an unknown zone is ignored."""
@@ -223,27 +223,22 @@ class ZoneLayer:
             case "blocked":
                 return LETHAL_OBSTACLE
 
-    def _reevaluate(self) -> bool:
-        """Recompute every zone's cost and the blocks in force; remember the areas that changed."""
+    def _reevaluate(self, zone_id: str | None = None) -> bool:
+        """Recompute one zone's cost (a message from its node), or every zone's and the blocks in force (a
+        refresh, an operator block); remember the areas that changed. One zone only keeps a message O(1) when
+        a thousand nodes report every second."""
+        if zone_id is not None:
+            return self._update_zone(zone_id, {b.zone for b in self._blocks.values()})
         now = self._now
         if now is not None:
             for block_id, block in list(self._blocks.items()):
                 if block.expires_at is not None and now >= block.expires_at:
                     del self._blocks[block_id]
-        zone_blocked = {b.zone for b in self._blocks.values() if b.zone is not None}
-        costs: dict[str, int] = {}
-        for zone_id in self._zone_ids:
-            if zone_id in zone_blocked:
-                costs[zone_id] = LETHAL_OBSTACLE
-            else:
-                words: list[Word] = [self._word(self._nodes[n]) for n in self._watchers[zone_id]]
-                costs[zone_id] = self._cost(self._fuse(words))
-        polys = {i: b.window for i, b in self._blocks.items() if b.window is not None}
+        zone_blocked = {b.zone for b in self._blocks.values()}
         changed = False
-        for zone_id, cost in costs.items():
-            if cost != self._costs[zone_id]:
-                self._mark(("zone", zone_id), self._windows[zone_id])
-                changed = True
+        for zone in self._zone_ids:
+            changed |= self._update_zone(zone, zone_blocked)
+        polys = {i: b.window for i, b in self._blocks.items() if b.window is not None}
         for block_id in polys.keys() | self._polys.keys():
             before, after = self._polys.get(block_id), polys.get(block_id)
             if before is after:
@@ -252,9 +247,20 @@ class ZoneLayer:
                 if window is not None:
                     self._mark(("block", block_id), window)
             changed = True
-        self._costs = costs
         self._polys = polys
         return changed
+
+    def _update_zone(self, zone_id: str, zone_blocked: set[str | None]) -> bool:
+        if zone_id in zone_blocked:
+            cost = LETHAL_OBSTACLE
+        else:
+            words: list[Word] = [self._word(self._nodes[n]) for n in self._watchers[zone_id]]
+            cost = self._cost(self._fuse(words))
+        if cost == self._costs[zone_id]:
+            return False
+        self._costs[zone_id] = cost
+        self._mark(("zone", zone_id), self._windows[zone_id])
+        return True
 
 
 def _as_word(state: str) -> Word:
