@@ -49,11 +49,13 @@ class LidarParams:
 
 
 @lru_cache(maxsize=16)
-def _samples(params: LidarParams, resolution: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def _samples(
+    params: LidarParams, resolution: float
+) -> tuple[NDArray[np.float32], NDArray[np.int32], NDArray[np.float64]]:
     """Indices of the grid lines a ray may cross on one axis within range, and the beams' relative angles."""
-    lines = np.arange(math.ceil(params.range_max / resolution) + 2, dtype=np.float64)
+    lines = np.arange(math.ceil(params.range_max / resolution) + 2, dtype=np.int32)
     angles = params.angle_min + np.arange(params.beams, dtype=np.float64) * params.angle_increment
-    return lines, angles
+    return lines.astype(np.float32), lines, angles
 
 
 def cast_scan(
@@ -99,7 +101,7 @@ def cast_ranges(
     if occupied[math.floor(v0), math.floor(u0)]:
         ranges[:] = -np.inf  # the sensor sits inside an obstacle
         return ranges
-    k, rel = _samples(params, res)
+    k, k_int, rel = _samples(params, res)
     angles = rel + yaw
     dx, dy = np.cos(angles), np.sin(angles)
     # Rays leave the grid (and with it every occupied cell) at t_exit; look no further than that or range_max.
@@ -108,8 +110,8 @@ def cast_ranges(
     limit = np.minimum(t_exit, params.range_max / res)
     flat = occupied.ravel()
     # Every cell a ray enters, it enters across a vertical or a horizontal grid line: take both families.
-    t_x = _first_hit(flat, width, u0, v0, dx, dy, k, limit, vertical=True)
-    t_y = _first_hit(flat, width, v0, u0, dy, dx, k, limit, vertical=False)
+    t_x = _first_hit(flat, width, u0, v0, dx, dy, k, k_int, limit, vertical=True)
+    t_y = _first_hit(flat, width, v0, u0, dy, dx, k, k_int, limit, vertical=False)
     first = np.minimum(t_x, t_y) * res
     ranges[:] = np.where(first < params.range_min, -np.inf, first)
     return ranges
@@ -131,7 +133,8 @@ def _first_hit(
     b0: float,
     da: NDArray[np.float64],
     db: NDArray[np.float64],
-    k: NDArray[np.float64],
+    k: NDArray[np.float32],
+    k_int: NDArray[np.int32],
     limit: NDArray[np.float64],
     *,
     vertical: bool,
@@ -141,22 +144,25 @@ def _first_hit(
     Lines of axis a are crossed evenly, every 1/|da| along the ray, the first at floor(a0) + 1 going up
     (floor(a0) going down); the cell entered there is the line's neighbour on axis a and floor(b0 + t db) on
     axis b. `vertical`: axis a is x (columns), else y (rows). inf where no occupied cell is entered in range.
+    Works in float32 and int32 so the (beams, crossings) arrays stay small (under malloc's mmap threshold,
+    which otherwise costs page faults on every scan); float32 keeps ranges well under a millimetre.
     """
     base = math.floor(a0)
-    step = np.sign(da)
-    first_line = np.where(da > 0, base + 1.0, float(base))
-    first_cell = np.where(da > 0, base + 1, base - 1).astype(np.intp)
+    up = da > 0
+    first_line = np.where(up, base + 1.0, float(base))
+    first_cell = np.where(up, base + 1, base - 1).astype(np.int32)
+    step = np.where(up, 1, -1).astype(np.int32)
     # A ray parallel to these lines never crosses one: its t is inf or nan, and `valid` drops it.
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        t0 = (first_line - a0) / da
-        delta = np.abs(1.0 / da)
+        t0 = ((first_line - a0) / da).astype(np.float32)
+        delta = np.abs(1.0 / da).astype(np.float32)
         t = t0[:, None] + k[None, :] * delta[:, None]
-        valid = t < limit[:, None]
-        cell_a = first_cell[:, None] + (k[None, :] * step[:, None]).astype(np.intp)
-        cell_b = (b0 + t * db[:, None]).astype(np.intp)
-    index = cell_b * width + cell_a if vertical else cell_a * width + cell_b
+        valid = t < limit.astype(np.float32)[:, None]
+        cell_b = (np.float32(b0) + t * db.astype(np.float32)[:, None]).astype(np.int32)
+    cell_a = first_cell[:, None] + k_int[None, :] * step[:, None]
+    index = cell_b * np.int32(width) + cell_a if vertical else cell_a * np.int32(width) + cell_b
     hit = flat.take(index, mode="clip")
     hit &= valid
     j = hit.argmax(axis=1)
     rows = np.arange(len(j))
-    return np.where(hit[rows, j], t[rows, j], np.inf)
+    return np.where(hit[rows, j], t[rows, j].astype(np.float64), np.inf)
