@@ -15,22 +15,21 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import re
 import statistics
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
 
+from bench.benchmarks_md import write_section
 from robot_agent.controller import PathFollower
 from robot_agent.global_planner import plan_path
-from robot_agent.inflation import InflationParams, inflate, static_layer
+from robot_agent.inflation import InflationParams
+from robot_agent.layered_costmap import LayeredCostmap
 from robot_agent.lidar import LidarParams, cast_scan
 from robot_agent.sim_turtlebot3 import SimTurtleBot3
 from robot_agent.sim_world_grid import SimWorldGrid
-from robot_agent.zone_geometry import GridFrame
 from schemas.site import load_site
 
 REPO = Path(__file__).resolve().parent.parent
@@ -38,17 +37,6 @@ SECTION = "## Simulated robot: lidar, controller, real-time factor"
 COMMAND = "./.venv/bin/python -m bench.sim_robot"
 CONTROL_DT = 0.05
 LOCAL_M = 3.0
-
-
-def local_window(
-    costs: NDArray[np.uint8], frame: GridFrame, x: float, y: float
-) -> tuple[NDArray[np.uint8], GridFrame]:
-    half = int(LOCAL_M / frame.resolution / 2)
-    row, col = frame.world_to_cell(x, y)
-    r0, c0 = max(row - half, 0), max(col - half, 0)
-    r1, c1 = min(row + half, frame.height), min(col + half, frame.width)
-    origin = (frame.origin_x + c0 * frame.resolution, frame.origin_y + r0 * frame.resolution)
-    return costs[r0:r1, c0:c1], GridFrame(c1 - c0, r1 - r0, frame.resolution, *origin)
 
 
 def bench_scans(world: SimWorldGrid, count: int) -> float:
@@ -83,12 +71,12 @@ class Drive:
         return self.controller_steps / self.controller_s
 
 
-def bench_follow(costs: NDArray[np.uint8], site_dir: Path) -> Drive:
+def bench_follow(costmap: LayeredCostmap, site_dir: Path) -> Drive:
     """One A -> B drive: the whole loop timed, and the controller's share of it timed on its own."""
     site = load_site(site_dir)
     world = SimWorldGrid(site.grid)
     a, b = site.point("A"), site.point("B")
-    plan = plan_path(costs, site.grid.resolution, site.grid.origin, a[:2], b[:2])
+    plan = plan_path(costmap.master, site.grid.resolution, site.grid.origin, a[:2], b[:2])
     bot = SimTurtleBot3("robot1", world, a)
     follower = PathFollower()
     follower.set_path(plan.path, goal_yaw=b[2])
@@ -96,8 +84,7 @@ def bench_follow(costs: NDArray[np.uint8], site_dir: Path) -> Drive:
     status, reason = "following", ""
     t0 = time.perf_counter()
     while t < 600.0 and status == "following":
-        x, y, _ = bot.pose()
-        local, frame = local_window(costs, world.frame, x, y)
+        local, frame = costmap.local_window(bot.pose(), LOCAL_M)
         c0 = time.perf_counter()
         result = follower.compute(bot.pose(), bot.velocity(), local, frame)
         controller_s += time.perf_counter() - c0
@@ -112,19 +99,6 @@ def bench_follow(costs: NDArray[np.uint8], site_dir: Path) -> Drive:
     return Drive(t, wall, controller_s, steps, bot.collisions, bot.distance_m)
 
 
-def write_section(text: str) -> None:
-    path = REPO / "BENCHMARKS.md"
-    current = path.read_text()
-    pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.S | re.M)
-    block = f"{SECTION}\n\n{text.rstrip()}\n\n"
-    updated = (
-        pattern.sub(lambda _: block, current)
-        if pattern.search(current)
-        else current.rstrip() + "\n\n" + block
-    )
-    path.write_text(updated.rstrip() + "\n")
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description="simulated robot benchmark on the school map")
     parser.add_argument("--scans", type=int, default=3000)
@@ -134,12 +108,12 @@ def main() -> None:
     site_dir = REPO / "sites" / "school"
     site = load_site(site_dir)
     world = SimWorldGrid(site.grid)
-    costs = inflate(static_layer(site.grid), site.grid.resolution, InflationParams())
+    costmap = LayeredCostmap(site.grid, InflationParams(), obstacle_layer=False)
     a, b = site.point("A"), site.point("B")
-    plan = plan_path(costs, site.grid.resolution, site.grid.origin, a[:2], b[:2])
+    plan = plan_path(costmap.master, site.grid.resolution, site.grid.origin, a[:2], b[:2])
 
     scans = [bench_scans(world, args.scans) for _ in range(args.runs)]
-    drives = [bench_follow(costs, site_dir) for _ in range(args.runs)]
+    drives = [bench_follow(costmap, site_dir) for _ in range(args.runs)]
     steps = [d.controller_rate for d in drives]
     rtf = [d.real_time_factor for d in drives]
     last = drives[-1]
@@ -163,11 +137,12 @@ def main() -> None:
         return
     when = time.strftime("%Y-%m-%d")
     write_section(
+        SECTION,
         f"```\n{COMMAND}\n```\n\n"
         "The simulated TurtleBot3 Burger and its controller on the school map (`sites/school`, 0.05 m cells): "
         "the lidar cast from random free poses (exact array grid traversal, NumPy), the regulated pure pursuit "
         "controller's `compute` on a 3 x 3 m local costmap window, and the whole loop (controller 20 Hz, physics "
-        "0.05 s, lidar 5 Hz, static inflated costmap prepared once) driving A -> B. "
+        "0.05 s, lidar 5 Hz, the layered costmap's rolling window, static layer only, prepared once) driving A -> B. "
         f"Measured {when} (machine shared with other jobs, load {load:.1f}):\n\n"
         "| what | median | range |\n| --- | --- | --- |\n"
         f"| lidar scans/s (target >= 2000) | {statistics.median(scans):.0f} | {min(scans):.0f}-{max(scans):.0f} |\n"
@@ -175,7 +150,7 @@ def main() -> None:
         f"| A -> B real-time factor (sim + controller) | {statistics.median(rtf):.0f}x | {min(rtf):.0f}-{max(rtf):.0f}x |\n\n"
         f"The drive: {sim_s:.1f} s simulated, {distance:.2f} m (plan {plan.length_m:.2f} m), {collisions} collisions. "
         "The loop's cost is mostly the lidar (5 scans per simulated second) and the controller (20 per second); "
-        "the agent's costmap and planner come on top in the experiment."
+        "the agent's costmap and planner come on top in the experiment.",
     )
 
 

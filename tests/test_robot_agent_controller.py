@@ -1,7 +1,7 @@
 """The path follower driving the simulated TurtleBot3 along global plans on real maps (the school, the TurtleBot3
 sandbox), in simulated time: it arrives without touching anything, and stops short of an obstacle that closes
-its corridor, reporting `blocked`. The local costmap it sees is a 3 x 3 m window cut around the robot from the
-static map plus what the world holds, inflated as costmap_2d does."""
+its corridor, reporting `blocked`. The whole chain is real: the robot's lidar feeds the layered costmap's
+obstacle layer, and the controller sees that costmap's 3 x 3 m rolling window."""
 
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
-from numpy.typing import NDArray
 
-from robot_agent.backend import Velocity
+from robot_agent.backend import LaserScan, Velocity
 from robot_agent.controller import ControlResult, PathFollower
 from robot_agent.global_planner import plan_path
-from robot_agent.inflation import LETHAL_OBSTACLE, InflationParams, inflate, static_layer
+from robot_agent.inflation import InflationParams
+from robot_agent.layered_costmap import LayeredCostmap
 from robot_agent.sim_turtlebot3 import SimTurtleBot3
 from robot_agent.sim_world_grid import SimWorldGrid
 from robot_agent.zone_geometry import GridFrame
@@ -28,26 +28,6 @@ INFLATION = InflationParams()
 LOCAL_SIZE_M = 3.0
 
 
-def world_costs(site: Site, world: SimWorldGrid) -> NDArray[np.uint8]:
-    """What a perfect obstacle layer would give: the static map with the world's obstacles lethal, inflated."""
-    costs = static_layer(site.grid)
-    costs[world.occupied] = LETHAL_OBSTACLE
-    return inflate(costs, site.grid.resolution, INFLATION)
-
-
-def local_window(
-    costs: NDArray[np.uint8], frame: GridFrame, x: float, y: float
-) -> tuple[NDArray[np.uint8], GridFrame]:
-    """A rolling window of the costmap centred on the robot, with its own origin (a local costmap)."""
-    half = int(LOCAL_SIZE_M / frame.resolution / 2)
-    row, col = frame.world_to_cell(x, y)
-    r0, c0 = max(row - half, 0), max(col - half, 0)
-    r1, c1 = min(row + half, frame.height), min(col + half, frame.width)
-    window = costs[r0:r1, c0:c1]
-    origin_x, origin_y = frame.origin_x + c0 * frame.resolution, frame.origin_y + r0 * frame.resolution
-    return window, GridFrame(c1 - c0, r1 - r0, frame.resolution, origin_x, origin_y)
-
-
 @dataclass
 class Drive:
     results: list[ControlResult] = field(default_factory=list)
@@ -56,21 +36,22 @@ class Drive:
 
 
 def drive(
-    site: Site,
-    world: SimWorldGrid,
+    costmap: LayeredCostmap,
     bot: SimTurtleBot3,
     follower: PathFollower,
     limit_s: float,
-    costs: NDArray[np.uint8] | None = None,
     until: tuple[str, ...] = ("arrived",),
 ) -> Drive:
-    """Controller at 20 Hz, physics at 0.05 s, until a status in `until` or `limit_s` of simulated time."""
+    """Controller at 20 Hz, physics at 0.05 s, scans into the costmap, until a status in `until` or `limit_s`."""
     out = Drive()
-    full = costs if costs is not None else world_costs(site, world)
     t = 0.0
+    seen: LaserScan | None = None
     while t < limit_s:
-        x, y, _ = bot.pose()
-        local, frame = local_window(full, world.frame, x, y)
+        scan = bot.scan()
+        if scan is not None and scan is not seen:
+            costmap.update_scan(scan)
+            seen = scan
+        local, frame = costmap.local_window(bot.pose(), LOCAL_SIZE_M)
         result = follower.compute(bot.pose(), bot.velocity(), local, frame)
         out.results.append(result)
         bot.command(result.velocity)
@@ -83,25 +64,30 @@ def drive(
     return out
 
 
-def follow(site_name: str, start: str, goal: str) -> tuple[Site, SimTurtleBot3, PathFollower, Drive, float]:
-    site = load_site(SITES / site_name)
+def start(
+    site: Site, start: str, goal: str
+) -> tuple[SimWorldGrid, LayeredCostmap, SimTurtleBot3, PathFollower, float]:
+    """The robot at `start`, following the global plan to `goal` made on the static map."""
     world = SimWorldGrid(site.grid)
-    costs = world_costs(site, world)
+    costmap = LayeredCostmap(site.grid, INFLATION)
     a, b = site.point(start), site.point(goal)
-    plan = plan_path(costs, site.grid.resolution, site.grid.origin, a[:2], b[:2])
+    plan = plan_path(costmap.master, site.grid.resolution, site.grid.origin, a[:2], b[:2])
     assert plan.reachable
     bot = SimTurtleBot3("robot1", world, a)
     follower = PathFollower()
     follower.set_path(plan.path, goal_yaw=b[2])
-    run = drive(site, world, bot, follower, limit_s=4 * plan.length_m / 0.22 + 30, costs=costs)
-    return site, bot, follower, run, plan.length_m
+    return world, costmap, bot, follower, plan.length_m
 
 
-@pytest.mark.parametrize(("site_name", "start", "goal"), [("school", "A", "B"), ("tb3_sandbox", "P1", "P2")])
+@pytest.mark.parametrize(
+    ("site_name", "start_point", "goal"), [("school", "A", "B"), ("tb3_sandbox", "P1", "P2")]
+)
 def test_follows_a_global_plan_to_the_goal_without_touching_anything(
-    site_name: str, start: str, goal: str
+    site_name: str, start_point: str, goal: str
 ) -> None:
-    site, bot, _, run, length = follow(site_name, start, goal)
+    site = load_site(SITES / site_name)
+    _, costmap, bot, follower, length = start(site, start_point, goal)
+    run = drive(costmap, bot, follower, limit_s=4 * length / 0.22 + 30)
     assert run.results[-1].status == "arrived"
     assert {r.status for r in run.results} <= {"following", "arrived"}
     gx, gy, gyaw = site.point(goal)
@@ -119,40 +105,38 @@ def test_follows_a_global_plan_to_the_goal_without_touching_anything(
 
 def test_an_obstacle_closing_the_corridor_makes_it_report_blocked_and_stop_short() -> None:
     site = load_site(SITES / "school")
-    world = SimWorldGrid(site.grid)
-    a, b = site.point("A"), site.point("B")
-    plan = plan_path(world_costs(site, world), site.grid.resolution, site.grid.origin, a[:2], b[:2])
-    z1 = site.spec.zone("z1").polygon  # the plan runs east along the south corridor, through z1 (x 17..19)
-    assert any(17.0 <= px <= 19.0 for px, _ in plan.densify(0.1))
-    bot = SimTurtleBot3("robot1", world, a)
-    follower = PathFollower()
-    follower.set_path(plan.path, goal_yaw=b[2])
-    first = drive(site, world, bot, follower, limit_s=5.0)
+    world, costmap, bot, follower, _ = start(site, "A", "B")
+    # The plan runs east along the south corridor, through z1 (x 17..19).
+    assert any(17.0 <= px <= 19.0 for px, _ in follower.path)
+    first = drive(costmap, bot, follower, limit_s=5.0)
     assert first.results[-1].status == "following"
-    # People fill z1 wall to wall: the world has them, the local costmap sees them.
+    # People fill z1 wall to wall: the world has them, and the lidar will show them to the costmap.
+    z1 = site.spec.zone("z1").polygon
     world.apply(SimWorld(t=5.0, obstacles=[SimObstacle(id="crowd", zone="z1", polygon=z1)]))
-    run = drive(site, world, bot, follower, limit_s=60.0, until=("blocked",))
+    run = drive(costmap, bot, follower, limit_s=60.0, until=("blocked",))
     last = run.results[-1]
     assert last.status == "blocked" and last.velocity == Velocity(0.0, 0.0)
     assert "lethal" in last.reason or "inscribed" in last.reason
     # Blocked where the corridor is closed, not anywhere: within the check distance of the obstacle's face.
-    x_blocked = bot.pose()[0]
-    assert 17.0 - 1.6 < x_blocked < 17.0 - bot.radius
+    assert 17.0 - 1.6 < bot.pose()[0] < 17.0 - bot.radius
     # It stays blocked and comes to rest without touching the obstacle.
-    rest = drive(site, world, bot, follower, limit_s=3.0, until=())
+    rest = drive(costmap, bot, follower, limit_s=3.0, until=())
     assert {r.status for r in rest.results} == {"blocked"}
     assert bot.velocity() == Velocity(0.0, 0.0)
     assert bot.collisions == 0 and bot.pose()[0] < 17.0 - bot.radius - 0.2
     assert min(run.min_clearance, rest.min_clearance) > bot.radius
+    # Take the crowd away: the lidar clears the cells, and the path is free again.
+    world.apply(SimWorld(t=70.0, obstacles=[]))
+    resumed = drive(costmap, bot, follower, limit_s=200.0)
+    assert resumed.results[-1].status == "arrived" and bot.collisions == 0
 
 
 def test_it_turns_in_place_when_the_path_starts_behind_it() -> None:
     site = load_site(SITES / "school")
-    world = SimWorldGrid(site.grid)
-    bot = SimTurtleBot3("robot1", world, (12.0, 7.2, 0.0))
+    bot = SimTurtleBot3("robot1", SimWorldGrid(site.grid), (12.0, 7.2, 0.0))
     follower = PathFollower()
     follower.set_path(np.array([[12.0, 7.2], [9.0, 7.2]]))
-    run = drive(site, world, bot, follower, limit_s=3.0, until=())
+    run = drive(LayeredCostmap(site.grid, INFLATION), bot, follower, limit_s=3.0, until=())
     turning = [r for r in run.results if r.reason == "turning to path"]
     assert turning and all(r.velocity.linear == 0.0 for r in turning)
     assert abs(math.remainder(bot.pose()[2] - math.pi, 2 * math.pi)) < 0.5
