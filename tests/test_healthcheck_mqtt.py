@@ -1,0 +1,102 @@
+"""The containers' health checks (wsnav/healthcheck.py) against the real broker: healthy only when an MQTT
+client of the site would be served, and one line saying why not."""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+import pytest
+
+from broker.embedded import BrokerThread
+from runtime.bus import Will
+from runtime.mqtt_bus import MqttBus
+from schemas import topics
+from schemas.messages import NodeStatus, RobotStatus
+from tests.site_fixtures import tiny_site
+from wsnav.healthcheck import main
+
+
+def check(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
+    code = main(list(args))
+    out = capsys.readouterr()
+    return code, (out.out + out.err).strip()
+
+
+def connect(broker: BrokerThread, ident: str, birth: Will | None = None) -> MqttBus:
+    creds = broker.credentials(ident)
+    bus = MqttBus(
+        broker.host, broker.port, client_id=ident, username=ident, password=creds.password, birth=birth
+    )
+    return bus.connect()
+
+
+def node_birth(node: str) -> Will:
+    payload = NodeStatus(node=node, status="online").to_payload()
+    return Will(topics.node_status("tiny", node), payload)
+
+
+def test_broker_check_needs_a_working_login(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    site = tiny_site(tmp_path / "site")
+    with BrokerThread(site) as broker:
+        address = f"{broker.host}:{broker.port}"
+        creds = broker.credentials_dir / "operator.json"
+        assert check(capsys, "broker", "--broker", address, "--credentials", str(creds)) == (
+            0,
+            f"broker {address} accepts operator",
+        )
+        wrong = tmp_path / "wrong.json"
+        raw = json.loads(creds.read_text())
+        wrong.write_text(json.dumps(raw | {"password": "x" * 32}))
+        code, text = check(
+            capsys, "broker", "--broker", address, "--credentials", str(wrong), "--timeout", "2"
+        )
+        assert code == 1
+        assert text.startswith("unhealthy: cannot connect to MQTT broker") and "\n" not in text
+    code, text = check(capsys, "broker", "--broker", address, "--credentials", str(tmp_path / "none.json"))
+    assert (code, text.startswith("unhealthy: ")) == (1, True)
+
+
+def test_nodes_check_names_the_nodes_not_online(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    site = tiny_site(tmp_path / "site")
+    with BrokerThread(site) as broker:
+        args = ["nodes", "--site", str(site), "--broker", f"{broker.host}:{broker.port}"]
+        args += ["--credentials", str(broker.credentials_dir / "operator.json"), "--timeout", "2"]
+        assert check(capsys, *args) == (1, "unhealthy: nodes not online: n1, n2")
+        n1 = connect(broker, "n1", node_birth("n1"))
+        assert check(capsys, *args) == (1, "unhealthy: nodes not online: n2")
+        n2 = connect(broker, "n2", node_birth("n2"))
+        assert check(capsys, *args) == (0, "2 nodes online")
+        n1.close()
+        n2.close()
+
+
+def test_robot_check_wants_a_live_status_not_a_retained_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    site = tiny_site(tmp_path / "site")
+    with BrokerThread(site) as broker:
+        args = ["robot", "--site", str(site), "--robot", "robot1", "--broker", f"{broker.host}:{broker.port}"]
+        args += ["--credentials", str(broker.credentials_dir / "robot1.json"), "--timeout", "2"]
+        robot = connect(broker, "robot1")
+        status = RobotStatus(robot="robot1", state="idle", pose=(1.0, 4.0, 0.0)).to_payload()
+        robot.publish(topics.robot_status("tiny", "robot1"), status, retain=True)
+        assert check(capsys, *args) == (1, "unhealthy: no status from robot1 within 2 s")
+        robot.close()
+        # A robot that reports: its periodic status arrives while the check listens.
+        robot = connect(broker, "robot1")
+        stop = threading.Event()
+
+        def report() -> None:
+            while not stop.wait(0.2):
+                robot.publish(topics.robot_status("tiny", "robot1"), status)
+
+        reporter = threading.Thread(target=report, daemon=True)
+        reporter.start()
+        try:
+            assert check(capsys, *args) == (0, "robot1 reports idle")
+        finally:
+            stop.set()
+            reporter.join()
+            robot.close()
