@@ -1,0 +1,92 @@
+"""Lock-step delivery over a real broker: what was published for the agent is known, and simulated time does
+not move on until the agent's bus has handed it over, so what the agent sees at each simulated instant does
+not depend on the machine's speed (or on how many other runs share its cores).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from collections.abc import Callable
+
+from runtime.bus import Bus, Message, topic_matches
+
+REAL_TIMEOUT_S = 30.0
+
+
+class DeliveryTimeout(RuntimeError):
+    """The broker did not deliver a message within REAL_TIMEOUT_S real seconds."""
+
+
+class Deliveries:
+    """The multiset of (topic, payload) published for the agent and not yet polled by it."""
+
+    def __init__(self, filters: list[str]) -> None:
+        self.filters = filters
+        self._pending: Counter[tuple[str, bytes]] = Counter()
+
+    def expect(self, topic: str, payload: bytes) -> None:
+        if any(topic_matches(f, topic) for f in self.filters):
+            self._pending[(topic, payload)] += 1
+
+    def delivered(self, messages: list[Message]) -> None:
+        for m in messages:
+            key = (m.topic, m.payload)
+            if self._pending[key] > 0:
+                self._pending[key] -= 1
+        self._pending += Counter()  # drop zero counts
+
+    @property
+    def pending(self) -> int:
+        return sum(self._pending.values())
+
+
+class WatchedBus:
+    """The agent's bus, telling `Deliveries` what the agent polled."""
+
+    def __init__(self, inner: Bus, deliveries: Deliveries) -> None:
+        self.inner = inner
+        self.deliveries = deliveries
+
+    def publish(self, topic: str, payload: bytes, *, qos: int = 1, retain: bool = False) -> None:
+        self.inner.publish(topic, payload, qos=qos, retain=retain)
+
+    def subscribe(self, topic_filter: str, qos: int = 1) -> None:
+        self.inner.subscribe(topic_filter, qos)
+
+    def poll(self, max_messages: int | None = None) -> list[Message]:
+        got = self.inner.poll(max_messages)
+        self.deliveries.delivered(got)
+        return got
+
+    def wait(self, timeout_s: float) -> bool:
+        return self.inner.wait(timeout_s)
+
+    @property
+    def connected(self) -> bool:
+        return self.inner.connected
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+class ExpectingBus(WatchedBus):
+    """A publisher's bus (the zone simulator's world publisher) announcing what it sends to `Deliveries`."""
+
+    def publish(self, topic: str, payload: bytes, *, qos: int = 1, retain: bool = False) -> None:
+        self.deliveries.expect(topic, payload)
+        super().publish(topic, payload, qos=qos, retain=retain)
+
+
+def settle(
+    done: Callable[[], bool], poke: Callable[[], None], wait: Callable[[float], object], what: str
+) -> None:
+    """Call `poke` (step at the current simulated instant) until `done()`; raise after a real-time timeout."""
+    deadline = time.monotonic() + REAL_TIMEOUT_S
+    while True:
+        poke()
+        if done():
+            return
+        if time.monotonic() > deadline:
+            raise DeliveryTimeout(f"timed out waiting for {what}")
+        wait(0.002)

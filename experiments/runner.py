@@ -1,0 +1,149 @@
+"""The whole experiment: every planned run over a pool of worker processes, each with its own embedded broker
+(runs in different workers cannot see each other's topics or clash on client ids), a progress line on stderr,
+the runs table, the path figures of run 0 and the report.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import sys
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from broker.embedded import BrokerThread
+from experiments.report import paths_figure, write_report
+from experiments.run_plan import RunSpec
+from experiments.single_run import COLUMNS, BrokerAt, RunResult, run_once
+from schemas.site import Site, load_site
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
+class Outcome:
+    table: pd.DataFrame
+    trajectories: dict[tuple[str, str], NDArray[np.float64]]
+    """(route, config) -> run 0's driven path."""
+    wall_s: float
+
+    @property
+    def simulated_s(self) -> float:
+        return float(self.table["time_s"].to_numpy(dtype=np.float64).sum())
+
+
+_site: Site | None = None
+_broker: BrokerAt | None = None
+_own: BrokerThread | None = None
+
+
+def _quiet() -> None:
+    """Dropped retained messages of the previous run and the broker's chatter about clients that the last run
+    closed are expected: neither is worth a line on the console."""
+    logging.getLogger("amqtt").setLevel(logging.CRITICAL)
+    logging.getLogger("robot_agent").setLevel(logging.ERROR)
+
+
+def _init_worker(site_dir: Path, broker: BrokerAt | None) -> None:
+    global _site, _broker, _own
+    _quiet()
+    _site = load_site(site_dir)
+    if broker is None:
+        _own = BrokerThread(site_dir).__enter__()
+        broker = BrokerAt(_own.host, _own.port, _own.credentials_dir)
+    _broker = broker
+
+
+def _work(spec: RunSpec) -> tuple[RunSpec, RunResult]:
+    assert _site is not None and _broker is not None
+    return spec, run_once(_site, spec, _broker)
+
+
+def run_experiment(
+    site_dir: Path,
+    specs: list[RunSpec],
+    *,
+    workers: int,
+    broker: BrokerAt | None = None,
+    progress: Progress | None = None,
+) -> Outcome:
+    """Run `specs` (with an external `broker`: in this process, one after the other)."""
+    start = time.monotonic()
+    done: list[tuple[RunSpec, RunResult]] = []
+    if broker is not None or workers <= 1:
+        _init_worker(site_dir, broker)
+        try:
+            for spec in specs:
+                done.append(_work(spec))
+                if progress is not None:
+                    progress(len(done), len(specs))
+        finally:
+            _stop_own()
+    else:
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(workers, ctx, initializer=_init_worker, initargs=(site_dir, None)) as pool:
+            futures = [pool.submit(_work, spec) for spec in specs]
+            for future in as_completed(futures):
+                done.append(future.result())
+                if progress is not None:
+                    progress(len(done), len(specs))
+    done.sort(key=lambda d: (d[0].config, d[0].route, d[0].run))
+    table = pd.DataFrame([r.row for _, r in done], columns=list(COLUMNS))
+    paths = {(s.route, s.config): r.trajectory for s, r in done if s.run == 0}
+    return Outcome(table, paths, time.monotonic() - start)
+
+
+def _stop_own() -> None:
+    global _own
+    if _own is not None:
+        _own.__exit__(None, None, None)
+        _own = None
+
+
+def progress_line(started: float | None = None) -> Progress:
+    """`[#####.....] 37/300 runs, 1m12s` on stderr, rewritten in place."""
+    t0 = time.monotonic() if started is None else started
+
+    def show(done: int, total: int) -> None:
+        width = 30
+        filled = width * done // max(total, 1)
+        secs = int(time.monotonic() - t0)
+        end = "\n" if done >= total else ""
+        print(
+            f"\r[{'#' * filled}{'.' * (width - filled)}] {done}/{total} runs, {secs // 60}m{secs % 60:02d}s",
+            end=end,
+            file=sys.stderr,
+            flush=True,
+        )
+
+    return show
+
+
+def path_png(out: Path, route: str) -> Path:
+    return out / f"paths_{route.replace('->', '-')}.png"
+
+
+def write_outputs(site: Site, outcome: Outcome, out: Path, header: str) -> Path:
+    """runs.csv, trajectories.npz, one paths_<route>.png per route, and the report (report.md, PNGs)."""
+    out.mkdir(parents=True, exist_ok=True)
+    outcome.table.to_csv(out / "runs.csv", index=False)
+    arrays: dict[str, NDArray[np.float64]] = {f"{r}|{c}": xy for (r, c), xy in outcome.trajectories.items()}
+    np.savez_compressed(out / "trajectories.npz", allow_pickle=False, **arrays)
+    figures: list[Path] = []
+    table = outcome.table
+    for route in sorted({r for r, _ in outcome.trajectories}):
+        first = table[(table["route"] == route) & (table["run"] == 0)]
+        blocked = str(next(iter(first["blocked"]), "none"))
+        zones = [] if blocked == "none" else blocked.split("+")
+        paths = {c: xy for (r, c), xy in sorted(outcome.trajectories.items()) if r == route}
+        png = path_png(out, route)
+        paths_figure(site, paths, zones, f"{route}, {blocked} blocked: run 0's paths", png)
+        figures.append(png)
+    return write_report(table, out, header, figures)

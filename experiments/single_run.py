@@ -1,0 +1,185 @@
+"""One run of the experiment: the zone simulator's emulated nodes and the robot agent on a simulated TurtleBot3,
+all talking through a real broker, advanced together on a SimClock as fast as the machine allows.
+
+The run's zones are blocked at t=0 (the obstacle appears as the route starts; the nodes' detection delay is
+part of what is measured) and cleared once the robot has stopped, so the next run starts from a clear world.
+"""
+
+from __future__ import annotations
+
+import resource
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from broker.credentials import load_credentials
+from experiments.lockstep import Deliveries, ExpectingBus, WatchedBus, settle
+from experiments.run_plan import RunSpec
+from robot_agent.agent import RobotAgent
+from robot_agent.agent_config import load_agent_config
+from robot_agent.sim_turtlebot3 import SimTurtleBot3
+from robot_agent.sim_world_grid import SimWorldGrid
+from runtime.clock import SimClock
+from runtime.mqtt_bus import MqttBus
+from schemas.site import Site
+from zone_sim.emulated_node import Sent
+from zone_sim.simulator import ZoneSimulator
+
+DT = 0.05
+"""Physics and loop step (s, simulated): the agent and the nodes do whatever is due at each."""
+TIMEOUT_SIM_S = 600.0
+"""A run not finished after this much simulated time counts as a failure."""
+TRAJECTORY_EVERY_S = 0.5
+DRAIN_SIM_S = 3.0
+"""After clearing: simulated time for the nodes to report `clear` (off delay + detection delay)."""
+ROBOT = "robot1"
+
+COLUMNS = (
+    "config",
+    "route",
+    "blocked",
+    "run",
+    "seed",
+    "success",
+    "collisions",
+    "time_s",
+    "distance_m",
+    "replans",
+    "planning_ms",
+    "agent_cpu_s",
+    "peak_mem_mb",
+)
+NONDETERMINISTIC = ("planning_ms", "agent_cpu_s", "peak_mem_mb")
+"""Columns that measure the machine rather than the run (the rest are the same for the same seed)."""
+
+
+@dataclass(frozen=True)
+class BrokerAt:
+    host: str
+    port: int
+    credentials_dir: Path
+
+
+@dataclass(frozen=True)
+class RunResult:
+    row: dict[str, object]
+    trajectory: NDArray[np.float64]
+    """(x, y) every TRAJECTORY_EVERY_S simulated seconds."""
+
+
+def _connect(broker: BrokerAt, ident: str, client_id: str, clock: SimClock) -> MqttBus:
+    creds = load_credentials(broker.credentials_dir / f"{ident}.json")
+    return MqttBus(
+        broker.host,
+        broker.port,
+        client_id=client_id,
+        username=creds.username,
+        password=creds.password,
+        clock=clock,
+    ).connect()
+
+
+def peak_rss_mb() -> float:
+    """This process's resident-set high-water mark (getrusage ru_maxrss, KiB on Linux)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_once(site: Site, spec: RunSpec, broker: BrokerAt) -> RunResult:
+    clock = SimClock()
+    world = SimWorldGrid(site.grid)
+    robot = SimTurtleBot3(ROBOT, world, site.point(spec.start), seed=spec.seed)
+    config = load_agent_config(spec.config)
+    inner = _connect(broker, ROBOT, ROBOT, clock)
+    deliveries = Deliveries([])
+    bus = WatchedBus(inner, deliveries)
+    agent = RobotAgent(site, config, robot, bus, clock, ROBOT, sim_world=world)
+    deliveries.filters = agent.subscriptions()
+    world_bus = ExpectingBus(_connect(broker, "operator", "operator-experiment", clock), deliveries)
+
+    def sent(s: Sent) -> None:
+        deliveries.expect(s.topic, s.payload)
+
+    sim = ZoneSimulator(
+        site,
+        broker.credentials_dir,
+        (broker.host, broker.port),
+        clock,
+        seed=spec.seed,
+        world_bus=world_bus,
+        on_sent=sent,
+    )
+    try:
+        return _drive(site, spec, clock, robot, agent, sim, deliveries)
+    finally:
+        sim.stop()
+        world_bus.close()
+        inner.close()
+
+
+def _drive(
+    site: Site,
+    spec: RunSpec,
+    clock: SimClock,
+    robot: SimTurtleBot3,
+    agent: RobotAgent,
+    sim: ZoneSimulator,
+    deliveries: Deliveries,
+) -> RunResult:
+    def poke() -> None:
+        sim.step(clock.now(), io_timeout_s=0.0)
+        agent.step(clock.now())
+
+    def synced() -> bool:
+        return deliveries.pending == 0
+
+    sim.start()
+    n_nodes = len(sim.nodes)
+    settle(lambda: synced() and sim.online_count == n_nodes, poke, agent.bus.wait, "the nodes to come online")
+    for zone in spec.blocked:
+        sim.block(zone)
+    settle(synced, poke, agent.bus.wait, "the blocked world")
+    agent.set_goal(site.point(spec.goal), spec.goal, clock.now())
+    cpu0 = agent.stats.cpu_s
+    trajectory: list[tuple[float, float]] = [robot.pose()[:2]]
+    next_sample = TRAJECTORY_EVERY_S
+    t0 = clock.now()
+    nav = agent.navigator
+    while nav.state not in ("arrived", "cancelled") and clock.now() - t0 < TIMEOUT_SIM_S:
+        now = clock.now()
+        agent.step(now)
+        robot.step(DT, now + DT)
+        clock.advance(DT)
+        sim.step(clock.now(), io_timeout_s=0.0)
+        if not synced():
+            settle(synced, poke, agent.bus.wait, "zone messages")
+        if clock.now() - t0 >= next_sample - 1e-9:
+            trajectory.append(robot.pose()[:2])
+            next_sample += TRAJECTORY_EVERY_S
+    elapsed = clock.now() - t0
+    trajectory.append(robot.pose()[:2])
+    counters = agent.counters()
+    row: dict[str, object] = {
+        "config": spec.config,
+        "route": spec.route,
+        "blocked": spec.blocked_label,
+        "run": spec.run,
+        "seed": spec.seed,
+        "success": nav.state == "arrived",
+        "collisions": robot.collisions,
+        "time_s": round(elapsed, 3),
+        "distance_m": round(robot.distance_m, 3),
+        "replans": int(counters["replans"]),
+        "planning_ms": float(counters["planning_ms"]),
+        "agent_cpu_s": round(agent.stats.cpu_s - cpu0, 6),
+        "peak_mem_mb": round(peak_rss_mb(), 1),
+    }
+    for zone in spec.blocked:
+        sim.clear(zone)
+    end = clock.now() + DRAIN_SIM_S
+    while clock.now() < end:
+        clock.advance(DT)
+        poke()
+    settle(synced, poke, agent.bus.wait, "the cleared world")
+    return RunResult(row, np.asarray(trajectory, dtype=np.float64))

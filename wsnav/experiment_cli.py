@@ -1,0 +1,62 @@
+"""`wsnav experiment --site DIR --runs N --out DIR [...]`: the paper's experiment, both configurations, a report.
+`wsnav demo [--out DIR]`: its short form, one `full` run of each route, a table and a picture.
+
+The work lives in wsnav.experiment_command, imported only when one of these runs, so other commands start fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from wsnav.cli_support import host_port
+
+if TYPE_CHECKING:
+    from wsnav.cli_support import Parser
+
+
+def register(sub: argparse._SubParsersAction[Parser]) -> None:
+    exp = sub.add_parser(
+        "experiment", help="the paper's experiment: N runs per route and configuration, a report"
+    )
+    exp.add_argument(
+        "--site", type=Path, default=Path("sites/school"), help="site directory (default sites/school)"
+    )
+    exp.add_argument(
+        "--runs", type=int, default=50, metavar="N", help="runs per route and configuration (50)"
+    )
+    exp.add_argument("--out", type=Path, default=Path("out/experiment"), help="output directory")
+    exp.add_argument("--seed", type=int, default=1, help="base seed (same seed, same table); default 1")
+    exp.add_argument(
+        "--configs", default="default,full", help="agent configs, comma-separated (default,full)"
+    )
+    exp.add_argument(
+        "--workers", type=int, default=os.cpu_count() or 1, metavar="K", help="processes (default: the cores)"
+    )
+    exp.add_argument("--broker", type=host_port, metavar="HOST:PORT", help="use this broker (one worker)")
+    exp.add_argument("--credentials", type=Path, metavar="DIR", help="the site's credentials, with --broker")
+    exp.set_defaults(func=experiment_command)
+
+    demo = sub.add_parser("demo", help="one `full` run of each route of the school: a table and a picture")
+    demo.add_argument(
+        "--site", type=Path, default=Path("sites/school"), help="site directory (default sites/school)"
+    )
+    demo.add_argument(
+        "--out", type=Path, default=Path("out/demo"), help="output directory (default out/demo)"
+    )
+    demo.add_argument("--seed", type=int, default=1, help="base seed of the raffles (default 1)")
+    demo.set_defaults(func=demo_command)
+
+
+def experiment_command(args: argparse.Namespace) -> int:
+    from wsnav.experiment_command import experiment
+
+    return experiment(args)
+
+
+def demo_command(args: argparse.Namespace) -> int:
+    from wsnav.experiment_command import demo
+
+    return demo(args)

@@ -1,0 +1,131 @@
+"""What `wsnav experiment` and `wsnav demo` do once their arguments parse: check them, run, write, summarise."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+from pathlib import Path
+
+import numpy as np
+
+from experiments.report import paths_figure
+from experiments.run_plan import RunSpec, plan_runs
+from experiments.runner import Outcome, progress_line, run_experiment, write_outputs
+from experiments.single_run import DT, BrokerAt
+from robot_agent.agent_config import AgentConfigError, load_agent_config
+from schemas.site import Site, SiteError, load_site
+from wsnav.cli_support import CliError
+
+
+def _site(path: Path) -> Site:
+    try:
+        return load_site(path)
+    except SiteError as exc:
+        raise CliError(str(exc)) from None
+
+
+def _writable(out: Path) -> None:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CliError(f"{out}: cannot create output directory: {exc.strerror}") from None
+
+
+def _specs(site: Site, configs: list[str], runs: int, seed: int) -> list[RunSpec]:
+    if not site.spec.routes:
+        raise CliError(f"site {site.name} has no routes to run")
+    if not site.spec.robots or site.spec.robots[0].id != "robot1":
+        raise CliError(f"site {site.name}: the experiment drives robot1, which the site does not have")
+    return plan_runs(site.spec, configs, runs, seed)
+
+
+def experiment(args: argparse.Namespace) -> int:
+    if args.runs < 1:
+        raise CliError(f"--runs must be at least 1, got {args.runs}")
+    if args.workers < 1:
+        raise CliError(f"--workers must be at least 1, got {args.workers}")
+    configs = [c.strip() for c in args.configs.split(",") if c.strip()]
+    if not configs:
+        raise CliError("--configs names no configuration")
+    for config in configs:
+        try:
+            load_agent_config(config)
+        except AgentConfigError as exc:
+            raise CliError(f"--configs: {exc}") from None
+    broker: BrokerAt | None = None
+    if args.broker is not None:
+        if args.credentials is None or not (args.credentials / "robot1.json").is_file():
+            raise CliError(
+                "--broker needs --credentials DIR holding the site's credentials (robot1.json, ...)"
+            )
+        broker = BrokerAt(args.broker[0], args.broker[1], args.credentials)
+    elif args.credentials is not None:
+        raise CliError("--credentials goes with --broker")
+    site = _site(args.site)
+    _writable(args.out)
+    specs = _specs(site, configs, args.runs, args.seed)
+    workers = 1 if broker is not None else min(args.workers, len(specs))
+    print(f"{len(specs)} runs ({args.runs} per route and configuration) on {workers} worker(s)")
+    outcome = run_experiment(site.path, specs, workers=workers, broker=broker, progress=progress_line())
+    where = "the embedded amqtt broker, one per worker" if broker is None else f"{broker.host}:{broker.port}"
+    report = write_outputs(site, outcome, args.out, _header(site, args, configs, workers, where, outcome))
+    t = outcome.table
+    print(
+        f"{len(t)} runs, {int(t['success'].to_numpy(dtype=bool).sum())} successful, "
+        f"{int(t['collisions'].to_numpy(dtype=np.int64).sum())} collisions; "
+        f"{outcome.wall_s:.0f} s wall for {outcome.simulated_s:.0f} s simulated "
+        f"({outcome.simulated_s / outcome.wall_s:.0f}x real time)"
+    )
+    print(f"wrote {report} and the table {args.out / 'runs.csv'}")
+    return 0
+
+
+def _header(
+    site: Site, args: argparse.Namespace, configs: list[str], workers: int, where: str, o: Outcome
+) -> str:
+    return "\n".join(
+        [
+            f"# Experiment: {', '.join(configs)} on site {site.name}",
+            "",
+            f"- {args.runs} runs per route and configuration, base seed {args.seed}; run i of a route blocks the "
+            "same raffled zones under every configuration (paired).",
+            f"- Messages through {where}; emulated nodes with their own credentials (zone simulator), the agent "
+            f"on robot1's connection, a simulated TurtleBot3; lock-step simulated time, {DT:g} s steps.",
+            "- The obstacle is placed when the route starts and cleared when the robot stops.",
+            "- Agent CPU: thread CPU time inside the agent's step, per simulated second of the run. "
+            "Peak memory: the worker process's resident-set high-water mark (getrusage ru_maxrss).",
+            f"- Wall time {o.wall_s:.0f} s on {workers} worker(s) ({os.cpu_count()} cores, {platform.processor() or platform.machine()}) "
+            f"for {o.simulated_s:.0f} s simulated: {o.simulated_s / max(o.wall_s, 1e-9):.0f}x real time.",
+            f"- Reproduce: `wsnav experiment --site {args.site} --runs {args.runs} --seed {args.seed} "
+            f"--configs {','.join(configs)} --out {args.out}`",
+        ]
+    )
+
+
+def demo(args: argparse.Namespace) -> int:
+    site = _site(args.site)
+    _writable(args.out)
+    specs = _specs(site, ["full"], 1, args.seed)
+    outcome = run_experiment(site.path, specs, workers=1, progress=progress_line())
+    t = outcome.table
+    t.to_csv(args.out / "runs.csv", index=False)
+    print("| route | blocked zone | arrived | distance (m) | time (s) | replans | collisions |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    for r in t.to_dict("records"):
+        print(
+            f"| {r['route']} | {r['blocked']} | {'yes' if r['success'] else 'no'} | {float(r['distance_m']):.1f} "
+            f"| {float(r['time_s']):.1f} | {r['replans']} | {r['collisions']} |"
+        )
+    blocked = sorted({z for s in specs for z in s.blocked})
+    paths = {
+        f"{route} ({s.blocked_label} blocked)": outcome.trajectories[(route, "full")]
+        for s in specs
+        for route in [s.route]
+    }
+    png = args.out / "demo.png"
+    paths_figure(site, paths, blocked, "wsnav demo: the `full` robot on each route", png)
+    print(
+        f"{outcome.simulated_s:.0f} s simulated in {outcome.wall_s:.0f} s; wrote {png} and {args.out / 'runs.csv'}"
+    )
+    return 0
