@@ -10,7 +10,7 @@ from collections.abc import Callable, Sequence
 from broker import cli as broker_cli
 from firmware import cli as firmware_cli
 from robot_agent import cli as robot_agent_cli
-from wsnav import site_commands
+from wsnav import experiment_cli, site_commands
 from wsnav.cli_support import CliError, Parser
 from zone_sim import cli as zone_sim_cli
 
@@ -22,6 +22,7 @@ REGISTRARS: list[Registrar] = [
     broker_cli.register,
     firmware_cli.register,
     zone_sim_cli.register,
+    experiment_cli.register,
 ]
 
 
