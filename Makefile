@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: demo test lint typecheck pytest bench schemas school clean
+.PHONY: demo experiment test lint typecheck pytest bench schemas school clean
 
 $(STAMP): pyproject.toml constraints.txt
 	@./scripts/bootstrap-venv "$(PYTHON)" "$(VENV)"
@@ -13,11 +13,11 @@ $(STAMP): pyproject.toml constraints.txt
 
 demo: $(STAMP)
 	@mkdir -p out
-	$(BIN)/wsnav site check sites/school
-	$(BIN)/wsnav site render sites/school --png out/school.png
-	$(BIN)/wsnav plan --site sites/school --from A --to B --png out/plan_A_B.png > out/plan_A_B.json
-	$(BIN)/wsnav plan --site sites/school --from A --to B --block z4 --png out/plan_A_B_z4.png > out/plan_A_B_z4.json
-	@echo "demo: pictures and plans in out/"
+	$(BIN)/wsnav demo --out out/demo
+
+experiment: $(STAMP)
+	@mkdir -p out
+	$(BIN)/wsnav experiment --site sites/school --runs 50 --out out/experiment
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
