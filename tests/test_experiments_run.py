@@ -1,0 +1,73 @@
+"""The experiment end to end: one run per route and configuration through the real embedded broker (emulated
+nodes with their own credentials, the agent on robot1's connection, a simulated TurtleBot3), its table, its
+report, and the same table again for the same seed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from experiments.run_plan import plan_runs
+from experiments.runner import run_experiment, write_outputs
+from experiments.single_run import COLUMNS, NONDETERMINISTIC
+from schemas.site import load_site
+from tests.conftest import SITES
+from wsnav.cli import main
+
+SCHOOL = SITES / "school"
+
+
+def test_one_run_per_route_and_config_arrives_without_collisions_and_repeats_with_the_seed(
+    tmp_path: Path,
+) -> None:
+    site = load_site(SCHOOL)
+    specs = plan_runs(site.spec, ["default", "full"], 1, 3)
+    first = run_experiment(site.path, specs, workers=2)
+    table = first.table
+    assert list(table.columns) == list(COLUMNS)
+    rows = table.to_dict("records")
+    assert len(rows) == 6 and not table.isna().to_numpy().any()
+    assert all(r["success"] for r in rows)
+    assert sum(int(r["collisions"]) for r in rows) == 0
+    by = {(str(r["route"]), str(r["config"])): r for r in rows}
+    assert set(by) == {(r, c) for r in ("A->B", "B->C", "C->D") for c in ("default", "full")}
+    for route in ("A->B", "B->C", "C->D"):
+        full, default = by[(route, "full")], by[(route, "default")]
+        # Paired: the same raffled zone under both configurations; default replans on a timer, full on events.
+        assert full["blocked"] == default["blocked"] != "none"
+        assert int(full["replans"]) < int(default["replans"])
+    report = write_outputs(site, first, tmp_path / "out", "# test")
+    for name in ("runs.csv", "summary.csv", "distance_m.png", "time_s.png", "cpu_per_sim_s.png"):
+        assert (tmp_path / "out" / name).stat().st_size > 0
+    assert (tmp_path / "out" / "paths_A-B.png").stat().st_size > 0
+    assert "| A->B | full | 1 | 1 | 0 |" in report.read_text()
+    again = run_experiment(site.path, [s for s in specs if s.config == "full"], workers=1).table
+    deterministic = [c for c in COLUMNS if c not in NONDETERMINISTIC]
+
+    def same_seed_columns(t: pd.DataFrame) -> list[list[object]]:
+        return [[r[c] for c in deterministic] for r in t.to_dict("records") if r["config"] == "full"]
+
+    assert same_seed_columns(again) == same_seed_columns(table)
+    xy = first.trajectories[("A->B", "full")]
+    bx, by_, _ = site.point("B")
+    assert np.hypot(xy[-1, 0] - bx, xy[-1, 1] - by_) < 0.3
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["experiment", "--runs", "0"], "--runs must be at least 1"),
+        (["experiment", "--runs", "1", "--configs", "fastest"], "--configs:"),
+        (["experiment", "--runs", "1", "--broker", "127.0.0.1:1"], "--broker needs --credentials"),
+        (["experiment", "--site", "/nonexistent/site", "--runs", "1"], "/nonexistent/site"),
+    ],
+)
+def test_bad_experiment_arguments_are_one_line(
+    argv: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main([*argv, "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
