@@ -1,0 +1,72 @@
+"""The whole experiment's wall time and real-time factor (target: 50 runs per route and configuration in
+<= 10 min, >= 100x real time), by configuration, on this machine's cores with one embedded broker per worker.
+
+    ./.venv/bin/python -m bench.experiment_wall [--runs N] [--workers K] [--no-write]
+
+With a smaller `--runs` the full experiment's wall time is extrapolated (runs scale linearly) and says so.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.benchmarks_md import write_section
+from experiments.run_plan import plan_runs
+from experiments.runner import progress_line, run_experiment
+from schemas.site import load_site
+
+REPO = Path(__file__).resolve().parent.parent
+SECTION = "## Experiment wall time (bench/experiment_wall.py)"
+FULL_RUNS = 50
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description="wall time and real-time factor of `wsnav experiment`")
+    parser.add_argument("--runs", type=int, default=FULL_RUNS, help="runs per route and configuration")
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--no-write", action="store_true")
+    args = parser.parse_args()
+    site = load_site(REPO / "sites" / "school")
+    specs = plan_runs(site.spec, ["default", "full"], args.runs, args.seed)
+    load = os.getloadavg()[0]
+    outcome = run_experiment(site.path, specs, workers=args.workers, progress=progress_line())
+    t = outcome.table
+    sim_s = outcome.simulated_s
+    lines = [
+        f"school site, {len(specs)} runs ({args.runs} per route and configuration), {args.workers} workers, "
+        f"{os.cpu_count()} CPUs, load {load:.1f} at the start",
+        f"wall {outcome.wall_s:.0f} s for {sim_s:.0f} s simulated: real-time factor {sim_s / outcome.wall_s:.0f}x; "
+        f"{int(t['collisions'].to_numpy(dtype=np.int64).sum())} collisions, "
+        f"{int(t['success'].to_numpy(dtype=bool).sum())}/{len(t)} arrived",
+    ]
+    for config in ("default", "full"):
+        part = t.loc[t["config"] == config]
+        cpu = float(part["agent_cpu_s"].to_numpy(dtype=np.float64).sum())
+        sim = float(part["time_s"].to_numpy(dtype=np.float64).sum())
+        lines.append(f"  {config:8s} agent CPU {cpu:7.0f} s for {sim:6.0f} s simulated ({cpu / sim:.4f} s/s)")
+    if args.runs != FULL_RUNS:
+        scale = FULL_RUNS / args.runs
+        lines.append(
+            f"extrapolated to {FULL_RUNS} runs: ~{outcome.wall_s * scale / 60:.0f} min wall (measured with {args.runs})"
+        )
+    print("\n".join(lines))
+    if args.no_write:
+        return
+    cmd = "./.venv/bin/python -m bench.experiment_wall" + (
+        f" --runs {args.runs}" if args.runs != FULL_RUNS else ""
+    )
+    write_section(
+        SECTION,
+        f"`{cmd}` ({time.strftime('%Y-%m-%d')}); target: {FULL_RUNS} runs in <= 10 min, >= 100x real time.\n\n"
+        "```\n" + "\n".join(lines) + "\n```",
+    )
+
+
+if __name__ == "__main__":
+    main()
