@@ -2,7 +2,8 @@
 config), `wsnav zones` (every emulated node its own connection) and `wsnav robot --sim`, watched over MQTT with
 the operator's credentials, through the faults a site sees: the broker restarted mid-route, the node process
 killed with kill -9 (the site's stale policy applies), and the robot's link cut for 10 s (the robot in its own
-network namespace; needs root and iproute2).
+network namespace, which needs root and iproute2; and through a TCP relay that holds its bytes, which needs
+neither).
 
 The site is the TurtleBot3 sandbox of tests/test_compose_stack.py (a drive of about 30 s) with a 1 s heartbeat.
 Everything waits on conditions with generous timeouts; on failure each process's output is printed.
@@ -13,8 +14,10 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -149,7 +152,7 @@ class Stack:
             ],
         )
 
-    def robot(self, *extra: str, prefix: tuple[str, ...] = ()) -> Proc:
+    def robot(self, *extra: str, prefix: tuple[str, ...] = (), broker: str | None = None) -> Proc:
         return self.start(
             "robot",
             [
@@ -159,7 +162,7 @@ class Stack:
                 "--site",
                 str(self.site),
                 "--broker",
-                self.broker_addr,
+                broker or self.broker_addr,
                 "--credentials",
                 str(self.creds / f"{ROBOT}.json"),
                 "--sim",
@@ -385,38 +388,104 @@ def robot_netns() -> Iterator[Netns]:
         ip("netns", "del", name, check=False)
 
 
-def test_robot_link_cut_for_ten_seconds(tmp_path: Path) -> None:
-    """The robot alone in its network namespace; its veth goes down 10 s mid-route: it keeps driving on its last
-    map, its status comes back, and it arrives without entering the blocked zone."""
+class LinkProxy:
+    """A TCP relay between the robot and the broker whose flow can be held both ways, like a link gone dead
+    (no FIN, no RST): for machines without network namespaces."""
+
+    def __init__(self, upstream: tuple[str, int]) -> None:
+        self.upstream = upstream
+        self.flowing = threading.Event()
+        self.flowing.set()
+        self._server = socket.create_server(("127.0.0.1", 0))
+        self.port = int(self._server.getsockname()[1])
+        self._sockets: list[socket.socket] = [self._server]
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def cut(self, down: bool) -> None:
+        if down:
+            self.flowing.clear()
+        else:
+            self.flowing.set()
+
+    def _accept(self) -> None:
+        with contextlib.suppress(OSError):
+            while True:
+                inbound, _ = self._server.accept()
+                outbound = socket.create_connection(self.upstream, timeout=10)
+                outbound.settimeout(None)
+                self._sockets += [inbound, outbound]
+                for src, dst in ((inbound, outbound), (outbound, inbound)):
+                    threading.Thread(target=self._pump, args=(src, dst), daemon=True).start()
+
+    def _pump(self, src: socket.socket, dst: socket.socket) -> None:
+        with contextlib.suppress(OSError):
+            while data := src.recv(65536):
+                self.flowing.wait()
+                dst.sendall(data)
+        with contextlib.suppress(OSError):
+            dst.shutdown(socket.SHUT_WR)
+
+    def close(self) -> None:
+        self.flowing.set()
+        for sock in self._sockets:
+            with contextlib.suppress(OSError):
+                sock.close()
+
+
+def drive_through_a_cut(stack: Stack, robot: Proc, cut: Callable[[bool], None]) -> None:
+    """Cut the robot's link 10 s mid-route: it keeps driving on its last map, its status comes back, it arrives
+    without entering the blocked zone."""
+    stack.until("the robot under way", progressed(stack, -1.5))
+    cut(True)
+    cut_at = time.monotonic()
+    try:
+        while time.monotonic() < cut_at + 10.0:
+            stack.pump()
+    finally:
+        cut(False)
+    restored = time.monotonic()
+    leaked = [s for got, s in stack.statuses if cut_at + 1.0 < got < restored and (s.t or 0) > cut_at + 1.0]
+    assert not leaked, f"the cut did not cut: {len(leaked)} statuses made during it came through"
+    stack.until(
+        "the robot's status after the link came back",
+        lambda: any(s.t is not None and s.t > restored for _, s in stack.statuses),
+        timeout_s=90,
+    )
+    moving = assert_arrived_avoiding_upper(stack, robot)
+    before = [s for s in moving if s.t is not None and s.t < cut_at]
+    after = [s for s in moving if s.t is not None and s.t > restored]
+    assert before and after
+    # Statuses made during the cut may arrive late (queued QoS 1); the first one made after it shows progress.
+    gap = abs(after[0].pose[0] - before[-1].pose[0]) + abs(after[0].pose[1] - before[-1].pose[1])
+    assert after[0].state == "arrived" or gap > 0.5, (
+        f"the robot stood still during the cut: {before[-1].pose} -> {after[0].pose}"
+    )
+
+
+def test_robot_link_cut_for_ten_seconds_in_its_own_netns(tmp_path: Path) -> None:
+    """The robot alone in its network namespace; the host end of its veth goes down for 10 s."""
     with robot_netns() as ns, stack_on(make_site(tmp_path / "site"), tmp_path, host=ns.host_ip) as stack:
         stack.broker()
         stack.zones("--block", "upper")
         stack.watch()
         stack.until("both nodes online", lambda: online_after(stack, 0.0) == {"s1", "s2"})
         robot = stack.robot("--goal", "P2", "--exit-on-arrival", prefix=("ip", "netns", "exec", ns.name))
-        stack.until("the robot under way", progressed(stack, -1.5))
-        ns.cut(down=True)
-        cut_at = time.monotonic()
+        drive_through_a_cut(stack, robot, ns.cut)
+
+
+def test_robot_link_held_for_ten_seconds_by_a_proxy(tmp_path: Path) -> None:
+    """The same cut without root: the robot reaches the broker through a relay that holds its bytes 10 s."""
+    with stack_on(make_site(tmp_path / "site"), tmp_path) as stack:
+        stack.broker()
+        stack.zones("--block", "upper")
+        stack.watch()
+        stack.until("both nodes online", lambda: online_after(stack, 0.0) == {"s1", "s2"})
+        proxy = LinkProxy((stack.host, stack.port))
         try:
-            while time.monotonic() < cut_at + 10.0:
-                stack.pump()
+            robot = stack.robot("--goal", "P2", "--exit-on-arrival", broker=f"127.0.0.1:{proxy.port}")
+            drive_through_a_cut(stack, robot, proxy.cut)
         finally:
-            ns.cut(down=False)
-        restored = time.monotonic()
-        stack.until(
-            "the robot's status after the link came back",
-            lambda: any(s.t is not None and s.t > restored for _, s in stack.statuses),
-            timeout_s=90,
-        )
-        moving = assert_arrived_avoiding_upper(stack, robot)
-        before = [s for s in moving if s.t is not None and s.t < cut_at]
-        after = [s for s in moving if s.t is not None and s.t > restored]
-        assert before and after
-        # Statuses made during the cut may arrive late (queued QoS 1); the first one made after it shows progress.
-        gap = abs(after[0].pose[0] - before[-1].pose[0]) + abs(after[0].pose[1] - before[-1].pose[1])
-        assert after[0].state == "arrived" or gap > 0.5, (
-            f"the robot stood still during the cut: {before[-1].pose} -> {after[0].pose}"
-        )
+            proxy.close()
 
 
 def test_same_drive_against_mosquitto(tmp_path: Path) -> None:
