@@ -40,8 +40,8 @@ class Outcome:
 
 
 _site: Site | None = None
+_site_dir: Path | None = None
 _broker: BrokerAt | None = None
-_own: BrokerThread | None = None
 
 
 def _quiet() -> None:
@@ -52,18 +52,21 @@ def _quiet() -> None:
 
 
 def _init_worker(site_dir: Path, broker: BrokerAt | None) -> None:
-    global _site, _broker, _own
+    global _site, _site_dir, _broker
     _quiet()
     _site = load_site(site_dir)
-    if broker is None:
-        _own = BrokerThread(site_dir).__enter__()
-        broker = BrokerAt(_own.host, _own.port, _own.credentials_dir)
+    _site_dir = site_dir
     _broker = broker
 
 
 def _work(spec: RunSpec) -> tuple[RunSpec, RunResult]:
-    assert _site is not None and _broker is not None
-    return spec, run_once(_site, spec, _broker)
+    """One run; without an external broker, on a fresh embedded one, so no retained message of an earlier
+    run reaches this one and the same seed gives the same row whatever ran before in this worker."""
+    assert _site is not None and _site_dir is not None
+    if _broker is not None:
+        return spec, run_once(_site, spec, _broker)
+    with BrokerThread(_site_dir) as own:
+        return spec, run_once(_site, spec, BrokerAt(own.host, own.port, own.credentials_dir))
 
 
 def run_experiment(
@@ -79,13 +82,10 @@ def run_experiment(
     done: list[tuple[RunSpec, RunResult]] = []
     if broker is not None or workers <= 1:
         _init_worker(site_dir, broker)
-        try:
-            for spec in specs:
-                done.append(_work(spec))
-                if progress is not None:
-                    progress(len(done), len(specs))
-        finally:
-            _stop_own()
+        for spec in specs:
+            done.append(_work(spec))
+            if progress is not None:
+                progress(len(done), len(specs))
     else:
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(workers, ctx, initializer=_init_worker, initargs=(site_dir, None)) as pool:
@@ -98,13 +98,6 @@ def run_experiment(
     table = pd.DataFrame([r.row for _, r in done], columns=list(COLUMNS))
     paths = {(s.route, s.config): r.trajectory for s, r in done if s.run == 0}
     return Outcome(table, paths, time.monotonic() - start)
-
-
-def _stop_own() -> None:
-    global _own
-    if _own is not None:
-        _own.__exit__(None, None, None)
-        _own = None
 
 
 def progress_line(started: float | None = None) -> Progress:
