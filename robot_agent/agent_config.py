@@ -10,11 +10,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from robot_agent.global_planner import PlannerParams
 from robot_agent.inflation import InflationParams
+from schemas.yaml_file import read_yaml_mapping
 
 CONFIG_DIR = Path(__file__).parent / "configs"
 BUILTIN = ("default", "full")
@@ -92,16 +92,9 @@ class AgentConfig(_Strict):
 def load_agent_config(location: str | Path) -> AgentConfig:
     """A built-in configuration by name (`default`, `full`) or a YAML file; raises AgentConfigError (one line)."""
     path = CONFIG_DIR / f"{location}.yaml" if str(location) in BUILTIN else Path(location)
-    try:
-        raw = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise AgentConfigError(f"{path}: no such agent config (built in: {', '.join(BUILTIN)})") from None
-    except OSError as exc:
-        raise AgentConfigError(f"{path}: cannot read: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise AgentConfigError(f"{path}: not valid YAML: {' '.join(str(exc).split())}") from None
-    if not isinstance(raw, dict):
-        raise AgentConfigError(f"{path}: an agent config must be a YAML mapping")
+    raw = read_yaml_mapping(
+        path, AgentConfigError, "an agent config", f"no such agent config (built in: {', '.join(BUILTIN)})"
+    )
     raw.setdefault("name", path.stem)
     try:
         return AgentConfig.model_validate(raw)

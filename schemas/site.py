@@ -8,11 +8,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
 from pydantic import ValidationError
 
 from schemas.ros_map import FREE, MapError, OccupancyGrid, load_map
 from schemas.site_file import SiteFile
+from schemas.yaml_file import read_yaml_mapping
 
 SITE_FILE_NAME = "site.yaml"
 
@@ -61,16 +61,7 @@ def load_site(location: str | Path) -> Site:
 
 
 def _parse(path: Path) -> SiteFile:
-    try:
-        raw = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise SiteError(f"{path}: no such site file") from None
-    except OSError as exc:
-        raise SiteError(f"{path}: cannot read: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise SiteError(f"{path}: not valid YAML: {' '.join(str(exc).split())}") from None
-    if not isinstance(raw, dict):
-        raise SiteError(f"{path}: a site file must be a YAML mapping")
+    raw = read_yaml_mapping(path, SiteError, "a site file")
     try:
         return SiteFile.model_validate(raw)
     except ValidationError as exc:

@@ -22,11 +22,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from schemas.ids import Id
 from schemas.site_file import SiteFile
+from schemas.yaml_file import read_yaml_mapping
 from zone_sim.raffle import RaffleError, draws, find_route
 
 Seconds = Annotated[float, Field(ge=0, allow_inf_nan=False)]
@@ -140,16 +140,7 @@ def blocks_scenario(zones: list[str], duration_s: float | None = None) -> Scenar
 
 def load_scenario(path: Path, spec: SiteFile) -> Scenario:
     """Parse and check a scenario file against the site; raises ScenarioError (one line) on any problem."""
-    try:
-        raw = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise ScenarioError(f"{path}: no such scenario file") from None
-    except OSError as exc:
-        raise ScenarioError(f"{path}: cannot read: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise ScenarioError(f"{path}: not valid YAML: {' '.join(str(exc).split())}") from None
-    if not isinstance(raw, dict):
-        raise ScenarioError(f"{path}: a scenario file must be a YAML mapping")
+    raw = read_yaml_mapping(path, ScenarioError, "a scenario file")
     try:
         scenario = Scenario.model_validate(raw)
     except ValidationError as exc:
