@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import importlib
 import json
+import logging
+import re
 import time
 from pathlib import Path
 from typing import Any
@@ -148,6 +150,41 @@ def test_a_flood_of_garbage_never_raises(school: Site) -> None:
     assert agent.intake.accepted == 0
     assert sum(agent.intake.dropped.values()) == 303
     assert set(agent.intake.dropped) <= {"malformed", "invalid"}
+
+
+def test_a_flood_of_one_bad_kind_logs_a_few_lines_but_counts_every_drop_and_a_new_kind_is_logged_at_once(
+    school: Site, caplog: pytest.LogCaptureFixture
+) -> None:
+    agent = Agent(school)
+    caplog.set_level(logging.WARNING, logger="robot_agent.zone_intake")
+    for i in range(1000):  # 25 s of bus time, 40 malformed messages a second
+        agent.feed(z_topic("z1", "n1"), b"garbage", t=i * 0.025)
+    assert agent.intake.dropped == {"malformed": 1000}
+    flood_lines = [r.getMessage() for r in caplog.records]
+    assert 1 <= len(flood_lines) <= 3, flood_lines
+    assert "dropped wsn/school/zones/z1/state/n1 (malformed): not JSON" in flood_lines[0]
+
+    caplog.clear()
+    agent.feed(z_topic("z9", "n1"), state("z9", "n1", "blocked", 9), t=25.0)
+    assert agent.intake.dropped == {"malformed": 1000, "unknown_zone": 1}
+    assert [r.getMessage() for r in caplog.records] == [
+        "zone intake: dropped wsn/school/zones/z9/state/n1 (unknown_zone): no zone 'z9' in the site"
+    ]
+
+    caplog.clear()
+    agent.feed(z_topic("z1", "n1"), state("z1", "n1", "clear", 1), t=40.0)  # a good message after the flood
+    summaries = [r.getMessage() for r in caplog.records]
+    assert len(summaries) == 1 and "(malformed)" in summaries[0], summaries
+    summed = [int(m) for m in re.findall(r"dropped (\d+) zone messages", " ".join(flood_lines + summaries))]
+    assert 1 + sum(summed) == 1000
+    assert agent.intake.accepted == 1
+
+    caplog.clear()
+    agent.feed(z_topic("z1", "n1"), b"garbage again", t=60.0)  # a quiet interval later: logged at once again
+    assert [r.getMessage() for r in caplog.records] == [
+        "zone intake: dropped wsn/school/zones/z1/state/n1 (malformed): not JSON"
+    ]
+    assert agent.intake.dropped == {"malformed": 1001, "unknown_zone": 1}
 
 
 def test_good_messages_change_the_map_and_an_empty_retained_payload_removes_a_block(school: Site) -> None:
