@@ -9,11 +9,11 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from wsnav.cli_support import CliError, host_port
+from runtime.cli_support import CliError, host_port
 
 if TYPE_CHECKING:
+    from runtime.cli_support import Parser
     from schemas.site import Site
-    from wsnav.cli_support import Parser
 
 # The broker modules (and amqtt) are imported inside the commands: every `wsnav` call builds this parser.
 

@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from scipy import stats
 
 from schemas.site import Site
-from wsnav.site_render import draw_site, figure_for
+from schemas.site_render import draw_site, figure_for
 
 CONFIG_COLOURS = {"default": "tab:gray", "full": "tab:blue"}
 

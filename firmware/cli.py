@@ -18,10 +18,10 @@ from firmware.deploy import (
     deploy_commands,
     flash_commands,
 )
-from wsnav.cli_support import CliError
+from runtime.cli_support import CliError
 
 if TYPE_CHECKING:
-    from wsnav.cli_support import Parser
+    from runtime.cli_support import Parser
 
 DEFAULT_OUT = Path("build/firmware")
 

@@ -1,17 +1,16 @@
 """The offline plan behind `wsnav plan`: the costmap the agent would hold with some zones `blocked` (the agent's
 own LayeredCostmap: static layer, zones lethal, inflation for the robot's footprint), A* over it, and the JSON
-and picture of the result.
+of the result (the command and its picture live in wsnav.plan_command: components do not import wsnav).
 
 Kept apart from robot_agent.cli so that every other wsnav command starts without loading scipy and pyastar2d.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -22,10 +21,10 @@ from robot_agent.inflation import InflationParams
 from robot_agent.layered_costmap import LayeredCostmap
 from robot_agent.zone_geometry import GridFrame, polygon_window
 from robot_agent.zone_layer import ZoneLayer
+from runtime.cli_support import CliError
 from schemas.messages import OperatorBlock
 from schemas.ros_map import FREE
 from schemas.site import Site, SiteError, load_site
-from wsnav.cli_support import CliError
 
 
 def frame_of(site: Site) -> GridFrame:
@@ -78,40 +77,59 @@ def parse_point(site: Site, text: str, what: str) -> tuple[float, float, float]:
     return x, y, yaw
 
 
-def plan_command(args: argparse.Namespace) -> int:
+@dataclass(frozen=True)
+class OfflinePlan:
+    """One offline plan: what `wsnav plan` prints (`json`) and what its picture draws."""
+
+    site: Site
+    plan: Plan
+    blocked: list[str]
+    json: dict[str, object]
+
+
+def offline_plan(
+    site_path: Path,
+    start_text: str,
+    goal_text: str,
+    block: Sequence[str] = (),
+    robot: str | None = None,
+    inflation_radius: float = 1.0,
+    cost_scaling: float = 3.0,
+) -> OfflinePlan:
+    """Plan from `start_text` to `goal_text` (named points or x,y[,yaw]) with the zones in `block` lethal.
+
+    Bad input (site, points, zones, robot, flags) raises CliError with one line naming the flag.
+    """
     try:
-        site = load_site(args.site)
+        site = load_site(site_path)
     except SiteError as exc:
         raise CliError(str(exc)) from None
-    start = parse_point(site, args.start, "--from")
-    goal = parse_point(site, args.goal, "--to")
+    start = parse_point(site, start_text, "--from")
+    goal = parse_point(site, goal_text, "--to")
     zone_ids = [z.id for z in site.spec.zones]
     blocked: list[str] = []
-    for zone in args.block:
+    for zone in block:
         if zone not in zone_ids:
             raise CliError(
                 f"--block {zone!r}: no such zone in site {site.name!r} (zones: {', '.join(zone_ids)})"
             )
         if zone not in blocked:
             blocked.append(zone)
-    radius = robot_radius(site, args.robot)
-    for flag, value in (("--inflation-radius", args.inflation_radius), ("--cost-scaling", args.cost_scaling)):
+    radius = robot_radius(site, robot)
+    for flag, value in (("--inflation-radius", inflation_radius), ("--cost-scaling", cost_scaling)):
         if not (math.isfinite(value) and value >= 0):
             raise CliError(f"{flag} {value:g}: expected a finite number >= 0")
     try:
-        inflation = InflationParams(radius, max(args.inflation_radius, radius), args.cost_scaling)
+        inflation = InflationParams(radius, max(inflation_radius, radius), cost_scaling)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     t0 = time.perf_counter()
     costs = site_costmap(site, blocked, inflation)
     costmap_ms = (time.perf_counter() - t0) * 1000.0
     plan = plan_path(costs, site.grid.resolution, site.grid.origin, start[:2], goal[:2], PlannerParams())
-    out = plan_json(site, args.start, args.goal, start, goal, blocked, plan, costmap_ms)
-    if args.png is not None:
-        draw_plan(site, plan, blocked, args.png, f"{args.start} -> {args.goal}")
-        out["png"] = str(args.png)
-    print(json.dumps(out))
-    return 0
+    return OfflinePlan(
+        site, plan, blocked, plan_json(site, start_text, goal_text, start, goal, blocked, plan, costmap_ms)
+    )
 
 
 def robot_radius(site: Site, robot_id: str | None) -> float:
@@ -150,27 +168,3 @@ def plan_json(
         "plan_ms": round(plan.plan_ms, 2),
         "costmap_ms": round(costmap_ms, 2),
     }
-
-
-def draw_plan(site: Site, plan: Plan, blocked: list[str], png: Path, title: str) -> None:
-    import matplotlib.pyplot as plt
-
-    from wsnav.site_render import draw_site, figure_for
-
-    fig, ax = figure_for(site)
-    draw_site(ax, site, blocked=blocked, show_routes=False)
-    if plan.reachable:
-        ax.plot(plan.path[:, 0], plan.path[:, 1], color="blue", linewidth=2.2, label="plan")
-        status = f"{plan.length_m:.2f} m"
-    else:
-        status = f"unreachable ({plan.reason})"
-    blocked_txt = ", ".join(blocked) or "none"
-    ax.set_title(f"site {site.name}: {title}, blocked: {blocked_txt}: {status}")
-    fig.tight_layout()
-    try:
-        png.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(png, dpi=110)
-    except OSError as exc:
-        raise CliError(f"{png}: cannot write picture: {exc.strerror or exc}") from None
-    finally:
-        plt.close(fig)

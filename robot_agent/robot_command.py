@@ -23,12 +23,12 @@ from robot_agent.agent_config import AgentConfigError, load_agent_config
 from robot_agent.offline_plan import parse_point
 from robot_agent.sim_turtlebot3 import SimTurtleBot3
 from robot_agent.sim_world_grid import SimWorldGrid
+from runtime.cli_support import CliError
 from runtime.clock import WallClock
 from runtime.mqtt_bus import BusError, MqttBus
 from schemas.credentials import Credentials
 from schemas.messages import RobotStatus
 from schemas.site import Site, SiteError, load_site
-from wsnav.cli_support import CliError
 
 SIM_DT_S = 0.02
 """The simulated robot is advanced at 50 Hz of real time."""

@@ -10,14 +10,15 @@ from collections.abc import Callable, Sequence
 from broker import cli as broker_cli
 from firmware import cli as firmware_cli
 from robot_agent import cli as robot_agent_cli
-from wsnav import experiment_cli, site_commands
-from wsnav.cli_support import CliError, Parser
+from runtime.cli_support import CliError, Parser
+from wsnav import experiment_cli, plan_command, site_commands
 from zone_sim import cli as zone_sim_cli
 
 Registrar = Callable[["argparse._SubParsersAction[Parser]"], None]
 
 REGISTRARS: list[Registrar] = [
     site_commands.register,
+    plan_command.register,
     robot_agent_cli.register,
     broker_cli.register,
     firmware_cli.register,

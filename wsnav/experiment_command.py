@@ -14,8 +14,8 @@ from experiments.run_plan import RunSpec, plan_runs
 from experiments.runner import Outcome, progress_line, run_experiment, write_outputs
 from experiments.single_run import DT, BrokerAt
 from robot_agent.agent_config import AgentConfigError, load_agent_config
+from runtime.cli_support import CliError
 from schemas.site import Site, SiteError, load_site
-from wsnav.cli_support import CliError
 
 
 def _site(path: Path) -> Site:

@@ -19,11 +19,11 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from broker.credentials import CredentialsError, load_credentials
+from runtime.cli_support import Parser, host_port
 from runtime.mqtt_bus import BusError, MqttBus
 from schemas import topics
 from schemas.messages import NodeStatus, PayloadError, RobotStatus, parse_payload
 from schemas.site import Site, SiteError, load_site
-from wsnav.cli_support import Parser, host_port
 
 
 class Unhealthy(Exception):

@@ -6,11 +6,11 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from runtime.cli_support import CliError
 from schemas.site import SiteError, load_site
-from wsnav.cli_support import CliError
 
 if TYPE_CHECKING:
-    from wsnav.cli_support import Parser
+    from runtime.cli_support import Parser
 
 
 def register(sub: argparse._SubParsersAction[Parser]) -> None:
@@ -40,7 +40,7 @@ def check_command(args: argparse.Namespace) -> int:
 
 
 def render_command(args: argparse.Namespace) -> int:
-    from wsnav.site_render import render_site
+    from schemas.site_render import render_site
 
     try:
         site = load_site(args.site)

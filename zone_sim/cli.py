@@ -11,10 +11,10 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from wsnav.cli_support import host_port
+from runtime.cli_support import host_port
 
 if TYPE_CHECKING:
-    from wsnav.cli_support import Parser
+    from runtime.cli_support import Parser
 
 
 def register(sub: argparse._SubParsersAction[Parser]) -> None:

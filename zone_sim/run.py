@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 import sys
 
+from runtime.cli_support import CliError
 from runtime.clock import WallClock
 from schemas.site import SiteError, load_site
-from wsnav.cli_support import CliError
 from zone_sim.scenario import ScenarioError, blocks_scenario, load_scenario
 from zone_sim.sensor_model import SensorSettings
 from zone_sim.simulator import SimulatorError, ZoneSimulator

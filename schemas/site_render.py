@@ -1,6 +1,8 @@
 """Pictures of a site: the map in grey, zones coloured and labelled, nodes, points and routes.
 
-`draw_site` is reused by the demo and the experiment report to draw paths over the same background.
+`draw_site` is reused by `wsnav plan`, the demo and the experiment report to draw paths over the same
+background. It lives beside the site model (matplotlib drawing of a Site, nothing else) so that components such as
+experiments can draw a site without importing the wsnav CLI.
 """
 
 from __future__ import annotations

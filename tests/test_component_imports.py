@@ -1,0 +1,36 @@
+"""The layering DESIGN.md asks for, read from the source: no component imports the wsnav CLI, and robot_agent and
+zone_sim never import each other (a violation would tie a robot's install to the CLI or to the simulator)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import REPO
+
+COMPONENTS = ["broker", "firmware", "robot_agent", "zone_sim", "schemas", "runtime", "experiments"]
+FORBIDDEN = {"robot_agent": {"zone_sim"}, "zone_sim": {"robot_agent"}}
+
+
+def imported_packages(source: Path) -> set[str]:
+    """Top-level packages a module imports, also inside functions and TYPE_CHECKING blocks."""
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(source.read_text(), filename=str(source))):
+        if isinstance(node, ast.Import):
+            out.update(alias.name.split(".")[0] for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            out.add(node.module.split(".")[0])
+    return out
+
+
+@pytest.mark.parametrize("component", COMPONENTS)
+def test_a_component_imports_neither_the_cli_nor_a_sibling_it_must_not_know(component: str) -> None:
+    forbidden = {"wsnav"} | FORBIDDEN.get(component, set())
+    sources = [p for p in (REPO / component).rglob("*.py") if "device" not in p.relative_to(REPO).parts]
+    assert sources
+    bad = {
+        f"{p.relative_to(REPO)} imports {pkg}" for p in sources for pkg in imported_packages(p) & forbidden
+    }
+    assert not bad, sorted(bad)
