@@ -7,7 +7,8 @@ covers, keeps every path at least as far from walls and zones as at full resolut
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,19 +34,40 @@ def pool_max(costs: NDArray[np.uint8], factor: int) -> NDArray[np.uint8]:
     return out
 
 
+class PlanningCostmap(Protocol):
+    """What the planner reads of robot_agent.layered_costmap.LayeredCostmap."""
+
+    @property
+    def frame(self) -> GridFrame: ...
+    @property
+    def master(self) -> NDArray[np.uint8]: ...
+    @property
+    def version(self) -> int:
+        """Changes whenever master does."""
+        ...
+
+    def planner_weights(self, params: PlannerParams | None = None) -> NDArray[np.float32]: ...
+
+
 @dataclass
 class GlobalPlanner:
     params: PlannerParams
     downsample: int = 1
+    _pooled: tuple[int, NDArray[np.uint8]] | None = field(default=None, init=False, repr=False)
+    """(costmap version, coarse grid): replanning on an unchanged costmap does not pool it again."""
 
-    def plan(self, costs: NDArray[np.uint8], frame: GridFrame, start: XY, goal: XY) -> Plan:
-        """A path from `start` to `goal` (world metres) over `costs`; never raises for unreachable goals."""
-        grid = pool_max(costs, self.downsample)
-        return plan_path(
-            grid,
-            frame.resolution * self.downsample,
-            (frame.origin_x, frame.origin_y),
-            start,
-            goal,
-            self.params,
-        )
+    def plan(self, costmap: PlanningCostmap, start: XY, goal: XY) -> Plan:
+        """A path from `start` to `goal` (world metres) over the costmap; never raises for unreachable goals.
+
+        At full resolution the A* weights come from the costmap, which keeps them up to date in the bounds that
+        changed: a planner replanning at 5 Hz does not convert the whole map each time.
+        """
+        frame = costmap.frame
+        origin = (frame.origin_x, frame.origin_y)
+        if self.downsample == 1:
+            weights = costmap.planner_weights(self.params)
+            return plan_path(costmap.master, frame.resolution, origin, start, goal, self.params, weights)
+        if self._pooled is None or self._pooled[0] != costmap.version:
+            self._pooled = (costmap.version, pool_max(costmap.master, self.downsample))
+        grid = self._pooled[1]
+        return plan_path(grid, frame.resolution * self.downsample, origin, start, goal, self.params)

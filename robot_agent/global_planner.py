@@ -277,8 +277,8 @@ def _coarse_band(
 
 def _line_cells(a: NDArray[np.intp], b: NDArray[np.intp]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """Cells a straight line between two cell centres passes through, sampled at a quarter cell."""
-    n = int(np.ceil(4 * max(abs(int(b[0] - a[0])), abs(int(b[1] - a[1]))))) + 1
-    t = np.linspace(0.0, 1.0, n + 1)
+    n = 4 * max(abs(int(b[0] - a[0])), abs(int(b[1] - a[1]))) + 1
+    t = np.arange(n + 1, dtype=np.float64) / n
     rows = np.floor(a[0] + 0.5 + (b[0] - a[0]) * t).astype(np.intp)
     cols = np.floor(a[1] + 0.5 + (b[1] - a[1]) * t).astype(np.intp)
     return rows, cols

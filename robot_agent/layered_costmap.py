@@ -65,6 +65,7 @@ class LayeredCostmap:
         """Cells beyond which a lethal cell cannot change a cell's inflated cost."""
         self._weights: dict[PlannerParams, NDArray[np.float32]] = {}
         self._weights_dirty: dict[PlannerParams, list[Bounds]] = {}
+        self._last_scan: LaserScan | None = None
         self.rebuild()
 
     @property
@@ -105,10 +106,13 @@ class LayeredCostmap:
         """Obstacle layer: clear cells along each beam, then mark its hit; None if no cell changed.
 
         Beams with no return (+inf) clear up to the raytrace range (costmap_2d's `inf_is_valid`); hits are
-        marked up to the obstacle range. Only the scan's window is touched.
+        marked up to the obstacle range. Only the scan's window is touched. The costmap's rate may be above the
+        lidar's: applying the sweep already applied again would change nothing (each cell it touches ends cleared
+        or marked whatever it was), so it is skipped.
         """
-        if self.obstacles is None:
+        if self.obstacles is None or scan is self._last_scan:
             return None
+        self._last_scan = scan
         frame = self.frame
         res = frame.resolution
         x, y, yaw = scan.pose
@@ -140,7 +144,8 @@ class LayeredCostmap:
         self._set_cells(hx, hy, True)
         if np.array_equal(before, obstacles[window.rows, window.cols]):
             return None
-        return self._apply([window])
+        changed = self._merged_changes(window)
+        return self._apply([changed]) if changed is not None else None
 
     # -- queries --------------------------------------------------------------------------------------------
 
@@ -219,7 +224,7 @@ class LayeredCostmap:
         inside = (rows >= 0) & (rows < frame.height) & (cols >= 0) & (cols < frame.width)
         self.obstacles[rows[inside], cols[inside]] = value
 
-    def _merge(self, b: Bounds) -> None:
+    def _merged(self, b: Bounds) -> NDArray[np.uint8]:
         merged = np.maximum(self.static[b.rows, b.cols], self.zones[b.rows, b.cols])
         if self.obstacles is not None:
             np.maximum(
@@ -227,7 +232,28 @@ class LayeredCostmap:
                 np.where(self.obstacles[b.rows, b.cols], np.uint8(LETHAL_OBSTACLE), np.uint8(0)),
                 out=merged,
             )
-        self.merged[b.rows, b.cols] = merged
+        return merged
+
+    def _merge(self, b: Bounds) -> None:
+        self.merged[b.rows, b.cols] = self._merged(b)
+
+    def _merged_changes(self, window: Bounds) -> Bounds | None:
+        """The bounds of the cells in `window` whose merged cost the layers now change, or None.
+
+        Most scans only re-mark walls the static layer already holds and clear what they cleared before, so
+        most of them change nothing and cost no re-inflation; the rest re-inflate around what changed only.
+        """
+        diff = self._merged(window) != self.merged[window.rows, window.cols]
+        rows = np.flatnonzero(diff.any(axis=1))
+        if len(rows) == 0:
+            return None
+        cols = np.flatnonzero(diff.any(axis=0))
+        return Bounds(
+            window.row0 + int(rows[0]),
+            window.col0 + int(cols[0]),
+            window.row0 + int(rows[-1]) + 1,
+            window.col0 + int(cols[-1]) + 1,
+        )
 
     def _apply(self, windows: Sequence[Bounds]) -> Bounds | None:
         """Merge the layers in each changed window, then re-inflate the window's neighbourhood."""

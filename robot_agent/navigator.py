@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robot_agent.backend import Pose, RobotBackend, Velocity
-from robot_agent.costmap_planner import GlobalPlanner
+from robot_agent.costmap_planner import GlobalPlanner, PlanningCostmap
 from robot_agent.global_planner import Plan
 from robot_agent.zone_geometry import GridFrame
 
@@ -32,13 +32,9 @@ EventKind = Literal["goal", "plan", "replan", "waiting", "resumed", "cancelled",
 GoalLabel = str | Pose
 
 
-class Costmap(Protocol):
+class Costmap(PlanningCostmap, Protocol):
     """What the navigator reads of robot_agent.layered_costmap.LayeredCostmap."""
 
-    @property
-    def frame(self) -> GridFrame: ...
-    @property
-    def master(self) -> NDArray[np.uint8]: ...
     def in_lethal(self, x: float, y: float) -> bool: ...
     def zones_at(self, x: float, y: float) -> list[str]:
         """Blocked zones (and operator blocks) the robot's footprint would touch at this point."""
@@ -229,9 +225,7 @@ class Navigator:
         assert self.goal is not None
         pose = self.backend.pose()
         costmap = self.costmap
-        plan = self.planner.plan(
-            costmap.master, costmap.frame, (pose[0], pose[1]), (self.goal[0], self.goal[1])
-        )
+        plan = self.planner.plan(costmap, (pose[0], pose[1]), (self.goal[0], self.goal[1]))
         self.plans += 1
         self.planning_ms += plan.plan_ms
         self.last_plan = plan

@@ -215,6 +215,24 @@ def test_clearing_never_erases_the_static_map_and_far_hits_are_not_marked(tiny: 
     assert costmap.cost_at(4.5, 1.25) == FREE_SPACE
 
 
+def test_a_scan_that_only_sees_the_static_walls_changes_nothing_and_costs_no_replanning(tiny: Site) -> None:
+    costmap = LayeredCostmap(tiny.grid, INFLATION)
+    static = costmap.master.copy()
+    version = costmap.version
+    # Straight down (beam 270) from 0.28 m above the bottom wall: the hit lands on a wall cell.
+    assert costmap.update_scan(scan_from((3.0, 0.3, 0.0), {270: 0.28})) is None
+    assert costmap.version == version, "an unchanged costmap keeps the planner's cached weights valid"
+    assert np.array_equal(costmap.master, static)
+    # A hit in free space still changes the map, and only around itself.
+    bounds = costmap.update_scan(scan_from((3.0, 0.3, 0.0), {90: 0.8}))
+    assert bounds is not None and costmap.version == version + 1
+    assert bounds.shape[0] < costmap.frame.height and bounds.shape[1] < costmap.frame.width
+    assert costmap.cost_at(3.0, 1.1) == LETHAL_OBSTACLE
+    incremental = costmap.master.copy()
+    costmap.rebuild()
+    assert np.array_equal(incremental, costmap.master)
+
+
 def test_without_obstacle_layer_scans_are_ignored(tiny: Site) -> None:
     costmap = LayeredCostmap(tiny.grid, INFLATION, obstacle_layer=False)
     assert costmap.update_scan(scan_from((2.0, 1.25, 0.0), {0: 1.0})) is None
