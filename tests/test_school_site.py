@@ -17,6 +17,7 @@ from scipy.ndimage import distance_transform_edt
 
 from robot_agent.global_planner import Plan, PlannerParams, plan_path
 from robot_agent.inflation import InflationParams
+from robot_agent.lidar import LidarParams
 from robot_agent.offline_plan import site_costmap, zone_lethal
 from schemas.site import Site, load_site
 from tests.conftest import SITES
@@ -112,6 +113,21 @@ def test_every_raffled_zone_matters_and_leaves_a_longer_way(
             assert not mask[row, col], f"smoothed path enters {zone} at ({x:.2f}, {y:.2f})"
         assert blocked.length_m >= 1.15 * free.length_m, (zone, free.length_m, blocked.length_m)
         assert blocked.length_m >= free.length_m + 5.0, (zone, free.length_m, blocked.length_m)
+
+
+@pytest.mark.parametrize(("start", "goal", "zones"), ROUTES, ids=[f"{a}->{b}" for a, b, _ in ROUTES])
+def test_no_raffled_zone_is_in_lidar_range_of_its_route_start(
+    school: Site, start: str, goal: str, zones: list[str]
+) -> None:
+    """Otherwise the stock robot sees the obstacle before it moves and the run shows nothing the nodes add."""
+    grid = school.grid
+    x, y = school.point(start)[:2]
+    for zone in zones:
+        rows, cols = np.nonzero(zone_lethal(school, [zone]))
+        cx = grid.origin[0] + (cols + 0.5) * grid.resolution
+        cy = grid.origin[1] + (rows + 0.5) * grid.resolution
+        nearest = float(np.hypot(cx - x, cy - y).min())
+        assert nearest > LidarParams().range_max + 1.0, f"{zone} is {nearest:.1f} m from {start}"
 
 
 def test_unraffled_zones_sit_in_corridors_too(school: Site) -> None:
