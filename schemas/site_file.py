@@ -35,6 +35,17 @@ class UltrasonicSensor(_Strict):
     echo_pin: Annotated[int, Field(ge=0, le=16)]
     threshold_m: Annotated[float, Field(gt=0.02, le=4.0)] = 1.0
     samples: Annotated[int, Field(ge=1, le=15)] = 5
+    caution_m: Annotated[float, Field(le=4.0)] | None = None
+    """An object between `threshold_m` and this distance narrows the passage: the node says `caution`.
+    Absent: the node only ever says `blocked` or `clear`."""
+
+    @model_validator(mode="after")
+    def _caution_beyond_threshold(self) -> UltrasonicSensor:
+        if self.caution_m is not None and not self.caution_m > self.threshold_m:
+            raise ValueError(
+                f"caution_m ({self.caution_m}) must be farther than threshold_m ({self.threshold_m})"
+            )
+        return self
 
 
 Sensor = Annotated[DigitalSensor | UltrasonicSensor, Field(discriminator="type")]

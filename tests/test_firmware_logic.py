@@ -101,6 +101,7 @@ def base_config(**changes: Any) -> dict[str, Any]:
         {"type": "pir", "pin": 5},
         {"type": "ir_beam", "pin": 4, "invert": True},
         {"type": "hcsr04", "trigger_pin": 12, "echo_pin": 14, "threshold_m": 0.8, "samples": 7},
+        {"type": "hcsr04", "trigger_pin": 12, "echo_pin": 14, "threshold_m": 0.8, "caution_m": 1.5},
     ],
 )
 def test_config_accepts_what_the_schema_accepts(sensor: dict[str, Any], tmp_path: Path) -> None:
@@ -112,7 +113,9 @@ def test_config_accepts_what_the_schema_accepts(sensor: dict[str, Any], tmp_path
     assert cfg["heartbeat_ms"] == 5000 and cfg["keepalive_s"] == 30 and cfg["broker_port"] == 1883
     assert cfg["sensor_type"] == sensor["type"]
     if sensor["type"] == "hcsr04":
-        assert (cfg["trigger_pin"], cfg["echo_pin"], cfg["threshold_mm"], cfg["samples"]) == (12, 14, 800, 7)
+        assert (cfg["trigger_pin"], cfg["echo_pin"], cfg["threshold_mm"]) == (12, 14, 800)
+        assert cfg["samples"] == sensor.get("samples", 5)
+        assert cfg["caution_mm"] == (1500 if "caution_m" in sensor else 0)
     else:
         assert (cfg["pin"], cfg["invert"]) == (sensor["pin"], sensor.get("invert", False))
 
@@ -128,6 +131,22 @@ def test_config_accepts_what_the_schema_accepts(sensor: dict[str, Any], tmp_path
         ({"sensor": {"type": "pir", "pin": 17}}, "sensor.pin must be a GPIO number"),
         ({"sensor": {"type": "sonar", "pin": 1}}, "sensor.type must be pir, ir_beam or hcsr04"),
         ({"keepalive_s": 2}, "keepalive_s must be in [5, 3600]"),
+        (
+            {
+                "sensor": {
+                    "type": "hcsr04",
+                    "trigger_pin": 12,
+                    "echo_pin": 14,
+                    "threshold_m": 1,
+                    "caution_m": 0.5,
+                }
+            },
+            "sensor.caution_m must be beyond threshold_m",
+        ),
+        (
+            {"sensor": {"type": "hcsr04", "trigger_pin": 12, "echo_pin": 14, "caution_m": "far"}},
+            "sensor.caution_m must be a number",
+        ),
     ],
 )
 def test_config_errors_name_the_key(changes: dict[str, Any], message: str, tmp_path: Path) -> None:
@@ -135,6 +154,12 @@ def test_config_errors_name_the_key(changes: dict[str, Any], message: str, tmp_p
     path.write_text(json.dumps(base_config(**changes)))
     with pytest.raises(nodeconfig.ConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
         nodeconfig.load(str(path))
+
+
+def test_site_file_rejects_a_caution_band_inside_the_blocking_distance() -> None:
+    sensor = {"type": "hcsr04", "trigger_pin": 12, "echo_pin": 14, "threshold_m": 1.0, "caution_m": 1.0}
+    with pytest.raises(ValueError, match=r"caution_m \(1.0\) must be farther than threshold_m \(1.0\)"):
+        NodeConfig.model_validate(base_config(sensor=sensor))
 
 
 def test_config_file_problems(tmp_path: Path) -> None:

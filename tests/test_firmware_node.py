@@ -143,7 +143,7 @@ def node_config(creds: Path, broker: SiteBroker, out: Path, **overrides: object)
     data["broker"] = {"host": broker.host, "port": broker.port}
     data.update(overrides)
     cfg = NodeConfig.model_validate(data)
-    assert (cfg.node, cfg.zone, cfg.sensor.type) == (NODE, ZONE, "pir")
+    assert (cfg.node, cfg.zone) == (NODE, ZONE)
     out.write_text(cfg.model_dump_json())
     return out
 
@@ -153,10 +153,14 @@ class Pins:
         folder.mkdir(exist_ok=True)
         self.folder = folder
 
-    def set(self, pin: int, level: int) -> None:
+    def set(self, pin: int | str, level: int) -> None:
         tmp = self.folder / f".{pin}.tmp"
         tmp.write_text(str(level))
         tmp.replace(self.folder / str(pin))  # atomic: the node never reads a half-written file
+
+    def echo_at(self, pin: int, distance_m: float | None) -> None:
+        """What an HC-SR04 on `pin` hears: the echo of something `distance_m` away, or nothing (None)."""
+        self.set(f"{pin}.pulse", -1 if distance_m is None else round(distance_m * 2_000_000 / 343))
 
 
 @pytest.fixture
@@ -211,6 +215,44 @@ def test_sensor_change_reaches_a_subscriber(
     mark = len(subscriber.snapshot())
     node.stop()
     assert subscriber.wait(is_status("offline"), after=mark).topic == STATUS_TOPIC
+
+
+def test_ultrasonic_node_says_caution_when_the_passage_narrows(
+    broker: SiteBroker, creds: Path, subscriber: Subscriber, pins: Pins, start_node, tmp_path: Path
+) -> None:
+    """An HC-SR04 with a caution band: something 1.5 m away (blocking under 1 m, caution under 2 m) is
+    `caution`; nearer, `blocked`; gone, `clear`; every word debounced and delivered to a subscriber."""
+    trig, echo = 12, 14
+    sensor = {"type": "hcsr04", "trigger_pin": trig, "echo_pin": echo, "threshold_m": 1.0, "caution_m": 2.0}
+    sensor["samples"] = 3
+    cfg = node_config(
+        creds,
+        broker,
+        tmp_path / "config.json",
+        sensor=sensor,
+        on_delay_ms=200,
+        off_delay_ms=400,
+        heartbeat_s=30,
+    )
+    pins.echo_at(echo, None)
+    node = start_node(cfg)
+    subscriber.wait(is_state("clear"))
+    words = []
+    for distance, word in ((1.5, "caution"), (0.5, "blocked"), (1.5, "caution"), (None, "clear")):
+        mark = len(subscriber.snapshot())
+        pins.echo_at(echo, distance)
+        words.append(state_of(subscriber.wait(is_state(word), after=mark)))
+    seqs = [w.seq for w in words if w is not None]
+    assert len(seqs) == 4 and seqs == sorted(seqs)
+    mark = len(subscriber.snapshot())
+    pins.echo_at(echo, 1.8)
+    subscriber.wait(is_state("caution"), after=mark)
+    late = Subscriber(broker, creds)  # the caution word is retained like the others
+    try:
+        assert late.wait(is_state("caution")).retain
+    finally:
+        late.close()
+    assert "MemoryError" not in node.output() and "Traceback" not in node.output()
 
 
 def test_heartbeat_republishes_the_state(

@@ -54,7 +54,8 @@ def _rand16() -> int:
 
 
 class Node:
-    """A running node. `sensor` has `occupied()`, `wifi` has `start()`/`connected()` (or is None: wired)."""
+    """A running node. `sensor` has `reading()` (a debounce level or a bool), `wifi` has `start()` and
+    `connected()` (or is None: wired)."""
 
     def __init__(self, cfg, sensor, wifi=None, wdt=None, clock=None, log=print) -> None:
         self.sensor = sensor
@@ -163,13 +164,13 @@ class Node:
     def iteration(self) -> None:
         """One pass: sense, decide, connect/publish, keep alive. Never waits longer than a socket timeout."""
         now = self.clock.now_ms()
-        occupied = self.sensor.occupied()
+        reading = self.sensor.reading()
         was_online = self.phase == _ONLINE
         self._connection_step(now)
         if self.phase == _ONLINE:
             try:
                 if was_online:
-                    msg = self.logic.step(occupied, now)
+                    msg = self.logic.step(reading, now)
                     if msg is not None:
                         self.client.publish(msg[0], msg[1], msg[2], msg[3])
                 self.client.poll()
@@ -177,7 +178,7 @@ class Node:
             except OSError as exc:
                 self._go_offline(now, exc)
         else:
-            self.logic.step(occupied, now)
+            self.logic.step(reading, now)
 
     def run(self, until_ms=-1) -> None:
         """Loop forever (or until the clock passes `until_ms`, for tests); feeds the watchdog when healthy."""
@@ -205,6 +206,8 @@ def main(cfg) -> None:
     import sensors
     import wifi
 
-    node = Node(cfg, sensors.from_config(cfg), wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"]), machine.WDT())
+    node = Node(
+        cfg, sensors.from_config(cfg), wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"]), machine.WDT()
+    )
     gc.collect()
     node.run()

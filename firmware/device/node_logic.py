@@ -6,7 +6,8 @@ the simulator exercises the very decisions the ESP8266 makes. A publication is a
 
 Rules (DESIGN.md, "MQTT contract"):
 - the zone state is published (retained, QoS 1) on every debounced change and again every heartbeat period,
-  so its arrival time tells the robot how fresh it is;
+  so its arrival time tells the robot how fresh it is; it is `clear`, `blocked` or `caution` (a sensor that
+  measures distance sees something in the zone that narrows the passage without closing it);
 - after every (re)connect: birth `online` (retained) and the current state, whatever happened while offline;
 - the last will is `offline` (retained);
 - `seq` increases with every state publication, from a base the caller picks (random on the board, so a reboot
@@ -16,6 +17,7 @@ Rules (DESIGN.md, "MQTT contract"):
 from debounce import Debouncer
 from payloads import (
     BLOCKED,
+    CAUTION,
     CLEAR,
     OFFLINE,
     ONLINE,
@@ -28,6 +30,8 @@ from payloads import (
 
 QOS_STATE = 1
 QOS_STATUS = 1
+WORDS = (CLEAR, BLOCKED, CAUTION)
+"""The contract word of each debounce level (debounce.CLEAR, BLOCKED, CAUTION)."""
 
 
 class NodeLogic:
@@ -57,7 +61,7 @@ class NodeLogic:
     @property
     def state(self) -> str:
         """The debounced zone state as a contract word."""
-        return BLOCKED if self.debouncer.state else CLEAR
+        return WORDS[self.debouncer.state]
 
     def will(self) -> tuple:
         """(topic, payload, retain, qos) for the CONNECT packet's last will."""
@@ -87,14 +91,15 @@ class NodeLogic:
         """The transport went down: changes are still tracked and sent by the next `on_connect`."""
         self.connected = False
 
-    def step(self, occupied: bool, now_ms: int):
-        """Feed one raw sensor reading; returns a publication (change or heartbeat) or None.
+    def step(self, reading, now_ms: int):
+        """Feed one raw sensor reading (a debounce level, or a bool: occupied or not); returns a publication
+        (change or heartbeat) or None.
 
         While disconnected the debouncer keeps running but nothing is returned: the state that counts is the
         one at reconnect time, not a backlog.
         """
         before = self.debouncer.state
-        after = self.debouncer.update(occupied, now_ms)
+        after = self.debouncer.update(reading, now_ms)
         if not self.connected:
             return None
         if after != before:

@@ -112,6 +112,7 @@ def parse(d) -> dict:
     c["trigger_pin"] = -1
     c["echo_pin"] = -1
     c["threshold_mm"] = 1000
+    c["caution_mm"] = 0
     c["samples"] = 5
     if c["sensor_type"] in DIGITAL:
         c["pin"] = _pin(sensor, "pin")
@@ -123,6 +124,10 @@ def parse(d) -> dict:
         c["samples"] = _int(sensor, "samples", 5, "sensor.")
         if not 1 <= c["samples"] <= 15:
             raise ConfigError("config: sensor.samples must be in [1, 15]")
+        if sensor.get("caution_m") is not None:  # absent or null: no caution band
+            c["caution_mm"] = int(_num(sensor, "caution_m", where="sensor.") * 1000)
+            if not c["threshold_mm"] < c["caution_mm"] <= 4000:
+                raise ConfigError("config: sensor.caution_m must be beyond threshold_m and at most 4")
     else:
         raise ConfigError("config: sensor.type must be pir, ir_beam or hcsr04")
     return c

@@ -1,13 +1,14 @@
 """Board I/O for the zone sensors: machine.Pin and machine.time_pulse_us. Decisions live in sensing.py.
 
-Each sensor object has one method, `occupied() -> bool`, the raw (undebounced) reading.
+Each sensor object has one method, `reading()`, the raw (undebounced) level: a bool (occupied or not) for the
+digital sensors, debounce.CLEAR / BLOCKED / CAUTION for the HC-SR04.
 """
 
 import time
 
 from machine import Pin, time_pulse_us
 
-from sensing import digital_occupied, ultrasonic_occupied
+from sensing import digital_occupied, ultrasonic_level
 
 ECHO_TIMEOUT_US = 30000
 """~5 m round trip: beyond the HC-SR04's range, and short enough that N pings fit well inside the watchdog."""
@@ -22,18 +23,22 @@ class DigitalSensor:
         self._pin = Pin(pin, Pin.IN)
         self.invert = invert
 
-    def occupied(self) -> bool:
+    def reading(self) -> bool:
         return digital_occupied(self._pin.value(), self.invert)
 
 
 class Ultrasonic:
-    """HC-SR04: 10 us trigger pulse, echo high for the round trip; median of `samples` pings."""
+    """HC-SR04: 10 us trigger pulse, echo high for the round trip; median of `samples` pings; blocked nearer
+    than `threshold_mm`, caution nearer than `caution_mm` (0: never caution)."""
 
-    def __init__(self, trigger_pin: int, echo_pin: int, threshold_mm: int, samples: int = 5) -> None:
+    def __init__(
+        self, trigger_pin: int, echo_pin: int, threshold_mm: int, samples: int = 5, caution_mm: int = 0
+    ) -> None:
         self._trig = Pin(trigger_pin, Pin.OUT)
         self._trig.value(0)
         self._echo = Pin(echo_pin, Pin.IN)
         self.threshold_mm = threshold_mm
+        self.caution_mm = caution_mm
         self._pulses = [0] * samples
 
     def ping_us(self) -> int:
@@ -45,17 +50,19 @@ class Ultrasonic:
         self._trig.value(0)
         return time_pulse_us(self._echo, 1, ECHO_TIMEOUT_US)
 
-    def occupied(self) -> bool:
+    def reading(self) -> int:
         pulses = self._pulses
         for i in range(len(pulses)):
             if i:
                 time.sleep_ms(PING_GAP_MS)
             pulses[i] = self.ping_us()
-        return ultrasonic_occupied(pulses, self.threshold_mm)
+        return ultrasonic_level(pulses, self.threshold_mm, self.caution_mm)
 
 
 def from_config(cfg):
     """The sensor described by a parsed config (nodeconfig.parse)."""
     if cfg["sensor_type"] == "hcsr04":
-        return Ultrasonic(cfg["trigger_pin"], cfg["echo_pin"], cfg["threshold_mm"], cfg["samples"])
+        return Ultrasonic(
+            cfg["trigger_pin"], cfg["echo_pin"], cfg["threshold_mm"], cfg["samples"], cfg["caution_mm"]
+        )
     return DigitalSensor(cfg["pin"], cfg["invert"])

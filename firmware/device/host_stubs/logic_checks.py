@@ -3,37 +3,73 @@ pytest calls each check_* function under CPython, and runs `micropython -m logic
 board's VM. Prints "ok N" after N checks passed."""
 
 from backoff import Backoff
-from debounce import Debouncer
+from debounce import BLOCKED, CAUTION, CLEAR, Debouncer
 from node_logic import NodeLogic
 from payloads import node_status_payload, valid_id, zone_state_payload, zone_state_topic
-from sensing import digital_occupied, echo_us_to_mm, median, ultrasonic_occupied
+from sensing import digital_occupied, echo_us_to_mm, median, ultrasonic_level, ultrasonic_occupied
 
 
 def check_debounce_delays_on_and_off():
     d = Debouncer(500, 2000)
-    assert d.update(True, 0) is False
+    assert d.update(True, 0) == CLEAR
     assert d.pending_ms(100) == 400
-    assert d.update(True, 499) is False
-    assert d.update(True, 500) is True
-    assert d.update(False, 600) is True
-    assert d.update(False, 2599) is True
-    assert d.update(False, 2600) is False
+    assert d.update(True, 499) == CLEAR
+    assert d.update(True, 500) == BLOCKED
+    assert d.update(False, 600) == BLOCKED
+    assert d.update(False, 2599) == BLOCKED
+    assert d.update(False, 2600) == CLEAR
 
 
 def check_debounce_glitch_restarts_the_timer():
     d = Debouncer(500, 500)
     d.update(True, 0)
     d.update(False, 300)  # glitch over: the on-timer is forgotten
-    assert d.update(True, 400) is False
-    assert d.update(True, 899) is False
-    assert d.update(True, 900) is True
+    assert d.update(True, 400) == CLEAR
+    assert d.update(True, 899) == CLEAR
+    assert d.update(True, 900) == BLOCKED
     assert d.pending_ms(900) == -1
 
 
 def check_debounce_zero_delay_follows_input():
     d = Debouncer(0, 0)
-    assert d.update(True, 5) is True
-    assert d.update(False, 5) is False
+    assert d.update(True, 5) == BLOCKED
+    assert d.update(False, 5) == CLEAR
+    assert d.update(CAUTION, 6) == CAUTION
+
+
+def check_debounce_caution_uses_on_delay_up_and_off_delay_down():
+    d = Debouncer(500, 2000)
+    assert d.update(CAUTION, 0) == CLEAR and d.pending_ms(0) == 500
+    assert d.update(CAUTION, 500) == CAUTION
+    assert d.update(BLOCKED, 600) == CAUTION  # caution -> blocked is more severe: on-delay
+    assert d.update(BLOCKED, 1100) == BLOCKED
+    assert d.update(CAUTION, 1200) == BLOCKED and d.pending_ms(1200) == 2000  # less severe: off-delay
+    assert d.update(CAUTION, 3199) == BLOCKED
+    assert d.update(CAUTION, 3200) == CAUTION
+    assert d.update(CLEAR, 3300) == CAUTION
+    assert d.update(CLEAR, 5300) == CLEAR
+
+
+def check_debounce_flicker_settles_on_the_level_that_held():
+    # An object right at the blocking distance: readings alternate blocked/caution. The zone must not stay
+    # clear (both are "something there") and goes to caution, the level that held throughout.
+    d = Debouncer(500, 2000)
+    for t in range(0, 500, 50):
+        assert d.update(BLOCKED if t % 100 else CAUTION, t) == CLEAR
+    assert d.update(BLOCKED, 500) == CAUTION
+    assert d.pending_ms(500) == 500  # and blocked, still read, must now hold on its own
+    # Going down from blocked, readings alternate caution/clear: after the off-delay, caution (the most
+    # severe level seen), never clear early.
+    d = Debouncer(0, 1000)
+    d.update(BLOCKED, 0)
+    for t in range(100, 1200, 100):
+        d.update(CLEAR if t % 200 else CAUTION, t)
+    assert d.state == CAUTION
+    # A reading the other way restarts the timer: caution -> blocked pending, then clear.
+    d = Debouncer(500, 500, CAUTION)
+    d.update(BLOCKED, 0)
+    d.update(CLEAR, 400)
+    assert d.update(CLEAR, 899) == CAUTION and d.update(CLEAR, 900) == CLEAR
 
 
 def check_backoff_grows_caps_and_jitters():
@@ -56,7 +92,10 @@ def check_backoff_grows_caps_and_jitters():
 
 def check_payload_bytes():
     assert zone_state_topic("school", "z1", "n1") == "wsn/school/zones/z1/state/n1"
-    assert zone_state_payload("z1", "n1", "blocked", 3) == b'{"v":1,"zone":"z1","node":"n1","state":"blocked","seq":3}'
+    assert (
+        zone_state_payload("z1", "n1", "blocked", 3)
+        == b'{"v":1,"zone":"z1","node":"n1","state":"blocked","seq":3}'
+    )
     assert node_status_payload("n1", "offline") == b'{"v":1,"node":"n1","status":"offline"}'
     assert valid_id("a-B_9") and not valid_id("a/b") and not valid_id("") and not valid_id("x" * 33)
     assert not valid_id("z+") and not valid_id("z#") and not valid_id(3)
@@ -83,6 +122,20 @@ def check_node_logic_publishes_changes_heartbeats_and_reconnects():
     assert again[1][1] == zone_state_payload("z1", "n1", "clear", 45)
 
 
+def check_node_logic_publishes_caution():
+    n = NodeLogic("s", "z1", "n1", 100, 100, 1000, 0)
+    n.on_connect(0)
+    assert n.step(CAUTION, 0) is None
+    msg = n.step(CAUTION, 100)
+    assert msg is not None and msg[1] == zone_state_payload("z1", "n1", "caution", 2) and n.state == "caution"
+    assert n.step(BLOCKED, 200) is None
+    msg = n.step(BLOCKED, 300)
+    assert msg is not None and msg[1] == zone_state_payload("z1", "n1", "blocked", 3)
+    assert n.next_due_ms(300) == 1000
+    beat = n.step(True, 1300)  # a bool is still a level: True is blocked
+    assert beat is not None and beat[1] == zone_state_payload("z1", "n1", "blocked", 4)
+
+
 def check_seq_wraps_below_2_to_30():
     n = NodeLogic("s", "z", "n", 0, 0, 1000, 2**30 - 1)
     n.on_connect(0)
@@ -96,6 +149,11 @@ def check_sensing():
     # one wild echo does not decide: median of five
     assert ultrasonic_occupied([2000, 2100, -1, 1900, 60000], 1000) is True
     assert ultrasonic_occupied([-1, -1, 2000, -2, 30000], 1000) is False
+    # 1000 mm blocks, 2000 mm is the caution band's edge; 8746 us is 1500 mm
+    assert ultrasonic_level([8746, 8746, 5000, 60000, -1], 1000, 2000) == CAUTION
+    assert ultrasonic_level([8746, 5000, 5000, -1, 1], 1000, 2000) == BLOCKED
+    assert ultrasonic_level([8746, -1, -1, -1, 1], 1000, 2000) == CLEAR
+    assert ultrasonic_level([8746], 1000, 0) == CLEAR  # no caution band configured
     assert digital_occupied(1, False) and not digital_occupied(1, True) and digital_occupied(0, True)
 
 

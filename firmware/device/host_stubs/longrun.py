@@ -40,13 +40,15 @@ class PatternSensor:
     def __init__(self, clock) -> None:
         self.clock = clock
 
-    def occupied(self) -> bool:
+    def reading(self) -> bool:
         t = self.clock.t
         return (t % 97000) < 20000 or (t % 13000) < 200
 
 
 clock = FastClock()
-node = app.Node(CFG, PatternSensor(clock), wifi.Wifi(CFG["wifi_ssid"], CFG["wifi_password"]), machine.WDT(), clock)
+node = app.Node(
+    CFG, PatternSensor(clock), wifi.Wifi(CFG["wifi_ssid"], CFG["wifi_password"]), machine.WDT(), clock
+)
 node.broker_backoff = Backoff(100, 1000, app._rand16)
 sim_ms = int(sys.argv[2]) * 1000
 gc.collect()
