@@ -1,8 +1,12 @@
-"""BENCHMARKS.md, where each benchmark owns one section (a `## ` heading to the next) and rewrites only that."""
+"""BENCHMARKS.md, where each benchmark owns one section (a `## ` heading to the next) and rewrites only that;
+also what every benchmark's section and command line share (the machine it ran on, `--no-write`)."""
 
 from __future__ import annotations
 
+import argparse
+import os
 import re
+import time
 from pathlib import Path
 
 BENCHMARKS_MD = Path(__file__).resolve().parent.parent / "BENCHMARKS.md"
@@ -19,3 +23,15 @@ def write_section(heading: str, text: str, path: Path = BENCHMARKS_MD) -> None:
         else current.rstrip() + "\n\n" + block
     )
     path.write_text(updated.rstrip() + "\n")
+
+
+def bench_parser(doc: str | None) -> argparse.ArgumentParser:
+    """A benchmark's parser: its docstring's first line as description, and `--no-write` to print only."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0] if doc else None)
+    parser.add_argument("--no-write", action="store_true", help="print only; leave BENCHMARKS.md alone")
+    return parser
+
+
+def machine_note() -> str:
+    """`N CPUs, load L, measured DATE`: what a reader needs to weigh the numbers, sampled when the section is written."""
+    return f"{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f}, measured {time.strftime('%Y-%m-%d')}"

@@ -29,8 +29,8 @@ from pathlib import Path
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
-from broker.credentials import load_credentials, write_credentials
-from broker.embedded import BrokerProcess
+from bench.bench_broker import fresh_broker
+from broker.credentials import load_credentials
 from broker.mosquitto import CONF, MosquittoOptions, write_mosquitto_config
 from schemas import topics
 from schemas.site import load_site
@@ -188,9 +188,9 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="wsnav-bench-") as tmp:
         root = Path(tmp)
         site = bench_site(root)
-        creds = root / "creds"
-        write_credentials(load_site(site).spec, creds)
-        with BrokerProcess(site, creds, data_dir=root / "amqtt-data") as proc:
+        amqtt = fresh_broker(site, root)
+        creds = amqtt.credentials_dir
+        with amqtt as proc:
             results.append(
                 measure("amqtt", proc.host, proc.port, creds, args.latency_messages, args.throughput_messages)
             )

@@ -10,8 +10,6 @@ section of BENCHMARKS.md unless --no-write. Target: <= 100 ms at 2000 x 2000.
 
 from __future__ import annotations
 
-import argparse
-import os
 import statistics
 import time
 from collections.abc import Callable
@@ -20,7 +18,7 @@ import numpy as np
 import pyastar2d
 from skimage.graph import MCP_Geometric
 
-from bench.benchmarks_md import write_section
+from bench.benchmarks_md import bench_parser, machine_note, write_section
 from bench.synthetic_building import BLOCK, building_grid
 from robot_agent.global_planner import PlannerParams, plan_path, weights_for
 from robot_agent.inflation import InflationParams
@@ -80,10 +78,9 @@ def measure(cells: int, route: str, runs: int, dijkstra_runs: int) -> dict[str, 
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser = bench_parser(__doc__)
     parser.add_argument("--runs", type=int, default=9)
     parser.add_argument("--dijkstra-runs", type=int, default=3)
-    parser.add_argument("--no-write", action="store_true")
     args = parser.parse_args()
     rows = []
     for cells in (1000, 2000):
@@ -98,7 +95,6 @@ def main() -> None:
             )
     if args.no_write:
         return
-    load = os.getloadavg()[0]
     table = "\n".join(
         f"| {c} x {c} | {route} ({r['length_m']:.2f} m; whole grid {r['whole_length_m']:.2f} m) | {r['plan']:.1f} ms "
         f"| {r['plan_uncached']:.1f} ms | "
@@ -114,14 +110,14 @@ def main() -> None:
         "bounds only: what the agent does), the same building the weights itself, building the weights alone, "
         "pyastar2d over the whole grid (no hierarchy), and skimage 0.26 `MCP_Geometric` (whole-map Dijkstra, "
         f"8-connected, then traceback). Median of {args.runs} runs ({args.dijkstra_runs} for Dijkstra), "
-        f"{os.cpu_count()} CPUs, load {load:.1f}, measured {time.strftime('%Y-%m-%d')}:\n\n"
+        f"{machine_note()}:\n\n"
         "| map | route | plan (cached weights) | plan (weights built) | weights | whole-grid A* | MCP Dijkstra |\n"
         "| --- | --- | --- | --- | --- | --- | --- |\n"
         f"{table}\n\n"
         "Why the whole-grid A* misses 100 ms on `across`: pyastar2d's diagonal heuristic (Chebyshev distance) "
         "is half the real way round the blocks of a corridor grid, so A* expands almost every free cell before "
         "it reaches the goal; weights and smoothing are a few ms. The planner therefore searches big grids "
-        "(over 750k cells) coarse to fine: A* on 4 x 4 blocks (mean weight, impassable if any cell is; "
+        "(over 250k cells) coarse to fine: A* on 4 x 4 blocks (mean weight, impassable if any cell is; "
         "recursively while the block grid is still big), then A* on the full grid restricted to a band two "
         "blocks wide around that route (falling back to the whole grid when the band holds no path, e.g. a "
         "passage narrower than a block). Paths are as long as the whole-grid ones here (the benchmark prints "

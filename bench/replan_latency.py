@@ -12,7 +12,6 @@ grid: p50/p99/max of the whole, of its delivery part, and of the A* time. Writes
 
 from __future__ import annotations
 
-import argparse
 import os
 import tempfile
 import threading
@@ -20,17 +19,15 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench.benchmarks_md import write_section
-from broker.credentials import write_credentials
-from broker.embedded import BrokerProcess
+from bench.bench_broker import fresh_broker
+from bench.benchmarks_md import bench_parser, write_section
 from robot_agent.agent import RobotAgent
 from robot_agent.agent_config import load_agent_config
 from robot_agent.sim_turtlebot3 import SimTurtleBot3
 from robot_agent.sim_world_grid import SimWorldGrid
 from runtime.clock import WallClock
-from runtime.mqtt_bus import MqttBus
+from runtime.mqtt_bus import connect_with_credentials
 from schemas import topics
-from schemas.credentials import Credentials
 from schemas.messages import ZoneState
 from schemas.site import load_site
 
@@ -55,12 +52,6 @@ def pct(values: list[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, round(q / 100 * (len(ordered) - 1)))]
 
 
-def bus_for(host: str, port: int, creds: Credentials, clock: WallClock) -> MqttBus:
-    return MqttBus(
-        host, port, client_id=creds.username, username=creds.username, password=creds.password, clock=clock
-    ).connect()
-
-
 def measure(host: str, port: int, creds_dir: Path, downsample: int, changes: int, seq0: int) -> Result:
     """One agent on a fresh connection; `seq0` lies above every seq the node published before."""
     from broker.credentials import load_credentials
@@ -72,8 +63,8 @@ def measure(host: str, port: int, creds_dir: Path, downsample: int, changes: int
     )
     world = SimWorldGrid(site.grid)
     robot = SimTurtleBot3("robot1", world, site.point("A"))
-    agent_bus = bus_for(host, port, load_credentials(creds_dir / "robot1.json"), clock)
-    node = bus_for(host, port, load_credentials(creds_dir / "n5.json"), clock)
+    agent_bus = connect_with_credentials(host, port, load_credentials(creds_dir / "robot1.json"), clock=clock)
+    node = connect_with_credentials(host, port, load_credentials(creds_dir / "n5.json"), clock=clock)
     agent = RobotAgent(site, config, robot, agent_bus, clock, "robot1", sim_world=world)
     agent.set_goal(site.point("B"), "B", clock.now())
     stop = threading.Event()
@@ -125,19 +116,16 @@ def measure(host: str, port: int, creds_dir: Path, downsample: int, changes: int
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+    parser = bench_parser(__doc__)
     parser.add_argument("--changes", type=int, default=200)
-    parser.add_argument("--no-write", action="store_true")
     args = parser.parse_args(argv)
     results: list[Result] = []
-    with tempfile.TemporaryDirectory(prefix="wsnav-bench-") as tmp:
-        root = Path(tmp)
-        creds = root / "creds"
-        write_credentials(load_site(SCHOOL).spec, creds)
-        with BrokerProcess(SCHOOL, creds, data_dir=root / "amqtt-data") as proc:
-            for k, downsample in enumerate((load_agent_config("full").planner.downsample, 1)):
-                seq0 = 1000 + k * (args.changes + WARMUP)
-                results.append(measure(proc.host, proc.port, creds, downsample, args.changes, seq0))
+    with tempfile.TemporaryDirectory(prefix="wsnav-bench-") as tmp, fresh_broker(SCHOOL, Path(tmp)) as proc:
+        for k, downsample in enumerate((load_agent_config("full").planner.downsample, 1)):
+            seq0 = 1000 + k * (args.changes + WARMUP)
+            results.append(
+                measure(proc.host, proc.port, proc.credentials_dir, downsample, args.changes, seq0)
+            )
     rows = [
         "| planner grid | changes | replanned | p50 | p99 | max | delivery p50 / p99 | A* p50 / p99 |",
         "| --- | --- | --- | --- | --- | --- | --- | --- |",

@@ -9,13 +9,11 @@ give the same map. Writes its section of BENCHMARKS.md unless --no-write. Target
 
 from __future__ import annotations
 
-import argparse
-import os
 import time
 
 import numpy as np
 
-from bench.benchmarks_md import write_section
+from bench.benchmarks_md import bench_parser, machine_note, write_section
 from bench.synthetic_building import building_grid, corridor_zones
 from robot_agent.inflation import InflationParams
 from robot_agent.layered_costmap import LayeredCostmap
@@ -72,10 +70,9 @@ def measure(cells: int, changes: int, rebuilds: int) -> dict[str, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser = bench_parser(__doc__)
     parser.add_argument("--changes", type=int, default=400)
     parser.add_argument("--rebuilds", type=int, default=5)
-    parser.add_argument("--no-write", action="store_true")
     args = parser.parse_args()
     rows = []
     for cells in (1000, 4000):
@@ -88,7 +85,6 @@ def main() -> None:
         )
     if args.no_write:
         return
-    load = os.getloadavg()[0]
     table = "\n".join(
         f"| {c} x {c} | {r['inc_p50']:.3f} ms | {r['inc_p99']:.3f} ms | {r['whole_p50']:.1f} ms | "
         f"{r['whole_p99']:.1f} ms | {r['whole_p50'] / r['inc_p50']:.0f}x |"
@@ -102,8 +98,7 @@ def main() -> None:
         "taking the message plus `LayeredCostmap.update_zones` (repaint the zone's window, merge the layers "
         "there, re-inflate the window grown by the inflation radius from distances on a window grown once more). "
         "The baseline is `rebuild()`, the whole map merged and inflated. Both give the same map, cell for cell "
-        f"(the benchmark checks). {args.changes} changes, {args.rebuilds} rebuilds, {os.cpu_count()} CPUs, "
-        f"load {load:.1f}, measured {time.strftime('%Y-%m-%d')}:\n\n"
+        f"(the benchmark checks). {args.changes} changes, {args.rebuilds} rebuilds, {machine_note()}:\n\n"
         "| map | bounded p50 | bounded p99 | whole map p50 | whole map p99 | speed-up (p50) |\n"
         "| --- | --- | --- | --- | --- | --- |\n"
         f"{table}\n\n"

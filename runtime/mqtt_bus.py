@@ -15,6 +15,7 @@ from paho.mqtt.reasoncodes import ReasonCode
 
 from runtime.bus import Message, Will
 from runtime.clock import Clock, WallClock
+from schemas.credentials import Credentials
 
 
 class BusError(Exception):
@@ -131,3 +132,31 @@ class MqttBus:
         sock = self._client.socket()
         if sock is not None:
             sock.close()
+
+
+def connect_with_credentials(
+    host: str,
+    port: int,
+    credentials: Credentials,
+    *,
+    client_id: str | None = None,
+    clock: Clock | None = None,
+    will: Will | None = None,
+    birth: Will | None = None,
+    timeout_s: float = 30.0,
+) -> MqttBus:
+    """A connected bus that logs in with one id's credentials (client id: its username unless given).
+
+    Takes the loaded credentials, not their file: the loader is broker.credentials', which runtime does not
+    import (callers: `load_credentials(path)` or BrokerThread.credentials(ident)).
+    """
+    return MqttBus(
+        host,
+        port,
+        client_id=client_id if client_id is not None else credentials.username,
+        username=credentials.username,
+        password=credentials.password,
+        clock=clock,
+        will=will,
+        birth=birth,
+    ).connect(timeout_s=timeout_s)

@@ -23,7 +23,7 @@ from robot_agent.agent_config import AgentConfig, load_agent_config
 from robot_agent.sim_turtlebot3 import SimTurtleBot3
 from robot_agent.sim_world_grid import SimWorldGrid
 from runtime.clock import SimClock
-from runtime.mqtt_bus import MqttBus
+from runtime.mqtt_bus import MqttBus, connect_with_credentials
 from schemas import topics
 from schemas.messages import RobotGoal, RobotStatus, SimObstacle, SimWorld, ZoneState, ZoneStateValue
 from schemas.site import load_site
@@ -36,15 +36,7 @@ LIDAR_RANGE_M = 3.5
 
 
 def connect(broker: BrokerThread, ident: str, clock: SimClock | None = None) -> MqttBus:
-    creds = broker.credentials(ident)
-    return MqttBus(
-        broker.host,
-        broker.port,
-        client_id=ident,
-        username=creds.username,
-        password=creds.password,
-        clock=clock,
-    ).connect()
+    return connect_with_credentials(broker.host, broker.port, broker.credentials(ident), clock=clock)
 
 
 def distance_to_polygon(polygon: list[tuple[float, float]], x: float, y: float) -> float:

@@ -23,7 +23,7 @@ from robot_agent.offline_plan import frame_of
 from robot_agent.zone_intake import ZoneIntake
 from robot_agent.zone_layer import ZoneLayer
 from runtime.bus import Message, Will
-from runtime.mqtt_bus import MqttBus
+from runtime.mqtt_bus import MqttBus, connect_with_credentials
 from schemas import topics
 from schemas.messages import NodeStatus, OperatorBlock, ZoneState
 from schemas.site import Site, load_site
@@ -238,18 +238,15 @@ def receive_into(agent: Agent, bus: MqttBus, until: object, timeout_s: float = 2
 
 
 def node_bus(broker: BrokerThread, node: str, logic: Any) -> MqttBus:
-    creds = broker.credentials(node)
     will_topic, will_payload, _, _ = logic.will()
     birth_topic, birth_payload, _, _ = logic.birth()
-    return MqttBus(
+    return connect_with_credentials(
         broker.host,
         broker.port,
-        client_id=node,
-        username=creds.username,
-        password=creds.password,
+        broker.credentials(node),
         will=Will(will_topic, will_payload),
         birth=Will(birth_topic, birth_payload),
-    ).connect()
+    )
 
 
 def test_through_the_real_broker_a_node_blocks_its_zone_and_a_spoofing_node_changes_nothing(
@@ -258,10 +255,7 @@ def test_through_the_real_broker_a_node_blocks_its_zone_and_a_spoofing_node_chan
     site = load_site(tiny_site(tmp_path / "site"))
     agent = Agent(site)
     with BrokerThread(site.directory) as broker:
-        creds = broker.credentials("robot1")
-        robot = MqttBus(
-            broker.host, broker.port, client_id="robot1", username=creds.username, password=creds.password
-        ).connect()
+        robot = connect_with_credentials(broker.host, broker.port, broker.credentials("robot1"))
         for topic_filter in agent.intake.subscriptions():
             robot.subscribe(topic_filter)
         time.sleep(0.3)  # the SUBACKs

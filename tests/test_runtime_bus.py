@@ -12,7 +12,7 @@ from broker.credentials import write_credentials
 from broker.embedded import BrokerThread
 from runtime.bus import Message, Will, topic_matches
 from runtime.clock import Clock, SimClock
-from runtime.mqtt_bus import BusError, MqttBus
+from runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
 from schemas import topics
 from schemas.site import load_site
 from tests.site_fixtures import tiny_site
@@ -28,17 +28,9 @@ def bus_for(
     will: Will | None = None,
     birth: Will | None = None,
 ) -> MqttBus:
-    creds = broker.credentials(ident)
-    return MqttBus(
-        broker.host,
-        broker.port,
-        client_id=ident,
-        username=creds.username,
-        password=creds.password,
-        clock=clock,
-        will=will,
-        birth=birth,
-    ).connect()
+    return connect_with_credentials(
+        broker.host, broker.port, broker.credentials(ident), clock=clock, will=will, birth=birth
+    )
 
 
 def receive(bus: MqttBus, count: int, timeout_s: float = 30.0) -> list[Message]:

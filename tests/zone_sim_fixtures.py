@@ -9,7 +9,7 @@ from typing import Any
 from broker.embedded import BrokerThread
 from runtime.bus import Message
 from runtime.clock import Clock, SimClock
-from runtime.mqtt_bus import MqttBus
+from runtime.mqtt_bus import MqttBus, connect_with_credentials
 from schemas import topics
 from tests.site_fixtures import tiny_site
 from zone_sim.simulator import ZoneSimulator
@@ -36,15 +36,7 @@ def sim_site(directory: Path) -> Path:
 
 def subscriber(broker: BrokerThread, clock: Clock, ident: str = "robot1") -> MqttBus:
     """A robot-credential bus on zone states, node statuses and the simulated world, stamped by `clock`."""
-    creds = broker.credentials(ident)
-    bus = MqttBus(
-        broker.host,
-        broker.port,
-        client_id=ident,
-        username=creds.username,
-        password=creds.password,
-        clock=clock,
-    ).connect()
+    bus = connect_with_credentials(broker.host, broker.port, broker.credentials(ident), clock=clock)
     for flt in (topics.all_zone_states(SITE), topics.all_node_statuses(SITE), topics.sim_world(SITE)):
         bus.subscribe(flt)
     time.sleep(0.3)  # the SUBACKs: the bus subscribes asynchronously
