@@ -50,33 +50,51 @@ def mean_ci(values: Sequence[float] | NDArray[np.float64], level: float = 0.95) 
     return mean, mean - half, mean + half
 
 
-def summarise(table: pd.DataFrame) -> pd.DataFrame:
-    """One row per (route, config): runs, successes, collisions, and mean/CI of every metric over successes."""
+def summarise(table: pd.DataFrame, by: Sequence[str] = ("route",)) -> pd.DataFrame:
+    """One row per group (`by`, e.g. route, or route and blocked zone) and config: runs, successes,
+    collisions, and mean/CI of every metric over successes. `group` labels the row's group in charts."""
     table = with_derived(table)
+    keys = [*by, "config"]
     rows: list[dict[str, object]] = []
-    for route in sorted(table["route"].unique()):
-        for config in sorted(table["config"].unique()):
-            group = table.loc[(table["route"] == route) & (table["config"] == config)]
-            if group.empty:
-                continue
-            success = group["success"].to_numpy(dtype=bool)
-            ok = group.loc[success]
-            row: dict[str, object] = {
-                "route": route,
-                "config": config,
-                "runs": len(group),
-                "success": int(success.sum()),
-                "collisions": int(group["collisions"].to_numpy(dtype=np.int64).sum()),
-                "replans_mean": float(ok["replans"].to_numpy(dtype=np.float64).mean())
-                if len(ok)
-                else float("nan"),
-            }
-            for metric in METRICS:
-                mean, low, high = mean_ci(ok[metric.column].to_numpy(dtype=np.float64))
-                row[f"{metric.column}_mean"] = mean
-                row[f"{metric.column}_ci_low"] = low
-                row[f"{metric.column}_ci_high"] = high
-            rows.append(row)
+    for key, group in table.groupby(keys, sort=True):
+        values = dict(zip(keys, key if isinstance(key, tuple) else (key,), strict=True))
+        success = group["success"].to_numpy(dtype=bool)
+        ok = group.loc[success]
+        row: dict[str, object] = {
+            **values,
+            "group": " ".join(str(values[k]) for k in by),
+            "runs": len(group),
+            "success": int(success.sum()),
+            "collisions": int(group["collisions"].to_numpy(dtype=np.int64).sum()),
+            "replans_mean": float(ok["replans"].to_numpy(dtype=np.float64).mean())
+            if len(ok)
+            else float("nan"),
+        }
+        for metric in METRICS:
+            mean, low, high = mean_ci(ok[metric.column].to_numpy(dtype=np.float64))
+            row[f"{metric.column}_mean"] = mean
+            row[f"{metric.column}_ci_low"] = low
+            row[f"{metric.column}_ci_high"] = high
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def verdicts(summary: pd.DataFrame, better: str = "full", baseline: str = "default") -> pd.DataFrame:
+    """Per group and metric: is `better`'s mean lower than `baseline`'s, and do their 95% CIs stay apart?"""
+    rows: list[dict[str, object]] = []
+    for group in summary["group"].unique():
+        part = summary[summary["group"] == group].set_index("config")
+        if better not in part.index or baseline not in part.index:
+            continue
+        row: dict[str, object] = {"group": group}
+        for metric in METRICS:
+            b, d = part.loc[better], part.loc[baseline]
+            lower = float(b[f"{metric.column}_mean"]) < float(d[f"{metric.column}_mean"])
+            apart = float(b[f"{metric.column}_ci_high"]) < float(d[f"{metric.column}_ci_low"])
+            row[metric.column] = (
+                "lower, CIs apart" if lower and apart else ("lower, CIs overlap" if lower else "not lower")
+            )
+        rows.append(row)
     return pd.DataFrame(rows)
 
 
@@ -87,16 +105,16 @@ def with_derived(table: pd.DataFrame) -> pd.DataFrame:
 
 
 def bar_chart(summary: pd.DataFrame, metric: Metric, png: Path) -> None:
-    routes = sorted(summary["route"].unique())
+    groups = list(dict.fromkeys(summary["group"]))
     configs = [c for c in CONFIG_COLOURS if c in set(summary["config"])] + sorted(
         set(summary["config"]) - set(CONFIG_COLOURS)
     )
-    fig = Figure(figsize=(7.5, 4.2))
+    fig = Figure(figsize=(max(7.5, 1.3 * len(groups)), 4.2))
     ax = fig.add_subplot()
     width = 0.8 / max(len(configs), 1)
-    x = np.arange(len(routes))
+    x = np.arange(len(groups))
     for i, config in enumerate(configs):
-        part = summary[summary["config"] == config].set_index("route").reindex(routes)
+        part = summary[summary["config"] == config].set_index("group").reindex(groups)
         mean = part[f"{metric.column}_mean"].to_numpy(dtype=np.float64)
         err = np.vstack(
             [
@@ -113,7 +131,7 @@ def bar_chart(summary: pd.DataFrame, metric: Metric, png: Path) -> None:
             label=config,
             color=CONFIG_COLOURS.get(config, f"C{i}"),
         )
-    ax.set_xticks(x, routes)
+    ax.set_xticks(x, groups)
     ax.set_ylabel(metric.label)
     ax.set_title(f"{metric.label}: mean and 95% CI ({metric.figure} of the paper)")
     ax.legend()
@@ -149,14 +167,12 @@ def _fmt(mean: object, low: object, high: object) -> str:
     return f"{m:.2f} [{lo:.2f}, {hi:.2f}]" if abs(m) >= 0.01 else f"{m:.4f} [{lo:.4f}, {hi:.4f}]"
 
 
-def markdown_table(summary: pd.DataFrame) -> str:
-    head = "| route | config | runs | success | collisions | replans | " + " | ".join(
-        m.label for m in METRICS
-    )
-    lines = [head + " |", "|" + " --- |" * (6 + len(METRICS))]
+def markdown_table(summary: pd.DataFrame, by: Sequence[str] = ("route",)) -> str:
+    head = "| " + " | ".join(by) + " | config | runs | success | collisions | replans | "
+    head += " | ".join(m.label for m in METRICS)
+    lines = [head + " |", "|" + " --- |" * (len(by) + 5 + len(METRICS))]
     for r in summary.to_dict("records"):
-        cells = [
-            str(r["route"]),
+        cells = [str(r[k]) for k in by] + [
             str(r["config"]),
             str(r["runs"]),
             str(r["success"]),
@@ -170,22 +186,50 @@ def markdown_table(summary: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
+def verdict_table(verdict: pd.DataFrame, what: str) -> str:
+    lines = [
+        f"| {what} | " + " | ".join(m.label for m in METRICS) + " |",
+        "|" + " --- |" * (1 + len(METRICS)),
+    ]
+    for r in verdict.to_dict("records"):
+        lines.append("| " + " | ".join([str(r["group"]), *(str(r[m.column]) for m in METRICS)]) + " |")
+    return "\n".join(lines)
+
+
 def write_report(table: pd.DataFrame, out: Path, header: str, path_figures: Sequence[Path] = ()) -> Path:
-    """report.md plus one PNG per metric in `out`; returns the report's path."""
+    """report.md plus PNGs in `out` (one per metric by route, the paper's figures, and one per metric by route
+    and blocked zone); returns the report's path."""
     out.mkdir(parents=True, exist_ok=True)
     summary = summarise(table)
     summary.to_csv(out / "summary.csv", index=False)
+    by_zone = summarise(table, ("route", "blocked"))
+    by_zone.to_csv(out / "summary_by_zone.csv", index=False)
     parts = [header, "", "Mean over successful runs, with the 95% confidence interval in brackets.", ""]
-    parts.append(markdown_table(summary))
-    parts.append("")
+    parts += ["## By route (the paper's Figures 10-12)", "", markdown_table(summary), ""]
+    parts += [verdict_table(verdicts(summary), "route: full vs default"), ""]
     for metric in METRICS:
         png = out / f"{metric.column}.png"
         bar_chart(summary, metric, png)
-        parts.append(f"![{metric.label}]({png.name})")
-        parts.append("")
+        parts += [f"![{metric.label}]({png.name})", ""]
+    parts += [
+        "## By route and blocked zone",
+        "",
+        "A route's raffle mixes detours of different lengths, which widens its interval; run i blocks the same "
+        "zone under both configurations, so each zone's rows compare like with like.",
+        "",
+        markdown_table(by_zone, ("route", "blocked")),
+        "",
+        verdict_table(verdicts(by_zone), "route and zone: full vs default"),
+        "",
+    ]
+    for metric in METRICS:
+        png = out / f"{metric.column}_by_zone.png"
+        bar_chart(by_zone, metric, png)
+        parts += [f"![{metric.label} by blocked zone]({png.name})", ""]
+    if path_figures:
+        parts += ["## Paths (the paper's Figures 8-9)", ""]
     for png in path_figures:
-        parts.append(f"![{png.stem}]({png.name})")
-        parts.append("")
+        parts += [f"![{png.stem}]({png.name})", ""]
     report = out / "report.md"
     report.write_text("\n".join(parts))
     return report

@@ -22,7 +22,7 @@ from robot_agent.agent_config import load_agent_config
 from robot_agent.sim_turtlebot3 import SimTurtleBot3
 from robot_agent.sim_world_grid import SimWorldGrid
 from runtime.clock import SimClock
-from runtime.mqtt_bus import MqttBus
+from runtime.mqtt_bus import MqttBus, connect_with_credentials
 from schemas.site import Site
 from zone_sim.emulated_node import Sent
 from zone_sim.simulator import ZoneSimulator
@@ -71,14 +71,7 @@ class RunResult:
 
 def _connect(broker: BrokerAt, ident: str, client_id: str, clock: SimClock) -> MqttBus:
     creds = load_credentials(broker.credentials_dir / f"{ident}.json")
-    return MqttBus(
-        broker.host,
-        broker.port,
-        client_id=client_id,
-        username=creds.username,
-        password=creds.password,
-        clock=clock,
-    ).connect()
+    return connect_with_credentials(broker.host, broker.port, creds, client_id=client_id, clock=clock)
 
 
 def peak_rss_mb() -> float:

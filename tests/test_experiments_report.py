@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from experiments.report import markdown_table, mean_ci, summarise, write_report
+from experiments.report import markdown_table, mean_ci, summarise, verdicts, write_report
 from experiments.run_plan import plan_runs
 from schemas.site import load_site
 from tests.conftest import SITES
@@ -57,7 +57,7 @@ def test_failed_runs_are_counted_but_kept_out_of_the_means(tmp_path: Path) -> No
 def test_report_has_table_and_the_three_charts(tmp_path: Path) -> None:
     report = write_report(table(), tmp_path, "# test")
     body = report.read_text()
-    for name in ("distance_m.png", "time_s.png", "cpu_per_sim_s.png"):
+    for name in ("distance_m.png", "time_s.png", "cpu_per_sim_s.png", "distance_m_by_zone.png"):
         assert f"]({name})" in body
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -74,3 +74,35 @@ def test_run_plan_pairs_configurations_and_follows_the_seed() -> None:
     assert ab == {("z1",), ("z4",)}  # both raffle outcomes occur in 20 runs
     assert plan_runs(spec, ["default", "full"], runs=20, seed=7) == runs
     assert plan_runs(spec, ["default", "full"], runs=20, seed=8) != runs
+
+
+def test_verdicts_say_where_full_wins_with_intervals_apart_per_blocked_zone() -> None:
+    """A zone that forces a long detour on the stock robot shows a clear win; a zone both see late does not."""
+    rows = []
+    for i in range(6):
+        for config, far, near in (("default", 80.0, 40.0), ("full", 50.0, 40.5)):
+            for zone, dist in (("z4", far), ("z1", near)):
+                rows.append(
+                    {
+                        "config": config,
+                        "route": "A->B",
+                        "blocked": zone,
+                        "success": True,
+                        "collisions": 0,
+                        "time_s": dist * 5 + (i % 3) * 4,
+                        "distance_m": dist + (i % 3),
+                        "replans": 1,
+                        "agent_cpu_s": (0.5 if config == "full" else 4.0) + 0.01 * i,
+                    }
+                )
+    t = pd.DataFrame(rows)
+    by_zone = verdicts(summarise(t, ("route", "blocked"))).set_index("group")
+    assert by_zone.loc["A->B z4", "distance_m"] == "lower, CIs apart"
+    assert by_zone.loc["A->B z4", "time_s"] == "lower, CIs apart"
+    assert by_zone.loc["A->B z1", "distance_m"] == "not lower"
+    assert by_zone.loc["A->B z1", "cpu_per_sim_s"] == "lower, CIs apart"
+    by_route = verdicts(summarise(t)).set_index("group")
+    assert by_route.loc["A->B", "distance_m"] in ("lower, CIs apart", "lower, CIs overlap")
+    assert "| A->B | z4 | full | 6 | 6 | 0 |" in markdown_table(
+        summarise(t, ("route", "blocked")), ("route", "blocked")
+    )
