@@ -5,15 +5,21 @@ costmap_2d's formula (robot_agent.inflation). Every update touches only the boun
 repaints the zone's window, and re-inflates that window grown by the inflation radius, computing distances on
 a window grown once more (a lethal cell farther than the radius cannot change a cell's cost), so the result is
 cell for cell what a whole-map recomputation gives (`rebuild`), at a fraction of the cost on big maps.
+
+A robot that stands in a zone which becomes blocked must be able to drive out of it: `escape_view` gives master
+around those zones with their own cost passable (high), walls and the lidar's marks unchanged; it is computed in
+the zones' neighbourhood only, and only while the robot's footprint touches one.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.ndimage import distance_transform_edt
 
 from robot_agent.backend import LaserScan, Pose
 from robot_agent.global_planner import PlannerParams, weight_lut
@@ -29,7 +35,32 @@ from robot_agent.zone_geometry import Bounds, CellWindow, GridFrame
 from robot_agent.zone_layer import ZoneLayer
 from schemas.ros_map import OccupancyGrid
 
-__all__ = ["Bounds", "LayeredCostmap"]
+__all__ = ["ESCAPE_COST", "Bounds", "EscapeView", "LayeredCostmap"]
+
+ESCAPE_COST = 200
+"""What a cell made lethal or inscribed only by a zone the robot stands in costs in an escape view: passable, but
+dear enough that the controller creeps (its speed falls with cost) while it leaves."""
+EXIT_MARGIN_CELLS = 2
+"""An exit lies this many cells beyond where the footprint stops touching the zones: a robot that stopped near
+an exit (within the controller's goal tolerance) is out, not on the edge."""
+
+
+@dataclass(frozen=True)
+class EscapeView:
+    """Master around some blocked zones with their zone cost relaxed, for leaving them.
+
+    Inside `bounds` (the zones grown by the inflation's reach), `costs` is master where every cell that only those
+    zones made lethal or inscribed costs `ESCAPE_COST` (or its inflation from what remains, if higher); walls,
+    the lidar's marks, other zones and everything outside `bounds` keep master's cost. `exits` marks the cells of
+    `bounds` where the robot's footprint is clear of the zones (by `zones_at`'s rule, plus a margin).
+    """
+
+    zones: tuple[str, ...]
+    version: int
+    """Master's version it was computed from."""
+    bounds: Bounds
+    costs: NDArray[np.uint8]
+    exits: NDArray[np.bool_]
 
 
 class LayeredCostmap:
@@ -66,6 +97,9 @@ class LayeredCostmap:
         self._weights: dict[PlannerParams, NDArray[np.float32]] = {}
         self._weights_dirty: dict[PlannerParams, list[Bounds]] = {}
         self._last_scan: LaserScan | None = None
+        self._touch = math.ceil(inflation.inscribed_radius / grid.resolution)
+        """`zones_at`'s radius in cells: a zone cell this near the robot's cell touches its footprint."""
+        self._escape: EscapeView | None = None
         self.rebuild()
 
     @property
@@ -166,7 +200,7 @@ class LayeredCostmap:
             return []
         frame = self.frame
         row, col = frame.world_to_cell(x, y)
-        r = math.ceil(self.inflation.inscribed_radius / frame.resolution)
+        r = self._touch
         rows, cols = np.ogrid[-r : r + 1, -r : r + 1]
         disk = rows * rows + cols * cols <= r * r
         here = Bounds(row - r, col - r, row + r + 1, col + r + 1)
@@ -179,18 +213,24 @@ class LayeredCostmap:
                 out.append(f"operator/{block_id}")
         return out
 
-    def local_window(self, pose: Pose, size_m: float) -> tuple[NDArray[np.uint8], GridFrame]:
-        """The rolling local costmap: a square of master centred on the robot, unknown beyond the map."""
+    def local_window(
+        self, pose: Pose, size_m: float, view: EscapeView | None = None
+    ) -> tuple[NDArray[np.uint8], GridFrame]:
+        """The rolling local costmap: a square of master (or of an escape view) centred on the robot, unknown
+        beyond the map."""
         frame = self.frame
         n = max(math.ceil(size_m / frame.resolution), 1)
         row, col = frame.world_to_cell(pose[0], pose[1])
         r0, c0 = row - n // 2, col - n // 2
         out = np.full((n, n), NO_INFORMATION, dtype=np.uint8)
-        src = Bounds(r0, c0, r0 + n, c0 + n).grow(0, frame)
+        here = Bounds(r0, c0, r0 + n, c0 + n)
+        src = here.grow(0, frame)
         if not src.empty:
-            out[src.row0 - r0 : src.row1 - r0, src.col0 - c0 : src.col1 - c0] = self.master[
-                src.rows, src.cols
-            ]
+            out[src.within(here)] = self.master[src.rows, src.cols]
+        if view is not None:
+            common = view.bounds.intersection(src)
+            if not common.empty:
+                out[common.within(here)] = view.costs[common.within(view.bounds)]
         local = GridFrame(
             n,
             n,
@@ -199,6 +239,42 @@ class LayeredCostmap:
             frame.origin_y + r0 * frame.resolution,
         )
         return out, local
+
+    def escape_view(self, zones: Sequence[str]) -> EscapeView | None:
+        """Master with `zones` (names as `zones_at` gives them) passable, around them only; None if none is known.
+
+        The zones' neighbourhood is merged again without them and re-inflated there, so walls and what the lidar
+        sees stay lethal and inscribed; kept until master or the zones change (the controller asks every tick).
+        """
+        key = tuple(sorted(set(zones)))
+        cached = self._escape
+        if cached is not None and cached.zones == key and cached.version == self.version:
+            return cached
+        windows = [w for w in (self._area(z) for z in key) if w is not None and not w.empty]
+        if self.zone_layer is None or not windows:
+            return None
+        frame = self.frame
+        area: Bounds | None = None
+        for w in windows:
+            area = Bounds.of_window(w).union(area)
+        assert area is not None
+        bounds = area.grow(max(self._reach, self._touch + EXIT_MARGIN_CELLS + 2), frame)
+        source = bounds.grow(self._reach, frame)
+        merged = np.maximum(self.static[source.rows, source.cols], self.zone_layer.paint(source, exclude=key))
+        if self.obstacles is not None:
+            merged[self.obstacles[source.rows, source.cols]] = LETHAL_OBSTACLE
+        without = inflate(merged, frame.resolution, self.inflation)[bounds.within(source)]
+        costs = self.master[bounds.rows, bounds.cols].copy()
+        relax = (costs >= INSCRIBED_INFLATED_OBSTACLE) & (without < INSCRIBED_INFLATED_OBSTACLE)
+        costs[relax] = np.maximum(without[relax], np.uint8(ESCAPE_COST))
+        inside = np.zeros(bounds.shape, dtype=bool)
+        for w in windows:
+            common = Bounds.of_window(w).intersection(bounds)
+            inside[common.within(bounds)] |= w.mask[common.within(Bounds.of_window(w))]
+        dist = np.asarray(distance_transform_edt(~inside), dtype=np.float64)
+        exits = (dist > self._touch + EXIT_MARGIN_CELLS) & (costs < INSCRIBED_INFLATED_OBSTACLE)
+        self._escape = EscapeView(key, self.version, bounds, costs, exits)
+        return self._escape
 
     def planner_weights(self, params: PlannerParams | None = None) -> NDArray[np.float32]:
         """A* weights of master, kept up to date in the changed bounds only (pass to plan_path's `weights`)."""
@@ -215,6 +291,17 @@ class LayeredCostmap:
         return cached
 
     # -- internals ------------------------------------------------------------------------------------------
+
+    def _area(self, name: str) -> CellWindow | None:
+        """The cells of a blocked zone, or of an operator polygon block named `operator/<id>`."""
+        layer = self.zone_layer
+        if layer is None:
+            return None
+        if name.startswith("operator/"):
+            return layer.block_window(name.removeprefix("operator/"))
+        if name in layer.zone_costs():
+            return layer.zone_window(name)
+        return None
 
     def _set_cells(self, xs: NDArray[np.float64], ys: NDArray[np.float64], value: bool) -> None:
         assert self.obstacles is not None

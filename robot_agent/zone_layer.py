@@ -11,6 +11,7 @@ they expire or are removed.
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass
 from typing import Literal
 
@@ -145,14 +146,19 @@ class ZoneLayer:
         self._pending.clear()
         return out
 
-    def paint(self, bounds: Bounds) -> NDArray[np.uint8]:
-        """The zone layer's costs inside `bounds` (numeric maximum where areas overlap; 0 outside every area)."""
+    def paint(self, bounds: Bounds, exclude: Collection[str] = ()) -> NDArray[np.uint8]:
+        """The zone layer's costs inside `bounds` (numeric maximum where areas overlap; 0 outside every area).
+
+        `exclude` leaves out zones (by id) and polygon blocks (as `operator/<id>`): what the layer would paint
+        without the areas a robot stands in, so it can be let out of them.
+        """
         out = np.zeros(bounds.shape, dtype=np.uint8)
         for zone_id, cost in self._costs.items():
-            if cost != FREE_SPACE:
+            if cost != FREE_SPACE and zone_id not in exclude:
                 self._paint_window(out, bounds, self._windows[zone_id], cost)
-        for window in self._polys.values():
-            self._paint_window(out, bounds, window, LETHAL_OBSTACLE)
+        for block_id, window in self._polys.items():
+            if f"operator/{block_id}" not in exclude:
+                self._paint_window(out, bounds, window, LETHAL_OBSTACLE)
         return out
 
     # -- internals ------------------------------------------------------------------------------------------
