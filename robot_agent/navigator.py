@@ -6,6 +6,10 @@ Pure logic over the costmap, planner, controller and robot backend, driven by `s
 - A zone-layer change: if the goal lies in a blocked zone, stop and cancel naming the zone; else replan at once
   (a path that appeared may be shorter, one that vanished must be replaced); no path: stop and wait.
 - Waiting resumes by itself: every later zone change retries, and so (configurably) does a timer.
+- The robot's footprint touches a blocked zone (it was inside when the zone was reported): leave it by the
+  shortest way out over the costmap's escape view (the zone passable, walls and lidar marks not; the controller
+  sees the same view), then on to the goal by a route that avoids the zone, or stop and wait once out if there
+  is none. Once out, back on the costmap as it is: the zone is lethal again, no way back in.
 - The controller reports its path blocked (the lidar saw something): replan over the obstacle marks.
 - Configurably, replan at a fixed rate too (stock move_base's planner_frequency).
 """
@@ -22,13 +26,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robot_agent.backend import Pose, RobotBackend, Velocity
-from robot_agent.costmap_planner import GlobalPlanner, PlanningCostmap
+from robot_agent.costmap_planner import EscapePlan, GlobalPlanner, PlanningCostmap
 from robot_agent.global_planner import Plan
+from robot_agent.layered_costmap import EscapeView
 from robot_agent.zone_geometry import GridFrame
 
 NavState = Literal["idle", "navigating", "waiting", "arrived", "cancelled"]
 Trigger = Literal["goal", "zone", "blocked", "periodic", "retry"]
-EventKind = Literal["goal", "plan", "replan", "waiting", "resumed", "cancelled", "arrived", "blocked"]
+EventKind = Literal[
+    "goal", "plan", "replan", "waiting", "resumed", "cancelled", "arrived", "blocked", "leaving", "left"
+]
 GoalLabel = str | Pose
 
 
@@ -40,7 +47,13 @@ class Costmap(PlanningCostmap, Protocol):
         """Blocked zones (and operator blocks) the robot's footprint would touch at this point."""
         ...
 
-    def local_window(self, pose: Pose, size_m: float) -> tuple[NDArray[np.uint8], GridFrame]: ...
+    def escape_view(self, zones: list[str]) -> EscapeView | None:
+        """Costs around `zones` with their own cost passable, for driving out of them."""
+        ...
+
+    def local_window(
+        self, pose: Pose, size_m: float, view: EscapeView | None = None
+    ) -> tuple[NDArray[np.uint8], GridFrame]: ...
 
 
 class ControlOutput(Protocol):
@@ -140,6 +153,10 @@ class Navigator:
         self._periodic = Every(self.params.replan_rate_hz)
         self._retry = Every(1.0 / self.params.waiting_retry_s if self.params.waiting_retry_s > 0 else 0.0)
         self._last_blocked_replan = -math.inf
+        self.leaving: list[str] = []
+        """The blocked zones the robot is driving out of (empty when it is in none)."""
+        self._out_only = False
+        """The path is the way out alone: no route on to the goal avoids the zones."""
 
     @property
     def active(self) -> bool:
@@ -206,9 +223,24 @@ class Navigator:
 
     def _control_tick(self, now: float) -> None:
         pose = self.backend.pose()
-        costs, frame = self.costmap.local_window(pose, self.params.local_costmap_size_m)
+        view: EscapeView | None = None
+        if self.leaving:
+            here = self.costmap.zones_at(pose[0], pose[1])
+            if here:
+                view = self.costmap.escape_view(here)
+            else:
+                self._left(now)
+                if self._out_only:
+                    self._plan(now, "zone")
+                    if self.state != "navigating":
+                        return
+        costs, frame = self.costmap.local_window(pose, self.params.local_costmap_size_m, view)
         result = self.controller.compute(pose, self.backend.velocity(), costs, frame)
-        if result.status == "arrived":
+        if result.status == "arrived" and self._out_only:
+            # At the end of the way out with no route on (normally `_left` got here first): plan from here
+            # over the costmap as it is, which waits.
+            self._plan(now, "zone", escape=False)
+        elif result.status == "arrived":
             self._stop()
             self.state, self.reason = "arrived", None
             self._record(now, "arrived")
@@ -221,28 +253,39 @@ class Navigator:
         else:
             self.backend.command(result.velocity)
 
-    def _plan(self, now: float, trigger: Trigger) -> None:
+    def _plan(self, now: float, trigger: Trigger, *, escape: bool = True) -> None:
+        """Plan to the goal and act on it; from inside blocked zones (and `escape`), by the way out first."""
         assert self.goal is not None
         pose = self.backend.pose()
         costmap = self.costmap
-        plan = self.planner.plan(costmap, (pose[0], pose[1]), (self.goal[0], self.goal[1]))
+        here = costmap.zones_at(pose[0], pose[1]) if escape else []
+        view = costmap.escape_view(here) if here else None
+        start, goal = (pose[0], pose[1]), (self.goal[0], self.goal[1])
+        out: EscapePlan | None = None
+        if view is not None:
+            out = self.planner.plan_escape(costmap, view, start, goal)
+            plan = out.onward if out.onward is not None else out.out
+        else:
+            plan = self.planner.plan(costmap, start, goal)
         self.plans += 1
-        self.planning_ms += plan.plan_ms
+        self.planning_ms += out.plan_ms if out is not None else plan.plan_ms
         self.last_plan = plan
         if trigger != "goal":
             self.replans += 1
             self.replans_by[trigger] += 1
+        if out is not None and out.out.reachable:
+            if plan.reason == "goal_outside":
+                self._cancel(now, "the goal lies outside the map")
+                return
+            self._follow(now, trigger, out.path, out.length_m, here, out.reaches_goal)
+            if not out.reaches_goal:
+                self.reason = f"{self.reason}; then waiting: {self._no_path_reason(plan)}"[:200]
+            return
+        if out is None and self.leaving:
+            self._left(now)  # planned from outside the zones: it is out
+        self.leaving = []
         if plan.reachable:
-            self.path = plan.path
-            self.plan_length_m = plan.length_m
-            self.controller.set_path(plan.path, self.goal[2])
-            resumed = self.state == "waiting"
-            self.state, self.reason = "navigating", None
-            if resumed:
-                self._control.start(now)
-                self._periodic.start(now)
-            kind = "resumed" if resumed else ("plan" if trigger == "goal" else "replan")
-            self._record(now, kind, trigger, f"{plan.length_m:.2f} m")
+            self._follow(now, trigger, plan.path, plan.length_m, [], True)
             return
         if plan.reason == "goal_outside":
             self._cancel(now, "the goal lies outside the map")
@@ -251,6 +294,41 @@ class Navigator:
             self._cancel(now, "the robot is outside the map")
             return
         self._wait(now, trigger, self._no_path_reason(plan))
+
+    def _follow(
+        self,
+        now: float,
+        trigger: Trigger,
+        path: NDArray[np.float64],
+        length_m: float,
+        leaving: list[str],
+        to_goal: bool,
+    ) -> None:
+        """Drive `path`: the route to the goal, or (`to_goal` false) only the way out of `leaving`."""
+        assert self.goal is not None
+        self.path = path
+        self.plan_length_m = length_m
+        self.controller.set_path(path, self.goal[2] if to_goal else None)
+        resumed = self.state == "waiting"
+        self.state, self.reason = "navigating", None
+        self._out_only = not to_goal
+        if resumed:
+            self._control.start(now)
+            self._periodic.start(now)
+        kind = "resumed" if resumed else ("plan" if trigger == "goal" else "replan")
+        self._record(now, kind, trigger, f"{length_m:.2f} m")
+        if leaving:
+            self.reason = f"leaving blocked zone {', '.join(leaving)}"
+            if leaving != self.leaving:
+                self._record(now, "leaving", trigger, ", ".join(leaving))
+        self.leaving = leaving
+
+    def _left(self, now: float) -> None:
+        """The footprint is clear of the zones it was leaving: back on the costmap as it is."""
+        self._record(now, "left", detail=", ".join(self.leaving))
+        self.leaving = []
+        if self.state == "navigating":
+            self.reason = None
 
     def _no_path_reason(self, plan: Plan) -> str:
         blocked = self._blocked_zones()
@@ -298,6 +376,8 @@ class Navigator:
         self.backend.stop()
         self.controller.clear()
         self.path = np.zeros((0, 2))
+        self._out_only = False
+        self.leaving = []
 
     def _record(
         self, now: float, kind: EventKind, trigger: Trigger | None = None, detail: str | None = None
