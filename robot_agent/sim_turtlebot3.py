@@ -175,6 +175,14 @@ class SimTurtleBot3:
         r0, r1 = max(math.floor(v) - span, 0), min(math.floor(v) + span + 1, frame.height)
         if c1 <= c0 or r1 <= r0:
             return limit
+        row, col = math.floor(v), math.floor(u)
+        # A point in this cell is at most one cell diagonal nearer an occupied square than the centres are.
+        if (
+            0 <= row < frame.height
+            and 0 <= col < frame.width
+            and float(self.world.centre_clearance()[row, col]) - math.sqrt(2.0) * res >= limit
+        ):
+            return limit
         window = self.world.occupied[r0:r1, c0:c1]
         if not bool(window.any()):
             return limit

@@ -174,3 +174,24 @@ def test_bad_steps_and_limits_are_refused(world: SimWorldGrid) -> None:
         bot.step(-0.1, 0.0)
     with pytest.raises(ValueError, match="positive"):
         TurtleBot3Params(radius=0.0)
+
+
+def test_the_bumpers_clearance_matches_a_brute_force_search_near_and_far_from_walls(
+    world: SimWorldGrid,
+) -> None:
+    """The far-from-everything shortcut must never hide a contact: compare with every occupied square."""
+    bot = SimTurtleBot3("r", world, (12.0, 7.2, 0.0))
+    res = world.frame.resolution
+    rows, cols = np.nonzero(world.occupied)
+    x0 = world.frame.origin_x + cols * res
+    y0 = world.frame.origin_y + rows * res
+    rng = np.random.default_rng(3)
+    limit = bot.params.radius + res
+    near = 0
+    for x, y in rng.uniform((0.0, 0.0), (50.0, 30.0), size=(400, 2)):
+        dx = np.maximum(np.maximum(x0 - x, 0.0), x - (x0 + res))
+        dy = np.maximum(np.maximum(y0 - y, 0.0), y - (y0 + res))
+        exact = min(float(np.hypot(dx, dy).min()), limit)
+        assert bot.clearance(float(x), float(y)) == pytest.approx(exact, abs=1e-9)
+        near += exact < limit
+    assert near > 0, "some samples must fall near a wall for the comparison to mean anything"
