@@ -1,9 +1,11 @@
 """The whole experiment's wall time and real-time factor (target: 50 runs per route and configuration in
 <= 10 min, >= 100x real time), by configuration, on this machine's cores with one embedded broker per worker.
 
-    ./.venv/bin/python -m bench.experiment_wall [--runs N] [--workers K] [--no-write]
+    ./.venv/bin/python -m bench.experiment_wall [--runs N] [--workers K] [--no-write] [--out DIR]
 
 With a smaller `--runs` the full experiment's wall time is extrapolated (runs scale linearly) and says so.
+With `--out` it also writes the experiment's table, report and figures there (what `wsnav experiment` writes),
+so one run of the whole experiment gives both its results and its speed.
 """
 
 from __future__ import annotations
@@ -17,12 +19,13 @@ import numpy as np
 
 from bench.benchmarks_md import write_section
 from experiments.run_plan import plan_runs
-from experiments.runner import progress_line, run_experiment
+from experiments.runner import progress_line, report_header, run_experiment, write_outputs
 from schemas.site import load_site
 
 REPO = Path(__file__).resolve().parent.parent
 SECTION = "## Experiment wall time (bench/experiment_wall.py)"
 FULL_RUNS = 50
+CONFIGS = ["default", "full"]
 
 
 def main() -> None:
@@ -31,9 +34,10 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--no-write", action="store_true")
+    parser.add_argument("--out", type=Path, default=None, help="also write the experiment's report here")
     args = parser.parse_args()
     site = load_site(REPO / "sites" / "school")
-    specs = plan_runs(site.spec, ["default", "full"], args.runs, args.seed)
+    specs = plan_runs(site.spec, CONFIGS, args.runs, args.seed)
     load = os.getloadavg()[0]
     outcome = run_experiment(site.path, specs, workers=args.workers, progress=progress_line())
     t = outcome.table
@@ -45,11 +49,21 @@ def main() -> None:
         f"{int(t['collisions'].to_numpy(dtype=np.int64).sum())} collisions, "
         f"{int(t['success'].to_numpy(dtype=bool).sum())}/{len(t)} arrived",
     ]
-    for config in ("default", "full"):
+    for config in CONFIGS:
         part = t.loc[t["config"] == config]
         cpu = float(part["agent_cpu_s"].to_numpy(dtype=np.float64).sum())
         sim = float(part["time_s"].to_numpy(dtype=np.float64).sum())
         lines.append(f"  {config:8s} agent CPU {cpu:7.0f} s for {sim:6.0f} s simulated ({cpu / sim:.4f} s/s)")
+    cmd = "./.venv/bin/python -m bench.experiment_wall" + (
+        f" --runs {args.runs}" if args.runs != FULL_RUNS else ""
+    )
+    if args.seed != 1:
+        cmd += f" --seed {args.seed}"
+    if args.out is not None:
+        cmd += f" --out {args.out}"
+        where = "the embedded amqtt broker, one per worker"
+        header = report_header(site.name, CONFIGS, args.runs, args.seed, args.workers, where, outcome, cmd)
+        lines.append(f"report: {write_outputs(site, outcome, args.out, header)}")
     if args.runs != FULL_RUNS:
         scale = FULL_RUNS / args.runs
         lines.append(
@@ -58,9 +72,6 @@ def main() -> None:
     print("\n".join(lines))
     if args.no_write:
         return
-    cmd = "./.venv/bin/python -m bench.experiment_wall" + (
-        f" --runs {args.runs}" if args.runs != FULL_RUNS else ""
-    )
     write_section(
         SECTION,
         f"`{cmd}` ({time.strftime('%Y-%m-%d')}); target: {FULL_RUNS} runs in <= 10 min, >= 100x real time.\n\n"

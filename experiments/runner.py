@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
+import platform
 import sys
 import time
 from collections.abc import Callable
@@ -21,7 +23,7 @@ from numpy.typing import NDArray
 from broker.embedded import BrokerThread
 from experiments.report import paths_figure, write_report
 from experiments.run_plan import RunSpec
-from experiments.single_run import COLUMNS, BrokerAt, RunResult, run_once
+from experiments.single_run import COLUMNS, DT, BrokerAt, RunResult, run_once
 from schemas.site import Site, load_site
 
 Progress = Callable[[int, int], None]
@@ -117,6 +119,37 @@ def progress_line(started: float | None = None) -> Progress:
         )
 
     return show
+
+
+def report_header(
+    site: str,
+    configs: list[str],
+    runs: int,
+    seed: int,
+    workers: int,
+    where: str,
+    outcome: Outcome,
+    reproduce: str,
+) -> str:
+    """The report's opening: what ran, how, on what machine, how fast, and the command that reproduces it."""
+    o = outcome
+    return "\n".join(
+        [
+            f"# Experiment: {', '.join(configs)} on site {site}",
+            "",
+            f"- {runs} runs per route and configuration, base seed {seed}; run i of a route blocks the "
+            "same raffled zones under every configuration (paired).",
+            f"- Messages through {where}; emulated nodes with their own credentials (zone simulator), the agent "
+            f"on robot1's connection, a simulated TurtleBot3; lock-step simulated time, {DT:g} s steps.",
+            "- The obstacle is placed when the route starts and cleared when the robot stops.",
+            "- Agent CPU: thread CPU time inside the agent's step, per simulated second of the run. "
+            "Peak memory: the worker process's resident-set high-water mark (getrusage ru_maxrss).",
+            f"- Wall time {o.wall_s:.0f} s on {workers} worker(s) ({os.cpu_count()} cores, "
+            f"{platform.processor() or platform.machine()}, load {os.getloadavg()[0]:.1f} at the end) for "
+            f"{o.simulated_s:.0f} s simulated: {o.simulated_s / max(o.wall_s, 1e-9):.0f}x real time.",
+            f"- Reproduce: `{reproduce}`",
+        ]
+    )
 
 
 def path_png(out: Path, route: str) -> Path:

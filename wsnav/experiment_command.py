@@ -3,16 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 from pathlib import Path
 
 import numpy as np
 
 from experiments.report import paths_figure
 from experiments.run_plan import RunSpec, plan_runs
-from experiments.runner import Outcome, progress_line, run_experiment, write_outputs
-from experiments.single_run import DT, BrokerAt
+from experiments.runner import progress_line, report_header, run_experiment, write_outputs
+from experiments.single_run import BrokerAt
 from robot_agent.agent_config import AgentConfigError, load_agent_config
 from runtime.cli_support import CliError
 from schemas.site import Site, SiteError, load_site
@@ -69,7 +67,12 @@ def experiment(args: argparse.Namespace) -> int:
     print(f"{len(specs)} runs ({args.runs} per route and configuration) on {workers} worker(s)")
     outcome = run_experiment(site.path, specs, workers=workers, broker=broker, progress=progress_line())
     where = "the embedded amqtt broker, one per worker" if broker is None else f"{broker.host}:{broker.port}"
-    report = write_outputs(site, outcome, args.out, _header(site, args, configs, workers, where, outcome))
+    reproduce = (
+        f"wsnav experiment --site {args.site} --runs {args.runs} --seed {args.seed} "
+        f"--configs {','.join(configs)} --out {args.out}"
+    )
+    header = report_header(site.name, configs, args.runs, args.seed, workers, where, outcome, reproduce)
+    report = write_outputs(site, outcome, args.out, header)
     t = outcome.table
     print(
         f"{len(t)} runs, {int(t['success'].to_numpy(dtype=bool).sum())} successful, "
@@ -79,28 +82,6 @@ def experiment(args: argparse.Namespace) -> int:
     )
     print(f"wrote {report} and the table {args.out / 'runs.csv'}")
     return 0
-
-
-def _header(
-    site: Site, args: argparse.Namespace, configs: list[str], workers: int, where: str, o: Outcome
-) -> str:
-    return "\n".join(
-        [
-            f"# Experiment: {', '.join(configs)} on site {site.name}",
-            "",
-            f"- {args.runs} runs per route and configuration, base seed {args.seed}; run i of a route blocks the "
-            "same raffled zones under every configuration (paired).",
-            f"- Messages through {where}; emulated nodes with their own credentials (zone simulator), the agent "
-            f"on robot1's connection, a simulated TurtleBot3; lock-step simulated time, {DT:g} s steps.",
-            "- The obstacle is placed when the route starts and cleared when the robot stops.",
-            "- Agent CPU: thread CPU time inside the agent's step, per simulated second of the run. "
-            "Peak memory: the worker process's resident-set high-water mark (getrusage ru_maxrss).",
-            f"- Wall time {o.wall_s:.0f} s on {workers} worker(s) ({os.cpu_count()} cores, {platform.processor() or platform.machine()}) "
-            f"for {o.simulated_s:.0f} s simulated: {o.simulated_s / max(o.wall_s, 1e-9):.0f}x real time.",
-            f"- Reproduce: `wsnav experiment --site {args.site} --runs {args.runs} --seed {args.seed} "
-            f"--configs {','.join(configs)} --out {args.out}`",
-        ]
-    )
 
 
 def demo(args: argparse.Namespace) -> int:
