@@ -64,7 +64,8 @@ class RobotStatus(_Message):
     replans: Annotated[int, Field(ge=0)] = 0
     plan_length_m: Annotated[float, Field(ge=0)] | None = None
     reason: Annotated[str, Field(max_length=200)] | None = None
-    """Why the robot is `waiting` or `cancelled`, in words an operator can act on."""
+    """Why the robot is `waiting` or `cancelled`, in words an operator can act on; while `navigating`, set only
+    when it is driving out of a zone that became blocked around it (`leaving blocked zone z1`)."""
     t: float | None = None
     """The agent's clock when the status was made (simulated time in simulation)."""
 
