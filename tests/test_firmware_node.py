@@ -138,9 +138,9 @@ def subscriber(broker: SiteBroker, creds: Path) -> Iterator[Subscriber]:
 
 def node_config(creds: Path, broker: SiteBroker, out: Path, **overrides: object) -> Path:
     """The node's credentials file as written by `wsnav broker credentials`, with the broker address filled in
-    at deploy time (and test timings); validated by the schema before the firmware sees it."""
+    at deploy time (`host=` names it otherwise) and test timings; validated by the schema before the firmware sees it."""
     data = json.loads((creds / f"{NODE}.json").read_text())
-    data["broker"] = {"host": broker.host, "port": broker.port}
+    data["broker"] = {"host": overrides.pop("host", broker.host), "port": broker.port}
     data.update(overrides)
     cfg = NodeConfig.model_validate(data)
     assert (cfg.node, cfg.zone) == (NODE, ZONE)
@@ -385,3 +385,52 @@ def test_wifi_lost_and_back_node_reconnects(
     assert node.wait_output("mqtt up 2", WAIT), node.output()
     subscriber.wait(is_status("online"), after=mark)
     subscriber.wait(is_state("blocked"), after=mark)
+
+
+# DNS: run_node's fake DNS server follows the file `dns` in the pins folder (0 or missing: the real lookup, 1: every
+# lookup fails, 2: a lookup never returns), and prints "dns down HOST" / "dns hang HOST" when it is asked.
+
+
+def test_broker_name_looked_up_again_and_last_address_reused_when_dns_fails(
+    broker: SiteBroker, creds: Path, pins: Pins, start_node, tmp_path: Path
+) -> None:
+    cfg = node_config(creds, broker, tmp_path / "config.json", host="localhost", heartbeat_s=60)
+    node = start_node(cfg)
+    assert node.wait_output("mqtt up 1", WAIT), node.output()
+    pins.set("dns", 1)
+    broker.kill()
+    assert node.wait_output("dns down localhost", WAIT), node.output()  # a name is looked up at every connect
+    broker.start()
+    assert node.wait_output("mqtt up 2", WAIT), node.output()
+    out = node.output()
+    assert "cannot resolve" not in out and "Traceback" not in out and "MemoryError" not in out, out
+
+
+def test_unresolvable_broker_name_fails_at_once_and_the_node_retries(
+    broker: SiteBroker, creds: Path, subscriber: Subscriber, pins: Pins, start_node, tmp_path: Path
+) -> None:
+    pins.set("dns", 1)
+    cfg = node_config(creds, broker, tmp_path / "config.json", host="localhost")
+    node = start_node(cfg)
+    assert node.wait_output("mqtt down: cannot resolve localhost", WAIT), node.output()
+    first = time.monotonic()
+    assert node.wait_output("mqtt down: cannot resolve localhost", WAIT, count=3), node.output()
+    assert time.monotonic() - first < 15  # no wait in place: the 0.1-1 s broker backoff paces the attempts
+    assert "Traceback" not in node.output()
+    pins.set("dns", 0)
+    assert node.wait_output("mqtt up 1", WAIT), node.output()
+    subscriber.wait(is_status("online"))
+
+
+def test_ipv4_broker_address_needs_no_dns(
+    broker: SiteBroker, creds: Path, pins: Pins, start_node, tmp_path: Path
+) -> None:
+    pins.set("dns", 2)  # any lookup would never return
+    cfg = node_config(creds, broker, tmp_path / "config.json", host="127.0.0.1", heartbeat_s=60)
+    node = start_node(cfg)
+    assert node.wait_output("mqtt up 1", WAIT), node.output()
+    broker.kill()
+    assert node.wait_output("mqtt down:", WAIT), node.output()
+    broker.start()
+    assert node.wait_output("mqtt up 2", WAIT), node.output()
+    assert "dns hang" not in node.output()

@@ -80,6 +80,7 @@ class Node:
             cfg["password"],
             cfg["keepalive_s"],
             _SOCKET_TIMEOUT_MS,
+            self.feed,  # a DNS lookup has no timeout: fed before it, the watchdog resets the board if it hangs
         )
         self.wifi_backoff = Backoff(1000, 60000, _rand16)
         self.broker_backoff = Backoff(500, 30000, _rand16)

@@ -3,12 +3,15 @@
     micropython -X heapsize=38k -m run_node CONFIG
 
 Sensor from the fake pin files ($WSNAV_PINS), fake Wi-Fi, real MQTT. Runs until killed. The broker backoff is
-capped at 1 s so a restarted broker is found within seconds. Lines on stdout ("mqtt up N", "mqtt down: ...")
+capped at 1 s so a restarted broker is found within seconds. DNS is the real getaddrinfo while the file
+$WSNAV_PINS/dns says 0 or is missing; 1: every lookup fails ("dns down HOST"); 2: a lookup never returns ("dns
+hang HOST"), as lwIP's can (on the board the watchdog then resets it). Lines on stdout ("mqtt up N", "mqtt down: ...")
 are what the tests wait for.
 """
 
 import gc
 import sys
+import time
 
 import nodeconfig
 
@@ -19,10 +22,30 @@ gc.collect()
 
 import app  # noqa: E402
 import machine  # noqa: E402
+import mqtt  # noqa: E402
 import sensors  # noqa: E402
 import wifi  # noqa: E402
 from backoff import Backoff  # noqa: E402
 
+
+def fake_dns(host, port):
+    try:
+        with open(machine._DIR + "/dns", "rb") as f:
+            f.readinto(_FAULT)  # not read(): its 256-byte buffer can fail in a fragmented 38 KiB heap
+    except OSError:
+        _FAULT[0] = 48
+    fault = _FAULT[0] - 48
+    if fault:
+        print("dns", "down" if fault == 1 else "hang", host)
+        while fault == 2:
+            time.sleep_ms(1000)
+        raise OSError("dns down")
+    return real_dns(host, port, 2)  # IPv4 only, as lwIP on the ESP8266
+
+
+_FAULT = bytearray(1)
+real_dns = mqtt.lookup
+mqtt.lookup = fake_dns
 node = app.Node(CFG, sensors.from_config(CFG), wifi.Wifi(CFG["wifi_ssid"], CFG["wifi_password"]), machine.WDT())
 node.broker_backoff = Backoff(100, 1000, app._rand16)
 gc.collect()
