@@ -25,7 +25,7 @@ from robot_agent.sim_turtlebot3 import SimTurtleBot3
 from robot_agent.sim_world_grid import SimWorldGrid
 from runtime.cli_support import CliError
 from runtime.clock import WallClock
-from runtime.mqtt_bus import BusError, MqttBus
+from runtime.mqtt_bus import BusError, connect_with_credentials
 from schemas.credentials import Credentials
 from schemas.messages import RobotStatus
 from schemas.site import Site, SiteError, load_site
@@ -55,11 +55,8 @@ def robot_command(args: argparse.Namespace) -> int:
 
     clock = WallClock()
     host, port = args.broker
-    bus = MqttBus(
-        host, port, client_id=creds.username, username=creds.username, password=creds.password, clock=clock
-    )
     try:
-        bus.connect(timeout_s=args.connect_timeout)
+        bus = connect_with_credentials(host, port, creds, clock=clock, timeout_s=args.connect_timeout)
     except BusError as exc:
         raise CliError(str(exc)) from None
     world = SimWorldGrid(site.grid)

@@ -66,6 +66,9 @@ class MqttBus:
         self._client.loop_start()
         if not self._connected.wait(timeout_s):
             self._client.loop_stop()
+            sock = self._client.socket()
+            if sock is not None:  # a failed connect leaves nothing open behind it
+                sock.close()
             why = self._refused or "no answer"
             raise BusError(f"cannot connect to MQTT broker {self._host}:{self._port}: {why}")
         return self

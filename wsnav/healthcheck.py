@@ -20,7 +20,7 @@ from pathlib import Path
 
 from broker.credentials import CredentialsError, load_credentials
 from runtime.cli_support import Parser, host_port
-from runtime.mqtt_bus import BusError, MqttBus
+from runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
 from schemas import topics
 from schemas.messages import NodeStatus, PayloadError, RobotStatus, parse_payload
 from schemas.site import Site, SiteError, load_site
@@ -37,17 +37,11 @@ def _bus(args: argparse.Namespace) -> MqttBus:
     except CredentialsError as exc:
         raise Unhealthy(str(exc)) from None
     host, port = args.broker
-    bus = MqttBus(
-        host,
-        port,
-        client_id=f"health-{creds.username}-{os.getpid()}",
-        username=creds.username,
-        password=creds.password,
-    )
     try:
-        return bus.connect(timeout_s=args.timeout)
+        return connect_with_credentials(
+            host, port, creds, client_id=f"health-{creds.username}-{os.getpid()}", timeout_s=args.timeout
+        )
     except BusError as exc:
-        bus.close()
         raise Unhealthy(str(exc)) from None
 
 

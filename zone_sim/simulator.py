@@ -25,7 +25,7 @@ from typing import Any
 from broker.credentials import CredentialsError, load_credentials
 from runtime.bus import Bus
 from runtime.clock import Clock
-from runtime.mqtt_bus import BusError, MqttBus
+from runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
 from schemas import topics
 from schemas.site import Site
 from zone_sim.emulated_node import EmulatedNode, Power, Sent
@@ -155,16 +155,15 @@ class ZoneSimulator:
             creds = load_credentials(path)
         except CredentialsError as exc:
             raise SimulatorError(str(exc)) from None
-        bus = MqttBus(
-            self._broker[0],
-            self._broker[1],
-            client_id=f"{OPERATOR}-zone-sim",
-            username=creds.username,
-            password=creds.password,
-            clock=self.clock,
-        )
         try:
-            return bus.connect(timeout_s=OPERATOR_CONNECT_TIMEOUT_S)
+            return connect_with_credentials(
+                self._broker[0],
+                self._broker[1],
+                creds,
+                client_id=f"{OPERATOR}-zone-sim",
+                clock=self.clock,
+                timeout_s=OPERATOR_CONNECT_TIMEOUT_S,
+            )
         except BusError as exc:
             raise SimulatorError(str(exc)) from None
 
