@@ -10,10 +10,15 @@ import os
 _DIR = os.getenv("WSNAV_PINS") or "/tmp/wsnav-pins"
 
 
+_BUF = bytearray(12)
+
+
 def _read(name, default):
+    """Into one buffer: read() would allocate 256 bytes per call, which the board's pins never cost."""
     try:
-        with open(_DIR + "/" + name) as f:
-            return int(f.read())
+        with open(_DIR + "/" + name, "rb") as f:
+            n = f.readinto(_BUF)
+        return int(bytes(_BUF[:n]))
     except (OSError, ValueError):
         return default
 

@@ -29,12 +29,7 @@ from backoff import Backoff  # noqa: E402
 
 
 def fake_dns(host, port):
-    try:
-        with open(machine._DIR + "/dns", "rb") as f:
-            f.readinto(_FAULT)  # not read(): its 256-byte buffer can fail in a fragmented 38 KiB heap
-    except OSError:
-        _FAULT[0] = 48
-    fault = _FAULT[0] - 48
+    fault = machine._read("dns", 0)  # pyright: ignore[reportAttributeAccessIssue] (the host stub's)
     if fault:
         print("dns", "down" if fault == 1 else "hang", host)
         while fault == 2:
@@ -43,7 +38,6 @@ def fake_dns(host, port):
     return real_dns(host, port, 2)  # IPv4 only, as lwIP on the ESP8266
 
 
-_FAULT = bytearray(1)
 real_dns = mqtt.lookup
 mqtt.lookup = fake_dns
 node = app.Node(CFG, sensors.from_config(CFG), wifi.Wifi(CFG["wifi_ssid"], CFG["wifi_password"]), machine.WDT())
