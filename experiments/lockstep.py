@@ -42,11 +42,23 @@ class Deliveries:
 
 
 class WatchedBus:
-    """The agent's bus, telling `Deliveries` what the agent polled."""
+    """The agent's bus, telling `Deliveries` what has reached it.
+
+    `fetch` takes what the broker has delivered so far into a buffer; the agent's `poll` sees only that buffer.
+    So when the agent steps at a simulated instant it sees exactly what was published for it up to then, never
+    a message that happened to arrive early or late in real time (which would let the machine's load decide
+    whether a control tick runs on the old path or the new one).
+    """
 
     def __init__(self, inner: Bus, deliveries: Deliveries) -> None:
         self.inner = inner
         self.deliveries = deliveries
+        self._fetched: list[Message] = []
+
+    def fetch(self) -> None:
+        got = self.inner.poll()
+        self.deliveries.delivered(got)
+        self._fetched.extend(got)
 
     def publish(self, topic: str, payload: bytes, *, qos: int = 1, retain: bool = False) -> None:
         self.inner.publish(topic, payload, qos=qos, retain=retain)
@@ -55,8 +67,8 @@ class WatchedBus:
         self.inner.subscribe(topic_filter, qos)
 
     def poll(self, max_messages: int | None = None) -> list[Message]:
-        got = self.inner.poll(max_messages)
-        self.deliveries.delivered(got)
+        n = len(self._fetched) if max_messages is None else max_messages
+        got, self._fetched = self._fetched[:n], self._fetched[n:]
         return got
 
     def wait(self, timeout_s: float) -> bool:

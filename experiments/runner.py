@@ -143,7 +143,8 @@ def report_header(
             f"on robot1's connection, a simulated TurtleBot3; lock-step simulated time, {DT:g} s steps.",
             "- The obstacle is placed when the route starts and cleared when the robot stops.",
             "- Agent CPU: thread CPU time inside the agent's step, per simulated second of the run. "
-            "Peak memory: the worker process's resident-set high-water mark (getrusage ru_maxrss).",
+            "Peak memory: the worker process's resident-set peak during the run (Linux VmHWM, reset as the run "
+            "starts; it includes the worker's embedded broker and zone simulator).",
             f"- Wall time {o.wall_s:.0f} s on {workers} worker(s) ({os.cpu_count()} cores, "
             f"{platform.processor() or platform.machine()}, load {os.getloadavg()[0]:.1f} at the end) for "
             f"{o.simulated_s:.0f} s simulated: {o.simulated_s / max(o.wall_s, 1e-9):.0f}x real time.",

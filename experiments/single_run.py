@@ -19,12 +19,14 @@ from experiments.lockstep import Deliveries, ExpectingBus, WatchedBus, settle
 from experiments.run_plan import RunSpec
 from robot_agent.agent import RobotAgent
 from robot_agent.agent_config import load_agent_config
-from robot_agent.sim_turtlebot3 import SimTurtleBot3
+from robot_agent.lidar import LidarParams
+from robot_agent.sim_turtlebot3 import SimTurtleBot3, TurtleBot3Params
 from robot_agent.sim_world_grid import SimWorldGrid
 from runtime.clock import SimClock
 from runtime.mqtt_bus import MqttBus, connect_with_credentials
 from schemas.site import Site
 from zone_sim.emulated_node import Sent
+from zone_sim.sensor_model import SensorSettings
 from zone_sim.simulator import ZoneSimulator
 
 DT = 0.05
@@ -35,6 +37,17 @@ TRAJECTORY_EVERY_S = 0.5
 DRAIN_SIM_S = 3.0
 """After clearing: simulated time for the nodes to report `clear` (off delay + detection delay)."""
 ROBOT = "robot1"
+
+# What varies from run to run, as it does between two runs of a real robot (all seeded by the run's seed).
+LIDAR = LidarParams(noise_std=0.005, noise_fraction=0.0175)
+"""LDS-01 precision: +-10 mm near, +-3.5% beyond 0.5 m, read as two standard deviations."""
+DRIVE = TurtleBot3Params(velocity_noise=0.03)
+"""Wheel slip and motor response: the delivered velocity within a few per cent of the command."""
+SENSORS = SensorSettings(detection_delay_s=0.5, detection_jitter_s=1.5)
+"""Each node sees the obstacle 0.5-2.0 s after it appears."""
+START_SIGMA_M = 0.05
+START_SIGMA_RAD = 0.05
+"""Where the robot stands at the start: the point give or take a few centimetres and degrees."""
 
 COLUMNS = (
     "config",
@@ -74,15 +87,40 @@ def _connect(broker: BrokerAt, ident: str, client_id: str, clock: SimClock) -> M
     return connect_with_credentials(broker.host, broker.port, creds, client_id=client_id, clock=clock)
 
 
+PROC_SELF = Path("/proc/self")
+
+
+def reset_peak_rss() -> None:
+    """Start this run's resident-set peak afresh (Linux: writing 5 to clear_refs resets VmHWM), so a worker's
+    earlier runs do not leak into this run's number; elsewhere the process's lifetime peak stays."""
+    try:
+        (PROC_SELF / "clear_refs").write_text("5")
+    except OSError:
+        return
+
+
 def peak_rss_mb() -> float:
-    """This process's resident-set high-water mark (getrusage ru_maxrss, KiB on Linux)."""
+    """This process's resident-set peak since `reset_peak_rss` (VmHWM), or its lifetime peak (ru_maxrss)."""
+    try:
+        for line in (PROC_SELF / "status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def start_pose(site: Site, spec: RunSpec) -> tuple[float, float, float]:
+    x, y, yaw = site.point(spec.start)
+    dx, dy, dyaw = np.random.default_rng([spec.seed, 1]).standard_normal(3)
+    return x + START_SIGMA_M * dx, y + START_SIGMA_M * dy, yaw + START_SIGMA_RAD * dyaw
+
+
 def run_once(site: Site, spec: RunSpec, broker: BrokerAt) -> RunResult:
+    reset_peak_rss()
     clock = SimClock()
     world = SimWorldGrid(site.grid)
-    robot = SimTurtleBot3(ROBOT, world, site.point(spec.start), seed=spec.seed)
+    robot = SimTurtleBot3(ROBOT, world, start_pose(site, spec), DRIVE, LIDAR, seed=spec.seed)
     config = load_agent_config(spec.config)
     inner = _connect(broker, ROBOT, ROBOT, clock)
     deliveries = Deliveries([])
@@ -100,6 +138,7 @@ def run_once(site: Site, spec: RunSpec, broker: BrokerAt) -> RunResult:
         (broker.host, broker.port),
         clock,
         seed=spec.seed,
+        sensor=SENSORS,
         world_bus=world_bus,
         on_sent=sent,
     )
@@ -120,9 +159,12 @@ def _drive(
     sim: ZoneSimulator,
     deliveries: Deliveries,
 ) -> RunResult:
+    bus = agent.bus
+    assert isinstance(bus, WatchedBus)
+
     def poke() -> None:
         sim.step(clock.now(), io_timeout_s=0.0)
-        agent.step(clock.now())
+        bus.fetch()
 
     def synced() -> bool:
         return deliveries.pending == 0
@@ -133,6 +175,7 @@ def _drive(
     for zone in spec.blocked:
         sim.block(zone)
     settle(synced, poke, agent.bus.wait, "the blocked world")
+    agent.step(clock.now())  # take in the world and the zone states before planning
     agent.set_goal(site.point(spec.goal), spec.goal, clock.now())
     cpu0 = agent.stats.cpu_s
     trajectory: list[tuple[float, float]] = [robot.pose()[:2]]
@@ -174,5 +217,6 @@ def _drive(
     while clock.now() < end:
         clock.advance(DT)
         poke()
+        agent.step(clock.now())
     settle(synced, poke, agent.bus.wait, "the cleared world")
     return RunResult(row, np.asarray(trajectory, dtype=np.float64))

@@ -30,14 +30,16 @@ class LidarParams:
     rate_hz: float = 5.0
     noise_std: float = 0.0
     """Standard deviation (m) of Gaussian noise added to each valid range; 0 for an exact sensor."""
+    noise_fraction: float = 0.0
+    """More standard deviation, as a fraction of the range (the LDS-01's precision is +-3.5% beyond 0.5 m)."""
 
     def __post_init__(self) -> None:
         if self.beams < 1:
             raise ValueError("a lidar needs at least one beam")
         if not 0 <= self.range_min < self.range_max:
             raise ValueError("need 0 <= range_min < range_max")
-        if self.rate_hz <= 0 or self.noise_std < 0:
-            raise ValueError("rate_hz must be > 0 and noise_std >= 0")
+        if self.rate_hz <= 0 or self.noise_std < 0 or self.noise_fraction < 0:
+            raise ValueError("rate_hz must be > 0 and noise_std, noise_fraction >= 0")
 
     @property
     def angle_increment(self) -> float:
@@ -68,12 +70,13 @@ def cast_scan(
 ) -> LaserScan:
     """One sweep from `pose` (the sensor at the robot's centre) against `occupied` (row 0 = map bottom).
 
-    Cells outside the grid count as free. With `rng` and `params.noise_std > 0`, valid ranges get noise.
+    Cells outside the grid count as free. With `rng` and noise in `params`, valid ranges get Gaussian noise.
     """
     ranges = cast_ranges(occupied, frame, pose, params)
-    if rng is not None and params.noise_std > 0:
+    if rng is not None and (params.noise_std > 0 or params.noise_fraction > 0):
         valid = np.isfinite(ranges)
-        noisy = ranges[valid] + rng.normal(0.0, params.noise_std, int(valid.sum())).astype(np.float32)
+        sigma = params.noise_std + params.noise_fraction * ranges[valid].astype(np.float64)
+        noisy = ranges[valid] + (rng.standard_normal(int(valid.sum())) * sigma).astype(np.float32)
         ranges[valid] = np.clip(noisy, params.range_min, params.range_max)
     return LaserScan(
         stamp=stamp,

@@ -27,11 +27,16 @@ class TurtleBot3Params:
     radius: float = 0.105
     max_substep: float = 0.02
     """Physics substep (s): a long `step` is integrated in pieces no longer than this."""
+    velocity_noise: float = 0.0
+    """Relative standard deviation of the velocity the wheels deliver against the one commanded (slip, motor
+    response), drawn afresh at each command; 0 for an exact drive. Odometry (`distance_m`) sees the real motion."""
 
     def __post_init__(self) -> None:
         values = (self.max_linear, self.max_angular, self.linear_accel, self.angular_accel, self.radius)
         if min(values) <= 0 or self.max_substep <= 0:
             raise ValueError("TurtleBot3 limits, radius and substep must be positive")
+        if not 0 <= self.velocity_noise < 0.5:
+            raise ValueError("velocity_noise must be in [0, 0.5)")
 
 
 class SimTurtleBot3:
@@ -55,6 +60,8 @@ class SimTurtleBot3:
         self._v = 0.0
         self._w = 0.0
         self._cmd = Velocity(0.0, 0.0)
+        self._delivered = self._cmd
+        """What the wheels deliver of `_cmd` (equal to it without velocity_noise)."""
         self._scan: LaserScan | None = None
         self._next_scan: float | None = None
         self._in_contact = False
@@ -93,9 +100,14 @@ class SimTurtleBot3:
         self._cmd = Velocity(
             min(max(linear, -p.max_linear), p.max_linear), min(max(angular, -p.max_angular), p.max_angular)
         )
+        self._delivered = self._cmd
+        if p.velocity_noise > 0:
+            slip = 1.0 + p.velocity_noise * self._rng.standard_normal(2)
+            self._delivered = Velocity(self._cmd.linear * float(slip[0]), self._cmd.angular * float(slip[1]))
 
     def stop(self) -> None:
         self._cmd = Velocity(0.0, 0.0)
+        self._delivered = self._cmd
 
     @property
     def commanded(self) -> Velocity:
@@ -129,8 +141,8 @@ class SimTurtleBot3:
         p = self.params
         dv = p.linear_accel * h
         dw = p.angular_accel * h
-        self._v += min(max(self._cmd.linear - self._v, -dv), dv)
-        self._w += min(max(self._cmd.angular - self._w, -dw), dw)
+        self._v += min(max(self._delivered.linear - self._v, -dv), dv)
+        self._w += min(max(self._delivered.angular - self._w, -dw), dw)
         if self._v == 0.0 and self._w == 0.0:
             return
         x1, y1, yaw1 = _arc(self._x, self._y, self._yaw, self._v, self._w, h)

@@ -12,7 +12,7 @@ import pytest
 
 from experiments.run_plan import plan_runs
 from experiments.runner import run_experiment, write_outputs
-from experiments.single_run import COLUMNS, NONDETERMINISTIC
+from experiments.single_run import COLUMNS, NONDETERMINISTIC, peak_rss_mb, reset_peak_rss
 from schemas.site import load_site
 from tests.conftest import SITES
 from wsnav.cli import main
@@ -71,3 +71,11 @@ def test_bad_experiment_arguments_are_one_line(
     assert main([*argv, "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
+
+
+def test_each_run_measures_its_own_memory_peak_not_the_workers_lifetime_peak() -> None:
+    block = np.ones(40_000_000)  # 320 MB held for a moment, as an earlier run in the same worker might
+    lifetime = peak_rss_mb()
+    del block
+    reset_peak_rss()
+    assert peak_rss_mb() < lifetime - 200

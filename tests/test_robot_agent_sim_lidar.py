@@ -148,3 +148,21 @@ def test_bad_parameters_are_refused() -> None:
         LidarParams(range_min=4.0)
     with pytest.raises(ValueError, match="beam"):
         LidarParams(beams=0)
+
+
+def test_range_proportional_noise_grows_with_distance_like_the_lds01(school: SimWorldGrid) -> None:
+    """Beams to the near corridor wall scatter less than beams along the corridor to far walls."""
+    pose = (*CORRIDOR, 0.0)
+    exact = cast_scan(school.occupied, school.frame, pose, LidarParams(), 0.0).ranges
+    params = LidarParams(noise_fraction=0.0175)
+    rng = np.random.default_rng(5)
+    scans = np.stack(
+        [cast_scan(school.occupied, school.frame, pose, params, 0.0, rng).ranges for _ in range(40)]
+    )
+    near = np.isfinite(exact) & (exact < 1.5)
+    far = np.isfinite(exact) & (exact > 2.5)
+    assert near.any() and far.any()
+    spread_near = float((scans[:, near] - exact[near]).std())
+    spread_far = float((scans[:, far] - exact[far]).std())
+    assert spread_far > 1.8 * spread_near
+    assert 0.01 < spread_far / float(exact[far].mean()) < 0.025

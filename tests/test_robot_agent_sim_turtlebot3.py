@@ -195,3 +195,25 @@ def test_the_bumpers_clearance_matches_a_brute_force_search_near_and_far_from_wa
         assert bot.clearance(float(x), float(y)) == pytest.approx(exact, abs=1e-9)
         near += exact < limit
     assert near > 0, "some samples must fall near a wall for the comparison to mean anything"
+
+
+def test_velocity_noise_scatters_the_drive_around_the_command_and_follows_the_seed(
+    world: SimWorldGrid,
+) -> None:
+    def drive(seed: int, noise: float) -> tuple[float, float]:
+        bot = SimTurtleBot3("r", world, (12.0, 7.2, 0.0), TurtleBot3Params(velocity_noise=noise), seed=seed)
+        t = 0.0
+        for _ in range(100):  # 10 s of 0.2 m/s, commanded at 10 Hz as the controller does
+            bot.command(Velocity(0.2, 0.0))
+            t = run(bot, 0.1, t)
+        return bot.pose()[0], bot.pose()[1]
+
+    exact = drive(1, 0.0)
+    assert exact[0] == pytest.approx(12.0 + 2.0, abs=0.02)
+    runs = [drive(seed, 0.03) for seed in range(8)]
+    assert drive(3, 0.03) == runs[3], "the same seed drives the same way"
+    xs = np.array([x for x, _ in runs])
+    assert float(xs.std()) > 0.002, "runs differ"
+    assert abs(float(xs.mean()) - exact[0]) < 0.03, "but around the commanded motion"
+    with pytest.raises(ValueError, match="velocity_noise"):
+        TurtleBot3Params(velocity_noise=-0.1)

@@ -25,10 +25,13 @@ class SensorSettings:
     """How long after an obstacle appears (or leaves) the sensor's raw output follows."""
     miss_rate: float = 0.0
     """Probability that one reading of an occupied zone reads free (seeded per node)."""
+    detection_jitter_s: float = 0.0
+    """Each sensor's delay is detection_delay_s plus a uniform draw in [0, this] (seeded per node): sensors
+    differ (a PIR's warm-up, where in the beam a person stands)."""
 
     def __post_init__(self) -> None:
-        if not self.detection_delay_s >= 0:
-            raise ValueError("detection_delay_s must be >= 0")
+        if not self.detection_delay_s >= 0 or not self.detection_jitter_s >= 0:
+            raise ValueError("detection_delay_s and detection_jitter_s must be >= 0")
         if not 0.0 <= self.miss_rate < 1.0:
             raise ValueError("miss_rate must be in [0, 1)")
 
@@ -47,12 +50,16 @@ class SimulatedSensor:
         self.settings = settings
         self._world = world
         self._rng = rng
+        self.delay_s = settings.detection_delay_s + (
+            rng.uniform(0.0, settings.detection_jitter_s) if settings.detection_jitter_s > 0 else 0.0
+        )
+        """This sensor's detection delay."""
         self.readings = 0
         self.misses = 0
 
     def truth(self, t: float) -> bool:
-        """What the sensor would report with no misses: the world as it was `detection_delay_s` ago."""
-        return self._world.was_blocked(self.zone, t - self.settings.detection_delay_s)
+        """What the sensor would report with no misses: the world as it was `delay_s` ago."""
+        return self._world.was_blocked(self.zone, t - self.delay_s)
 
     def occupied(self, t: float) -> bool:
         self.readings += 1
