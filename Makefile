@@ -39,7 +39,7 @@ school: $(STAMP)
 	$(BIN)/python sites/school/generate.py
 
 bench: $(STAMP)
-	@for b in bench/*.py; do m=$$(basename $$b .py); echo "== bench.$$m"; $(BIN)/python -m bench.$$m || exit 1; done
+	@for b in $$(grep -l '__main__' bench/*.py); do m=$$(basename $$b .py); echo "== bench.$$m"; $(BIN)/python -m bench.$$m || exit 1; done
 
 clean:
 	rm -rf $(VENV) build out .pytest_cache .ruff_cache
