@@ -77,8 +77,23 @@ class Plan:
         return densify(self.path, step_m)
 
 
+WEIGHT_QUANTUM = 1.0 / 64.0
+"""Step weights are multiples of this, so float32 sums of them are exact (see `dyadic`)."""
+
+
+def dyadic(weights: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Weights rounded to multiples of WEIGHT_QUANTUM (1/64): every partial path cost A* adds up is then exact.
+
+    pyastar2d rebuilds a path by following predecessors for as many steps as the goal's entry recorded when it
+    was pushed; that holds only if no cell's cost improves after it was expanded, which a consistent heuristic
+    guarantees in exact arithmetic but float32 rounding of NavFn's 1 + 0.016 * cost weights does not: the walk
+    then reads an unset predecessor and crashes the process (seen in the experiment, 1 plan in ~100k).
+    """
+    return np.round(weights / WEIGHT_QUANTUM) * WEIGHT_QUANTUM
+
+
 def weight_lut(params: PlannerParams) -> NDArray[np.float32]:
-    """A* step weight for each cost value 0..255; inf = impassable."""
+    """A* step weight for each cost value 0..255 (dyadic, see `dyadic`); inf = impassable."""
     cost = np.arange(256, dtype=np.float64)
     weight = 1.0 + params.cost_factor * np.minimum(cost, 252.0) / params.neutral_cost
     weight[cost >= params.impassable_from] = np.inf
@@ -87,7 +102,7 @@ def weight_lut(params: PlannerParams) -> NDArray[np.float32]:
         weight[NO_INFORMATION] = (LETHAL_OBSTACLE - 1) / params.neutral_cost
     else:
         weight[NO_INFORMATION] = np.inf
-    return weight.astype(np.float32)
+    return dyadic(weight).astype(np.float32)
 
 
 def weights_for(costs: NDArray[np.uint8], params: PlannerParams) -> NDArray[np.float32]:
@@ -260,7 +275,7 @@ def _escape_start(
     out = w.copy()
     patch = out[r0:r1, c0:c1]
     patch[near & (window == INSCRIBED_INFLATED_OBSTACLE)] = np.float32(
-        1.0 + p.cost_factor * 252.0 / p.neutral_cost
+        dyadic(np.array(1.0 + p.cost_factor * 252.0 / p.neutral_cost))
     )
     return out
 
@@ -309,12 +324,12 @@ def _coarse_band(
     else:
         padded = np.full((hc * f, wc * f), np.inf, dtype=np.float32)
         padded[:height, :width] = w
-    coarse = _block_means(padded, f)
+    coarse = dyadic(_block_means(padded, f).astype(np.float64)).astype(np.float32)
     sc, gc = (s[0] // f, s[1] // f), (g[0] // f, g[1] // f)
     for cell in (sc, gc):
         if not np.isfinite(coarse[cell]):
             block = padded[cell[0] * f : (cell[0] + 1) * f, cell[1] * f : (cell[1] + 1) * f]
-            coarse[cell] = np.float32(block[np.isfinite(block)].mean())
+            coarse[cell] = np.float32(dyadic(np.array(block[np.isfinite(block)].mean())))
     route = _search(np.ascontiguousarray(coarse), sc, gc, p)
     if route is None or len(route) == 0:
         return None

@@ -4,11 +4,12 @@ respect origin and resolution exactly, and A* plans that are short, smooth and k
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from robot_agent.global_planner import PlannerParams, plan_path, simplify, weight_lut
+from robot_agent.global_planner import PlannerParams, _astar, dyadic, plan_path, simplify, weight_lut
 from robot_agent.inflation import (
     INSCRIBED_INFLATED_OBSTACLE,
     LETHAL_OBSTACLE,
@@ -86,7 +87,7 @@ def test_polygon_window_clips_and_handles_slanted_edges() -> None:
 def test_weights_follow_navfn() -> None:
     lut = weight_lut(PlannerParams())
     assert lut[0] == 1.0
-    assert lut[100] == pytest.approx(1.0 + 0.8 * 100 / 50)
+    assert lut[100] == pytest.approx(1.0 + 0.8 * 100 / 50, abs=1 / 128)  # rounded to a 64th (dyadic)
     assert np.isinf(lut[INSCRIBED_INFLATED_OBSTACLE]) and np.isinf(lut[LETHAL_OBSTACLE])
     assert np.isinf(lut[NO_INFORMATION])
     assert np.isfinite(weight_lut(PlannerParams(allow_unknown=True))[NO_INFORMATION])
@@ -145,3 +146,24 @@ def test_start_brushing_a_wall_can_escape() -> None:
 def test_simplify_keeps_corners_only() -> None:
     line = np.array([[0.0, 0.0], [1.0, 0.001], [2.0, 0.0], [2.0, 1.0], [2.0, 2.0]])
     assert simplify(line, 0.01).tolist() == [[0.0, 0.0], [2.0, 0.0], [2.0, 2.0]]
+
+
+def test_step_weights_are_dyadic_so_path_costs_add_up_exactly() -> None:
+    for params in (PlannerParams(), PlannerParams(allow_unknown=True), PlannerParams(cost_factor=0.37)):
+        lut = weight_lut(params).astype(np.float64)
+        finite = lut[np.isfinite(lut)]
+        assert np.array_equal(finite * 64, np.round(finite * 64))
+        assert finite.min() >= 1.0
+
+
+def test_a_band_search_that_crashed_pyastar2d_now_returns_a_connected_path() -> None:
+    """Weights (a coarse-to-fine band) recorded when an experiment worker died in pyastar2d's path walk: with
+    NavFn's raw float weights its predecessor chain outran the recorded length and read unset memory."""
+    data = np.load(Path(__file__).parent / "data" / "astar_band_crash.npz")
+    weights = dyadic(data["weights"].astype(np.float64)).astype(np.float32)
+    s, g = tuple(int(v) for v in data["start"]), tuple(int(v) for v in data["goal"])
+    for _ in range(30):
+        path = _astar(weights, (s[0], s[1]), (g[0], g[1]), True)
+        assert path is not None
+        assert tuple(path[0]) == s and tuple(path[-1]) == g
+        assert int(np.abs(np.diff(path, axis=0)).max()) == 1
