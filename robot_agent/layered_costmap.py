@@ -260,9 +260,7 @@ class LayeredCostmap:
         assert area is not None
         bounds = area.grow(max(self._reach, self._touch + EXIT_MARGIN_CELLS + 2), frame)
         source = bounds.grow(self._reach, frame)
-        merged = np.maximum(self.static[source.rows, source.cols], self.zone_layer.paint(source, exclude=key))
-        if self.obstacles is not None:
-            merged[self.obstacles[source.rows, source.cols]] = LETHAL_OBSTACLE
+        merged = self._merged(source, self.zone_layer.paint(source, exclude=key))
         without = inflate(merged, frame.resolution, self.inflation)[bounds.within(source)]
         costs = self.master[bounds.rows, bounds.cols].copy()
         relax = (costs >= INSCRIBED_INFLATED_OBSTACLE) & (without < INSCRIBED_INFLATED_OBSTACLE)
@@ -311,8 +309,10 @@ class LayeredCostmap:
         inside = (rows >= 0) & (rows < frame.height) & (cols >= 0) & (cols < frame.width)
         self.obstacles[rows[inside], cols[inside]] = value
 
-    def _merged(self, b: Bounds) -> NDArray[np.uint8]:
-        merged = np.maximum(self.static[b.rows, b.cols], self.zones[b.rows, b.cols])
+    def _merged(self, b: Bounds, zones: NDArray[np.uint8] | None = None) -> NDArray[np.uint8]:
+        """The layers merged by maximum in `b`; `zones` replaces the zone layer's costs there if given."""
+        zone_costs = self.zones[b.rows, b.cols] if zones is None else zones
+        merged = np.maximum(self.static[b.rows, b.cols], zone_costs)
         if self.obstacles is not None:
             np.maximum(
                 merged,
