@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed-stamp
 
 .PHONY: demo experiment test lint typecheck pytest bench schemas school clean
 
-$(STAMP): pyproject.toml constraints.txt
+$(STAMP): pyproject.toml constraints.txt scripts/bootstrap-venv
 	@./scripts/bootstrap-venv "$(PYTHON)" "$(VENV)"
 	@touch $@
 

@@ -20,3 +20,6 @@ def require_tool(name: str) -> str:
             pytest.fail(f"system tool {name!r} is required (WSNAV_REQUIRE_TOOLS=1) but not on PATH")
         pytest.skip(f"system tool {name!r} not installed")
     return path
+
+
+pytest_plugins = ["tests.ros_fixtures"]

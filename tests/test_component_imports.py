@@ -10,8 +10,12 @@ import pytest
 
 from tests.conftest import REPO
 
-COMPONENTS = ["broker", "firmware", "robot_agent", "zone_sim", "schemas", "runtime", "experiments"]
-FORBIDDEN = {"robot_agent": {"zone_sim"}, "zone_sim": {"robot_agent"}}
+COMPONENTS = ["broker", "firmware", "robot_agent", "zone_sim", "schemas", "runtime", "experiments", "ros_bridge"]
+FORBIDDEN = {
+    "robot_agent": {"zone_sim", "ros_bridge"},  # the agent runs where no ROS is installed
+    "zone_sim": {"robot_agent", "ros_bridge"},
+    "ros_bridge": {"zone_sim"},
+}
 
 
 def imported_packages(source: Path) -> set[str]:

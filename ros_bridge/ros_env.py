@@ -1,0 +1,89 @@
+"""Where ROS 1 comes from and how a wsnav ROS node finds its master.
+
+rospy is not on PyPI: it comes from Debian's packages (`python3-rospy`, ...) in the system's dist-packages,
+which the venv reads last (scripts/bootstrap-venv writes a .pth), so pinned dependencies are never shadowed.
+Everything here is importable without ROS; `require_rospy` says in one line what to install when it is missing.
+"""
+
+from __future__ import annotations
+
+import http.client
+import os
+import time
+import xmlrpc.client
+from collections.abc import Callable
+
+from runtime.cli_support import CliError
+
+DEBIAN_PACKAGES = (
+    "ros-core python3-rospy python3-rostopic python3-nav-msgs python3-map-msgs python3-sensor-msgs "
+    "python3-geometry-msgs python3-actionlib python3-move-base-msgs python3-tf2-ros"
+)
+DEFAULT_MASTER_URI = "http://localhost:11311"
+
+
+def require_rospy() -> None:
+    """Fail with one line (not an ImportError traceback) when ROS 1's Python packages are missing."""
+    try:
+        import rospy  # noqa: F401  # pyright: ignore[reportMissingImports, reportUnusedImport]
+    except ImportError as exc:
+        raise CliError(
+            f"ROS 1 is not installed ({exc.name} missing): apt-get install {DEBIAN_PACKAGES} "
+            "(then rerun `make .venv/.installed-stamp` so the venv sees it)"
+        ) from None
+
+
+def master_uri() -> str:
+    return os.environ.get("ROS_MASTER_URI", DEFAULT_MASTER_URI)
+
+
+def master_alive(uri: str, timeout_s: float = 2.0) -> bool:
+    """True if a ROS master answers at `uri` (its getPid call), without rospy's own long retries."""
+    transport = _TimeoutTransport(timeout_s)
+    try:
+        answer: object = xmlrpc.client.ServerProxy(uri, transport=transport).getPid("/wsnav_probe")
+    except (OSError, xmlrpc.client.Error, ValueError):
+        return False
+    return isinstance(answer, list) and len(answer) == 3 and answer[0] == 1  # [code, message, pid]
+
+
+def wait_for_master(
+    uri: str,
+    *,
+    say: Callable[[str], None] = print,
+    give_up_after_s: float | None = None,
+    first_delay_s: float = 0.5,
+    max_delay_s: float = 8.0,
+    sleep: Callable[[float], None] = time.sleep,
+) -> None:
+    """Block until the master at `uri` answers: one line when it does not, then retries with doubling delays.
+
+    Raises CliError after `give_up_after_s` (None: wait for ever, as a node started before roscore should).
+    """
+    delay = first_delay_s
+    waited = 0.0
+    told = False
+    while not master_alive(uri):
+        if give_up_after_s is not None and waited >= give_up_after_s:
+            raise CliError(
+                f"no ROS master at {uri} after {waited:.0f} s (is roscore running? ROS_MASTER_URI?)"
+            )
+        if not told:
+            say(f"no ROS master at {uri} (is roscore running? ROS_MASTER_URI?): retrying with backoff")
+            told = True
+        sleep(delay)
+        waited += delay
+        delay = min(delay * 2, max_delay_s)
+    if told:
+        say(f"ROS master at {uri} is up")
+
+
+class _TimeoutTransport(xmlrpc.client.Transport):
+    def __init__(self, timeout_s: float) -> None:
+        super().__init__()
+        self._timeout_s = timeout_s
+
+    def make_connection(self, host: tuple[str, dict[str, str]] | str) -> http.client.HTTPConnection:
+        conn = super().make_connection(host)
+        conn.timeout = self._timeout_s
+        return conn

@@ -1,0 +1,121 @@
+"""Shared by the ROS tests (no tests here): a real `roscore` on a free port, and one rospy node for the test process.
+
+rospy allows one node per process and binds it to one master, so the whole session shares one roscore and the
+test process is one node (`ros_node`); wsnav's own ROS nodes run as child processes (`ros_env` is their
+environment). Without Debian's ROS packages these fixtures skip, and fail under WSNAV_REQUIRE_TOOLS=1 (CI).
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from ros_bridge.ros_env import master_alive
+from tests.conftest import require_tool
+
+
+def require_ros() -> None:
+    """Skip (or fail under WSNAV_REQUIRE_TOOLS=1) unless roscore and rospy are installed."""
+    require_tool("roscore")
+    try:
+        import rospy  # noqa: F401  # pyright: ignore[reportMissingImports, reportUnusedImport]
+    except ImportError:
+        if os.environ.get("WSNAV_REQUIRE_TOOLS") == "1":
+            pytest.fail("rospy is required (WSNAV_REQUIRE_TOOLS=1) but the venv cannot import it")
+        pytest.skip("rospy not importable")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class RosMaster:
+    uri: str
+    log_dir: Path
+
+    def env(self, **extra: str) -> dict[str, str]:
+        """The environment of a child process that is a node of this master (loopback only)."""
+        return dict(
+            os.environ,
+            ROS_MASTER_URI=self.uri,
+            ROS_HOSTNAME="127.0.0.1",
+            ROS_LOG_DIR=str(self.log_dir),
+            PYTHONUNBUFFERED="1",
+            **extra,
+        )
+
+
+def start_roscore(port: int, log_dir: Path) -> subprocess.Popen[bytes]:
+    env = dict(
+        os.environ,
+        ROS_HOSTNAME="127.0.0.1",
+        ROS_LOG_DIR=str(log_dir),
+        ROS_MASTER_URI=f"http://127.0.0.1:{port}",
+    )
+    proc = subprocess.Popen(
+        ["roscore", "-p", str(port)],
+        env=env,
+        stdout=(log_dir / f"roscore-{port}.out").open("wb"),
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    deadline = time.monotonic() + 30
+    while not master_alive(f"http://127.0.0.1:{port}", timeout_s=1.0):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError(f"roscore on port {port} did not start (see {log_dir})")
+        time.sleep(0.2)
+    return proc
+
+
+def stop_process_group(
+    proc: subprocess.Popen[bytes] | subprocess.Popen[str], timeout_s: float = 10.0
+) -> None:
+    if proc.poll() is not None:
+        return
+    os.killpg(proc.pid, 15)
+    try:
+        proc.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, 9)
+        proc.wait()
+
+
+@pytest.fixture(scope="session")
+def roscore(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RosMaster]:
+    require_ros()
+    log_dir = tmp_path_factory.mktemp("ros-logs")
+    port = free_port()
+    proc = start_roscore(port, log_dir)
+    try:
+        yield RosMaster(f"http://127.0.0.1:{port}", log_dir)
+    finally:
+        stop_process_group(proc)
+
+
+@pytest.fixture(scope="session")
+def ros_node(roscore: RosMaster) -> RosMaster:
+    """The test process as a node of the session's master (rospy: once per process)."""
+    import rospy  # pyright: ignore[reportMissingImports]
+
+    os.environ.update(ROS_MASTER_URI=roscore.uri, ROS_HOSTNAME="127.0.0.1", ROS_LOG_DIR=str(roscore.log_dir))
+    rospy.init_node("wsnav_test", anonymous=True, disable_signals=True)
+    return roscore
+
+
+def wait_until(condition: Callable[[], bool], timeout_s: float, what: str, step_s: float = 0.02) -> None:
+    """Poll (real time) until `condition()` holds; fail the test naming `what` otherwise."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout_s:g} s waiting for {what}")
+        time.sleep(step_s)
