@@ -1,0 +1,368 @@
+# pyright: reportMissingImports=false, reportUnknownMemberType=false, reportAttributeAccessIssue=false
+"""`wsnav ros bridge`: the zone layer on ROS (`zone_grid` + `zone_grid_updates`) and, with `--robot`, Algorithm 3
+over move_base and the robot's status on MQTT.
+
+One rospy node. MQTT comes in through the same validating intake the robot agent uses (ZoneFeed); each change
+goes out as one OccupancyGridUpdate of the changed window. The whole grid is sent once to every subscriber when
+it connects (latched in effect, but always the current grid, where a latched publisher would replay the first
+one). rospy cannot register again with a restarted master, so when the master goes away the bridge waits for it
+with backoff and then re-executes itself; the MQTT side reconnects by itself and its retained state comes back.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from robot_agent.zone_geometry import Bounds, GridFrame
+from ros_bridge.move_base_supervisor import Action, Cancel, Goal, MoveBaseSupervisor, Resend
+from ros_bridge.ros_env import master_alive, master_uri, require_rospy, wait_for_master
+from ros_bridge.zone_feed import ZoneFeed
+from ros_bridge.zone_grid import UnrepresentableCost, UpdateWindow, ZoneGridCodec
+from runtime.bus import Bus
+from runtime.cli_support import CliError
+from runtime.clock import WallClock
+from runtime.mqtt_bus import BusError, connect_with_credentials
+from schemas import topics
+from schemas.credentials import Credentials
+from schemas.messages import PayloadError, RobotGoal, parse_payload
+from schemas.site import Site, SiteError, load_site
+
+STATUS_PERIOD_S = 0.5
+MASTER_CHECK_PERIOD_S = 2.0
+
+
+@dataclass(frozen=True)
+class BridgeOptions:
+    frame_id: str
+    namespace: str
+    map_topic: str
+    map_wait_s: float
+    update_hold_s: float
+    robot: str | None
+    move_base: str
+    plan_topic: str
+    base_frame: str
+
+
+def bridge_command(args: argparse.Namespace) -> int:
+    require_rospy()
+    from robot_agent.robot_command import read_credentials
+
+    try:
+        site = load_site(args.site)
+    except SiteError as exc:
+        raise CliError(str(exc)) from None
+    creds = read_credentials(args.credentials, site)
+    if args.robot is not None and args.robot != creds.username:
+        raise CliError(f"--robot {args.robot}: the credentials are robot {creds.username!r}'s")
+    codec = ZoneGridCodec()
+    try:
+        codec.check({site.spec.policy.caution_cost})
+    except UnrepresentableCost as exc:
+        raise CliError(f"{site.path}: policy.caution_cost: {exc}") from None
+    options = BridgeOptions(
+        frame_id=args.frame,
+        namespace=args.namespace.rstrip("/"),
+        map_topic=args.map_topic,
+        map_wait_s=args.map_wait,
+        update_hold_s=args.update_hold,
+        robot=args.robot,
+        move_base=args.move_base.rstrip("/"),
+        plan_topic=args.plan_topic,
+        base_frame=args.base_frame,
+    )
+    uri = master_uri()
+    wait_for_master(uri)
+    host, port = args.broker
+    try:
+        bus = connect_with_credentials(host, port, creds, clock=WallClock(), timeout_s=args.connect_timeout)
+    except BusError as exc:
+        raise CliError(str(exc)) from None
+    try:
+        restart = ZoneBridgeNode(site, creds, bus, codec, options).run(uri)
+    finally:
+        bus.close()
+    if restart:
+        print(f"ROS master at {uri} is back: restarting to register again", flush=True)
+        os.execv(sys.executable, [sys.executable, *sys.orig_argv[1:]])
+    return 0
+
+
+class ZoneBridgeNode:
+    def __init__(
+        self, site: Site, creds: Credentials, bus: Bus, codec: ZoneGridCodec, options: BridgeOptions
+    ) -> None:
+        grid = site.grid
+        self.site = site
+        self.options = options
+        self.frame = GridFrame(grid.width, grid.height, grid.resolution, grid.origin[0], grid.origin[1])
+        self.bus = bus
+        self.codec = codec
+        self.clock = WallClock()
+        self.feed = ZoneFeed(site.spec, self.frame)
+        self.window = UpdateWindow(options.update_hold_s)
+        self.supervisor = MoveBaseSupervisor(options.robot, self.feed) if options.robot else None
+        self._lock = threading.Lock()
+        """Held while the grid changes and an update goes out, and while a new subscriber gets the grid."""
+        self._pose: tuple[float, float, float] | None = None
+        self._labels: dict[str, str | tuple[float, float, float]] = {}
+        """Goal ids sent for MQTT goals -> the named point (or pose) the operator asked for."""
+        self._mqtt_goals = 0
+        for topic_filter in self.feed.subscriptions():
+            bus.subscribe(topic_filter, qos=1)
+        if options.robot:
+            bus.subscribe(topics.robot_goal(site.name, options.robot), qos=1)
+        self.updates_sent = 0
+
+    # -- ROS wiring ----------------------------------------------------------------------------------------
+
+    def run(self, uri: str) -> bool:
+        """Serve until shutdown; True if the master went away (the caller restarts to register again)."""
+        import rospy
+        from map_msgs.msg import OccupancyGridUpdate
+        from nav_msgs.msg import OccupancyGrid
+
+        rospy.init_node(
+            "wsnav_zone_bridge" if not self.options.robot else f"wsnav_bridge_{self.options.robot}"
+        )
+        self._check_map(rospy, OccupancyGrid)
+        ns = self.options.namespace
+        listener = _FullGridOnSubscribe(self)
+        self.grid_pub = rospy.Publisher(
+            f"{ns}/zone_grid", OccupancyGrid, queue_size=1, subscriber_listener=listener
+        )
+        self.update_pub = rospy.Publisher(f"{ns}/zone_grid_updates", OccupancyGridUpdate, queue_size=20)
+        if self.supervisor is not None:
+            self._wire_move_base(rospy)
+        print(
+            f"zone bridge for site {self.site.name}: {ns}/zone_grid ({self.frame.width}x{self.frame.height} cells, "
+            f"frame {self.options.frame_id})"
+            + (f", supervising {self.options.move_base} for {self.options.robot}" if self.supervisor else ""),
+            flush=True,
+        )
+        next_status = 0.0
+        next_master_check = time.monotonic() + MASTER_CHECK_PERIOD_S
+        while not rospy.is_shutdown():
+            self.bus.wait(0.05)
+            now = self.clock.now()
+            messages = self.bus.poll()
+            goal_topic = topics.robot_goal(self.site.name, self.options.robot) if self.options.robot else None
+            zone_messages = [m for m in messages if m.topic != goal_topic]
+            with self._lock:
+                changes = self.feed.take(zone_messages, now)
+                window = self.window.add([c.window for c in changes], now)
+                if window is not None:
+                    self.update_pub.publish(self._update_message(OccupancyGridUpdate, window))
+                    self.updates_sent += 1
+                if self.supervisor is not None:
+                    for m in messages:
+                        if m.topic == goal_topic:
+                            self._mqtt_goal(m.payload)
+                    self._act(self.supervisor.on_zones_changed(changes))
+            if self.supervisor is not None and (now >= next_status or changes):
+                self._publish_status()
+                next_status = now + STATUS_PERIOD_S
+            if time.monotonic() >= next_master_check:
+                next_master_check = time.monotonic() + MASTER_CHECK_PERIOD_S
+                if not master_alive(uri):
+                    print(f"lost the ROS master at {uri}", flush=True)
+                    rospy.signal_shutdown("master lost")
+                    wait_for_master(uri)
+                    return True
+        return False
+
+    def _check_map(self, rospy: Any, occupancy_grid: Any) -> None:
+        """Refuse, in one line, a site whose map is not the map the robot navigates on (if one is published)."""
+        if self.options.map_wait_s <= 0:
+            return
+        try:
+            msg = rospy.wait_for_message(
+                self.options.map_topic, occupancy_grid, timeout=self.options.map_wait_s
+            )
+        except rospy.ROSException:
+            print(
+                f"no map on {self.options.map_topic} within {self.options.map_wait_s:g} s: not checked against the site's",
+                flush=True,
+            )
+            return
+        problem = map_mismatch(self.frame, msg.info)
+        if problem:
+            raise CliError(
+                f"{self.site.path}: the site's map does not match {self.options.map_topic}: {problem}"
+            )
+
+    def full_grid_message(self) -> Any:
+        import rospy
+        from nav_msgs.msg import OccupancyGrid
+
+        msg = OccupancyGrid()
+        msg.header.stamp = rospy.Time.now()
+        msg.header.frame_id = self.options.frame_id
+        info = msg.info
+        info.map_load_time = msg.header.stamp
+        info.resolution = self.frame.resolution
+        info.width, info.height = self.frame.width, self.frame.height
+        yaw = self.site.grid.origin[2]
+        info.origin.position.x, info.origin.position.y = self.frame.origin_x, self.frame.origin_y
+        info.origin.orientation.z, info.origin.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+        msg.data = self.codec.encode(self.feed.costs).ravel().tolist()
+        return msg
+
+    def _update_message(self, update_type: Any, window: Bounds) -> Any:
+        import rospy
+
+        msg = update_type()
+        msg.header.stamp = rospy.Time.now()
+        msg.header.frame_id = self.options.frame_id
+        msg.x, msg.y = window.col0, window.row0
+        msg.height, msg.width = window.shape
+        msg.data = self.codec.encode(self.feed.costs[window.rows, window.cols]).ravel().tolist()
+        return msg
+
+    # -- move_base -----------------------------------------------------------------------------------------
+
+    def _wire_move_base(self, rospy: Any) -> None:
+        import tf2_ros
+        from actionlib_msgs.msg import GoalID, GoalStatusArray
+        from move_base_msgs.msg import MoveBaseActionGoal
+        from nav_msgs.msg import Path
+
+        mb = self.options.move_base
+        self._goal_type, self._goal_id_type = MoveBaseActionGoal, GoalID
+        self.goal_pub = rospy.Publisher(f"{mb}/goal", MoveBaseActionGoal, queue_size=5)
+        self.cancel_pub = rospy.Publisher(f"{mb}/cancel", GoalID, queue_size=5)
+        rospy.Subscriber(f"{mb}/goal", MoveBaseActionGoal, self._on_ros_goal, queue_size=10)
+        rospy.Subscriber(f"{mb}/status", GoalStatusArray, self._on_ros_status, queue_size=10)
+        rospy.Subscriber(self.options.plan_topic, Path, self._on_ros_plan, queue_size=2)
+        self.tf_buffer = tf2_ros.Buffer()
+        self._tf_listener = tf2_ros.TransformListener(self.tf_buffer)
+
+    def _on_ros_goal(self, msg: Any) -> None:
+        p = msg.goal.target_pose.pose
+        yaw = 2 * math.atan2(p.orientation.z, p.orientation.w)
+        pose = (p.position.x, p.position.y, yaw)
+        assert self.supervisor is not None
+        with self._lock:
+            label = self._labels.pop(msg.goal_id.id, pose)
+            actions = self.supervisor.on_goal(Goal(msg.goal_id.id, pose, label))
+        self._act(actions)
+
+    def _on_ros_status(self, msg: Any) -> None:
+        assert self.supervisor is not None
+        with self._lock:
+            for status in msg.status_list:
+                self.supervisor.on_status(status.goal_id.id, status.status)
+
+    def _on_ros_plan(self, msg: Any) -> None:
+        assert self.supervisor is not None
+        xy = np.array([(p.pose.position.x, p.pose.position.y) for p in msg.poses], dtype=np.float64).reshape(
+            -1, 2
+        )
+        with self._lock:
+            self.supervisor.on_plan(xy)
+
+    def _mqtt_goal(self, payload: bytes) -> None:
+        """A goal or cancel from `robots/<id>/goal`, turned into a move_base goal (or cancel)."""
+        assert self.supervisor is not None
+        try:
+            msg = parse_payload(RobotGoal, payload)
+        except PayloadError as exc:
+            print(f"goal dropped: {exc}", flush=True)
+            return
+        if msg.cancel:
+            if self.supervisor.goal is not None:
+                self.supervisor.reason = "cancelled by the operator"
+                self._act([Cancel(self.supervisor.goal.goal_id, "cancelled by the operator")])
+            return
+        if isinstance(msg.goal, str):
+            if msg.goal not in self.site.spec.points:
+                print(f"goal dropped: {msg.goal!r} is not a point of site {self.site.name}", flush=True)
+                return
+            pose, label = self.site.point(msg.goal), msg.goal
+        else:
+            assert msg.goal is not None
+            pose = label = (msg.goal[0], msg.goal[1], msg.goal[2])
+        self._mqtt_goals += 1
+        goal_id = f"wsnav-mqtt-{self._mqtt_goals}-{time.time():.3f}"
+        self._labels[goal_id] = label
+        self._send_goal(Goal(goal_id, pose, label))
+
+    def _act(self, actions: list[Action]) -> None:
+        for action in actions:
+            if isinstance(action, Cancel):
+                print(f"cancel goal {action.goal_id}: {action.reason}", flush=True)
+                self.cancel_pub.publish(self._goal_id_type(id=action.goal_id))
+            elif isinstance(action, Resend):
+                print(f"replan now ({action.reason}): goal re-sent as {action.goal.goal_id}", flush=True)
+                self._send_goal(action.goal)
+
+    def _send_goal(self, goal: Goal) -> None:
+        import rospy
+
+        msg = self._goal_type()
+        now = rospy.Time.now()
+        msg.header.stamp = now
+        msg.goal_id.id, msg.goal_id.stamp = goal.goal_id, now
+        target = msg.goal.target_pose
+        target.header.stamp, target.header.frame_id = now, self.options.frame_id
+        x, y, yaw = goal.pose
+        target.pose.position.x, target.pose.position.y = x, y
+        target.pose.orientation.z, target.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+        self.goal_pub.publish(msg)
+
+    def _publish_status(self) -> None:
+        import rospy
+
+        assert self.supervisor is not None and self.options.robot is not None
+        try:
+            t = self.tf_buffer.lookup_transform(self.options.frame_id, self.options.base_frame, rospy.Time(0))
+        except Exception:  # tf2's lookup, connectivity and extrapolation errors: no pose known yet
+            if self._pose is None:
+                return
+        else:
+            tr, q = t.transform.translation, t.transform.rotation
+            self._pose = (tr.x, tr.y, 2 * math.atan2(q.z, q.w))
+        assert self._pose is not None
+        with self._lock:
+            status = self.supervisor.status(self._pose, time.time())
+        self.bus.publish(
+            topics.robot_status(self.site.name, self.options.robot), status.to_payload(), qos=1, retain=True
+        )
+
+
+class _FullGridOnSubscribe:
+    """rospy SubscribeListener: a new subscriber gets the current whole grid, as if latched."""
+
+    def __init__(self, node: ZoneBridgeNode) -> None:
+        self._node = node
+
+    def peer_subscribe(self, _topic: str, _publish_all: Any, peer_publish: Any) -> None:
+        with self._node._lock:
+            peer_publish(self._node.full_grid_message())
+
+    def peer_unsubscribe(self, _topic: str, _num_peers: int) -> None:
+        pass
+
+
+def map_mismatch(frame: GridFrame, info: Any) -> str | None:
+    """How a ROS map's MapMetaData differs from the site's grid, or None if it matches."""
+    if (info.width, info.height) != (frame.width, frame.height):
+        return f"size {info.width}x{info.height} cells, the site's is {frame.width}x{frame.height}"
+    if not math.isclose(info.resolution, frame.resolution, rel_tol=1e-6):
+        return f"resolution {info.resolution:g} m, the site's is {frame.resolution:g} m"
+    dx, dy = info.origin.position.x - frame.origin_x, info.origin.position.y - frame.origin_y
+    if math.hypot(dx, dy) > frame.resolution / 2:
+        return (
+            f"origin ({info.origin.position.x:g}, {info.origin.position.y:g}), the site's is "
+            f"({frame.origin_x:g}, {frame.origin_y:g})"
+        )
+    return None

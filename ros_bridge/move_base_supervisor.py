@@ -1,0 +1,168 @@
+"""Algorithm 3 on move_base: cancel a goal that lies in a blocked zone, replan at once when a zone on the plan
+changes, and say so on MQTT, from what move_base's action topics show.
+
+Pure logic (no rospy): the ROS node feeds it the goals it sees on `move_base/goal` (whoever sent them: RViz, a
+script, the MQTT goal topic), the goal statuses, the global plan and the zone changes, and carries out the
+actions it returns. A re-sent goal (same target, new goal id) is how move_base is told to plan now rather than
+at its next `planner_frequency` tick.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ros_bridge.zone_feed import ZoneChange, ZoneFeed
+from schemas.messages import RobotStateValue, RobotStatus
+
+Pose = tuple[float, float, float]
+
+# actionlib_msgs/GoalStatus codes
+PENDING, ACTIVE, PREEMPTED, SUCCEEDED, ABORTED, REJECTED, PREEMPTING, RECALLING, RECALLED, LOST = range(10)
+
+
+@dataclass(frozen=True)
+class Goal:
+    goal_id: str
+    pose: Pose
+    label: str | Pose
+    """A named point of the site when the goal came as one over MQTT, else the pose."""
+
+
+@dataclass(frozen=True)
+class Cancel:
+    goal_id: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class Resend:
+    """Send the same target again under `goal_id`: move_base preempts the old goal and plans at once."""
+
+    goal: Goal
+    reason: str
+
+
+Action = Cancel | Resend
+
+
+@dataclass
+class MoveBaseSupervisor:
+    robot_id: str
+    feed: ZoneFeed
+    goal: Goal | None = None
+    state: RobotStateValue = "idle"
+    reason: str | None = None
+    replans: int = 0
+    plan_length_m: float | None = None
+    _plan_cells: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
+    _ours: set[str] = field(default_factory=set)
+    """Goal ids this supervisor sent as re-sends: their statuses continue the same navigation."""
+    _sent: int = 0
+
+    # -- what move_base shows ------------------------------------------------------------------------------
+
+    def on_goal(self, goal: Goal) -> list[Action]:
+        """A goal seen on move_base/goal; cancelled at once if it lies in a blocked zone."""
+        if self.goal is None or goal.goal_id not in self._ours:
+            self._plan_cells = np.zeros((0, 2), dtype=np.int64)
+            self.plan_length_m = None
+        self.goal = goal
+        self.state, self.reason = "navigating", None
+        return self._cancel_if_blocked()
+
+    def on_status(self, goal_id: str, code: int) -> None:
+        """One entry of move_base/status; only the current goal's counts."""
+        if self.goal is None or goal_id != self.goal.goal_id or self.state == "cancelled":
+            return
+        if code in (PENDING, ACTIVE):
+            self.state = "navigating"
+        elif code == SUCCEEDED:
+            self.state, self.reason = "arrived", None
+        elif code in (ABORTED, REJECTED, LOST):
+            self.state, self.reason = "cancelled", "move_base gave up on the goal (no valid plan or control)"
+        elif code in (PREEMPTED, RECALLED):
+            self.state = "cancelled"
+            self.reason = self.reason or "cancelled on the ROS side"
+
+    def on_plan(self, xy: NDArray[np.float64]) -> None:
+        """The current global plan, (N, 2) metres in the map frame."""
+        frame = self.feed.frame
+        if len(xy) == 0:
+            self._plan_cells = np.zeros((0, 2), dtype=np.int64)
+            self.plan_length_m = None
+            return
+        rows = np.floor((xy[:, 1] - frame.origin_y) / frame.resolution).astype(np.int64)
+        cols = np.floor((xy[:, 0] - frame.origin_x) / frame.resolution).astype(np.int64)
+        self._plan_cells = np.stack([rows, cols], axis=1)
+        self.plan_length_m = float(np.hypot(*np.diff(xy, axis=0).T).sum()) if len(xy) > 1 else 0.0
+
+    # -- what the zones say --------------------------------------------------------------------------------
+
+    def on_zones_changed(self, changes: list[ZoneChange]) -> list[Action]:
+        """Cancel if the goal now lies in a blocked zone; else replan when a change touches the plan or opens
+        a way (a zone cleared); nothing while no goal is being navigated."""
+        if self.goal is None or self.state != "navigating" or not changes:
+            return []
+        cancel = self._cancel_if_blocked()
+        if cancel:
+            return cancel
+        on_plan = [c for c in changes if self._crosses(c)]
+        if not on_plan and not any(c.cheaper for c in changes):
+            return []
+        self.replans += 1
+        self._sent += 1
+        goal = Goal(
+            f"{self.goal.goal_id.split('#wsnav')[0]}#wsnav{self._sent}", self.goal.pose, self.goal.label
+        )
+        self._ours.add(goal.goal_id)
+        why = "a zone on the plan changed" if on_plan else "a zone cleared"
+        return [Resend(goal, why)]
+
+    def status(self, pose: Pose, now: float) -> RobotStatus:
+        x, y, yaw = pose
+        label = None if self.goal is None else self.goal.label
+        if label is not None and not isinstance(label, str):
+            label = (round(label[0], 3), round(label[1], 3), round(label[2], 3))
+        return RobotStatus(
+            robot=self.robot_id,
+            state=self.state,
+            pose=(round(x, 3), round(y, 3), round(yaw, 3)),
+            goal=label,
+            blocked_zones=self.feed.layer.blocked_zones(),
+            replans=self.replans,
+            plan_length_m=round(self.plan_length_m, 3) if self.plan_length_m is not None else None,
+            reason=self.reason[:200] if self.reason else None,
+            t=round(now, 3),
+        )
+
+    # -- internals -----------------------------------------------------------------------------------------
+
+    def _cancel_if_blocked(self) -> list[Action]:
+        if self.goal is None:
+            return []
+        x, y, _ = self.goal.pose
+        if not (math.isfinite(x) and math.isfinite(y)):
+            return []
+        zones = self.feed.blocked_zones_at(x, y)
+        if not zones:
+            return []
+        label = self.goal.label if isinstance(self.goal.label, str) else f"[{x:.2f}, {y:.2f}]"
+        self.state, self.reason = "cancelled", f"goal {label} lies in blocked zone {', '.join(zones)}"
+        return [Cancel(self.goal.goal_id, self.reason)]
+
+    def _crosses(self, change: ZoneChange) -> bool:
+        w = change.window
+        cells = self._plan_cells
+        if len(cells) == 0:
+            return False
+        inside = (
+            (cells[:, 0] >= w.row0)
+            & (cells[:, 0] < w.row1)
+            & (cells[:, 1] >= w.col0)
+            & (cells[:, 1] < w.col1)
+        )
+        return bool(inside.any())

@@ -1,0 +1,70 @@
+"""MQTT zone messages through the robot agent's own validating intake into its zone layer, as changed windows.
+
+The ROS bridge keeps exactly the layer a wsnav robot keeps (same intake, same staleness and fusion rules); this is
+only the bookkeeping the ROS side needs: the current costs of the whole grid, and which windows really changed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from robot_agent.zone_geometry import Bounds, CellWindow, GridFrame
+from robot_agent.zone_intake import ZoneIntake
+from robot_agent.zone_layer import ZoneLayer
+from runtime.bus import Message
+from schemas.site_file import SiteFile
+
+
+@dataclass(frozen=True)
+class ZoneChange:
+    window: Bounds
+    cheaper: bool
+    """Some cell of the window got cheaper (a zone cleared): a shorter way may have opened."""
+
+
+class ZoneFeed:
+    def __init__(self, spec: SiteFile, frame: GridFrame) -> None:
+        self.frame = frame
+        self.layer = ZoneLayer(spec, frame, spec.policy)
+        self.intake = ZoneIntake(spec, self.layer)
+        self.costs: NDArray[np.uint8] = np.zeros((frame.height, frame.width), dtype=np.uint8)
+        """The zone layer's cost of every cell of the map, as last sent."""
+
+    def subscriptions(self) -> list[str]:
+        return self.intake.subscriptions()
+
+    def take(self, messages: list[Message], now: float) -> list[ZoneChange]:
+        """Apply the messages, age the layer to `now`, and return the windows whose costs changed."""
+        for message in messages:
+            self.intake.handle(message)
+        self.layer.refresh(now)
+        out: list[ZoneChange] = []
+        for window in self.layer.take_changes():
+            old = self.costs[window.rows, window.cols]
+            new = self.layer.paint(window)
+            if np.array_equal(old, new):
+                continue
+            cheaper = bool((new < old).any())
+            self.costs[window.rows, window.cols] = new
+            out.append(ZoneChange(window, cheaper))
+        return out
+
+    def blocked_zones_at(self, x: float, y: float) -> list[str]:
+        """Blocked zones (and operator polygon blocks, as `operator/<id>`) whose cells hold the point."""
+        row, col = self.frame.world_to_cell(x, y)
+        if not self.frame.contains_cell(row, col):
+            return []
+        out = [z for z in self.layer.blocked_zones() if _in_window(self.layer.zone_window(z), row, col)]
+        for block_id in self.layer.active_blocks():
+            window = self.layer.block_window(block_id)
+            if window is not None and _in_window(window, row, col):
+                out.append(f"operator/{block_id}")
+        return out
+
+
+def _in_window(window: CellWindow, row: int, col: int) -> bool:
+    r, c = row - window.row0, col - window.col0
+    return 0 <= r < window.mask.shape[0] and 0 <= c < window.mask.shape[1] and bool(window.mask[r, c])

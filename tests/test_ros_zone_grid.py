@@ -1,0 +1,71 @@
+"""The zone grid's encoding, checked against costmap_2d's StaticLayer as transcribed from its C++ (no ROS needed)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robot_agent.zone_geometry import Bounds
+from ros_bridge.zone_grid import UnrepresentableCost, UpdateWindow, ZoneGridCodec
+from tests.costmap2d_model import LETHAL, NO_INFORMATION, StaticLayerModel, interpret_value
+
+
+def test_every_cost_the_zone_layer_makes_comes_back_out_of_the_static_layer() -> None:
+    codec = ZoneGridCodec()
+    costs = [0, LETHAL, NO_INFORMATION, 200, 127, 50, 251]
+    values = codec.encode(np.array(costs, dtype=np.uint8))
+    assert [interpret_value(int(v)) for v in values] == costs
+    assert (
+        values[0] == 0 and values[1] == 100 and values[2] == -1
+    )  # clear, lethal, unknown as ROS users expect
+
+
+def test_a_caution_cost_no_value_maps_onto_is_refused_with_the_nearest_that_work() -> None:
+    codec = ZoneGridCodec()
+    with pytest.raises(UnrepresentableCost, match=r"zone cost 1 \(nearest that work: 0 or 2\)"):
+        codec.check({1, 200})
+    representable = [c for c in range(1, 254) if c in {interpret_value(v) for v in range(100)}]
+    assert len(representable) == 99
+    codec.check(set(representable))
+
+
+def test_two_updates_between_costmap_cycles_both_reach_the_master() -> None:
+    """costmap_2d keeps only the last update's bounds: without the hold, the first change never reaches the master."""
+    h, w = 20, 30
+    walls = np.zeros((h, w), dtype=np.uint8)
+    walls[0, :] = LETHAL
+    zones = np.zeros((h, w), dtype=np.uint8)
+    codec = ZoneGridCodec()
+
+    def run(hold_s: float) -> np.ndarray:
+        layer, master = StaticLayerModel(), walls.copy()
+        layer.incoming_map(w, h, codec.encode(zones).ravel().tolist())
+        layer.update_master_with_max(master, walls)
+        window = UpdateWindow(hold_s)
+        costs = zones.copy()
+        for t, area in [(0.0, Bounds(2, 2, 5, 6)), (0.1, Bounds(10, 20, 14, 25))]:
+            costs[area.rows, area.cols] = LETHAL
+            sent = window.add([area], t)
+            assert sent is not None
+            data = codec.encode(costs[sent.rows, sent.cols]).ravel().tolist()
+            layer.incoming_update(sent.col0, sent.row0, sent.shape[1], sent.shape[0], data)
+        layer.update_master_with_max(master, walls)  # one cycle after both updates
+        return master
+
+    expected = walls.copy()
+    expected[2:5, 2:6] = LETHAL
+    expected[10:14, 20:25] = LETHAL
+    assert np.array_equal(run(hold_s=1.0), expected)
+    assert not np.array_equal(run(hold_s=0.0), expected)  # what a plain per-change update would lose
+
+
+def test_walls_stay_walls_and_unknown_zones_change_nothing_in_the_master() -> None:
+    walls = np.zeros((4, 4), dtype=np.uint8)
+    walls[0, 0] = LETHAL
+    zones = np.full((4, 4), NO_INFORMATION, dtype=np.uint8)
+    zones[3, 3] = 0
+    zones[2, 2] = 200
+    layer, master = StaticLayerModel(), walls.copy()
+    layer.incoming_map(4, 4, ZoneGridCodec().encode(zones).ravel().tolist())
+    layer.update_master_with_max(master, walls)
+    assert master[0, 0] == LETHAL and master[2, 2] == 200 and master[3, 3] == 0 and master[1, 1] == 0
