@@ -1,0 +1,232 @@
+# pyright: reportMissingImports=false
+"""`wsnav ros bridge` against a real roscore and the real broker: the zone grid a stock costmap_2d StaticLayer
+builds from /wsn/zone_grid and its updates equals wsnav's own zone layer, event after event.
+
+The bridge runs as its own process; the test process is a ROS node that applies OccupancyGrid and
+OccupancyGridUpdate as costmap_2d's StaticLayer does (tests/costmap2d_model.py, from the C++), and an MQTT
+client per node and for the operator. The reference is a zone layer in the test fed the same messages: the site's
+heartbeat is long, so staleness comes only from node wills, and nothing depends on the machine's speed.
+"""
+
+from __future__ import annotations
+
+import random
+import shutil
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from broker.embedded import BrokerThread
+from robot_agent.zone_geometry import GridFrame
+from ros_bridge.zone_feed import ZoneFeed
+from runtime.bus import Message
+from runtime.mqtt_bus import MqttBus, connect_with_credentials
+from schemas import topics
+from schemas.messages import NodeStatus, OperatorBlock, ZoneState
+from schemas.site import load_site
+from tests.conftest import SITES, require_tool
+from tests.costmap2d_model import StaticLayerModel
+from tests.ros_fixtures import RosMaster, stop_process_group, wait_until
+
+EVENTS = 100
+
+
+def slow_heartbeat_school(directory: Path) -> Path:
+    """The school site with a 10-minute heartbeat and stale nodes read as unknown (-1 on the grid)."""
+    site_dir = directory / "school"
+    shutil.copytree(SITES / "school", site_dir)
+    spec = yaml.safe_load((site_dir / "site.yaml").read_text())
+    spec["heartbeat_s"] = 600.0
+    spec["policy"] = {**spec.get("policy", {}), "stale": "unknown"}
+    (site_dir / "site.yaml").write_text(yaml.safe_dump(spec, sort_keys=False))
+    return site_dir
+
+
+class Bridge:
+    """`wsnav ros bridge` as a child process; its output lines are kept for the test to read."""
+
+    def __init__(self, args: list[str], env: dict[str, str]) -> None:
+        self.lines: list[str] = []
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "wsnav.cli", "ros", "bridge", *args],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            start_new_session=True,
+        )
+        threading.Thread(target=self._pump, daemon=True).start()
+
+    def _pump(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line.rstrip("\n"))
+
+    def wait_for(self, text: str, timeout_s: float = 30.0) -> None:
+        wait_until(
+            lambda: any(text in line for line in self.lines) or self.proc.poll() is not None,
+            timeout_s,
+            f"bridge line {text!r}",
+        )
+        assert any(text in line for line in self.lines), "\n".join(self.lines)
+
+    def stop(self) -> None:
+        stop_process_group(self.proc)
+
+
+@pytest.fixture
+def school_broker(tmp_path: Path) -> Iterator[tuple[Path, BrokerThread]]:
+    site_dir = slow_heartbeat_school(tmp_path)
+    with BrokerThread(site_dir) as broker:
+        yield site_dir, broker
+
+
+def bridge_args(site_dir: Path, broker: BrokerThread, *extra: str) -> list[str]:
+    return [
+        "--site",
+        str(site_dir),
+        "--broker",
+        f"{broker.host}:{broker.port}",
+        "--credentials",
+        str(broker.credentials_dir / "robot1.json"),
+        "--map-wait",
+        "0",
+        *extra,
+    ]
+
+
+class StaticLayerPeer:
+    """The test node's subscriber: the zone grid as a stock StaticLayer holds it."""
+
+    def __init__(self, namespace: str = "/wsn") -> None:
+        import rospy
+        from map_msgs.msg import OccupancyGridUpdate
+        from nav_msgs.msg import OccupancyGrid
+
+        self.layer = StaticLayerModel()
+        self.grids = 0
+        self.update_cells: list[int] = []
+        self.size = (0, 0)
+        self.lock = threading.Lock()
+        self._subs = [
+            rospy.Subscriber(f"{namespace}/zone_grid", OccupancyGrid, self._grid, queue_size=2),
+            rospy.Subscriber(
+                f"{namespace}/zone_grid_updates", OccupancyGridUpdate, self._update, queue_size=50
+            ),
+        ]
+
+    def _grid(self, msg: Any) -> None:
+        with self.lock:
+            self.grids += 1
+            self.size = (msg.info.width, msg.info.height)
+            self.layer.incoming_map(msg.info.width, msg.info.height, msg.data)
+
+    def _update(self, msg: Any) -> None:
+        with self.lock:
+            self.update_cells.append(msg.width * msg.height)
+            self.layer.incoming_update(msg.x, msg.y, msg.width, msg.height, msg.data)
+
+    def grid(self) -> np.ndarray | None:
+        with self.lock:
+            return None if self.layer.costmap is None else self.layer.costmap.copy()
+
+    def close(self) -> None:
+        for sub in self._subs:
+            sub.unregister()
+
+
+def test_the_static_layer_grid_equals_the_zone_layer_after_100_random_events(
+    ros_node: RosMaster, school_broker: tuple[Path, BrokerThread]
+) -> None:
+    site_dir, broker = school_broker
+    site = load_site(site_dir)
+    grid = site.grid
+    frame = GridFrame(grid.width, grid.height, grid.resolution, grid.origin[0], grid.origin[1])
+    reference = ZoneFeed(site.spec, frame)
+    nodes: dict[str, MqttBus] = {
+        n.id: connect_with_credentials(broker.host, broker.port, broker.credentials(n.id))
+        for n in site.spec.nodes
+    }
+    operator = connect_with_credentials(broker.host, broker.port, broker.credentials("operator"))
+    # no hold: each update is exactly the window that changed (the hold is tested in test_ros_zone_grid.py)
+    bridge = Bridge(bridge_args(site_dir, broker, "--update-hold", "0"), ros_node.env())
+    peer: StaticLayerPeer | None = None
+    try:
+        bridge.wait_for("zone bridge for site school")
+        echo = subprocess.run(
+            ["rostopic", "echo", "-n", "1", "/wsn/zone_grid/info"],
+            env=ros_node.env(),
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+        )
+        assert f"width: {grid.width}" in echo.stdout and f"height: {grid.height}" in echo.stdout, echo
+        require_tool("rostopic")
+        peer = StaticLayerPeer()
+        wait_until(lambda: peer is not None and peer.grid() is not None, 20, "the whole grid on subscribe")
+        rng = random.Random(20261123)
+        seq = dict.fromkeys(nodes, 1000)
+        t = 0.0
+        seen: set[int] = set()
+
+        def send(bus: MqttBus, topic: str, payload: bytes) -> None:
+            nonlocal t
+            t += 0.01
+            bus.publish(topic, payload, qos=1, retain=True)
+            reference.take([Message(topic, payload, True, t)], t)
+
+        for i in range(EVENTS):
+            kind = rng.choice(["state", "state", "state", "offline", "online", "block", "unblock"])
+            node = rng.choice(site.spec.nodes)
+            if kind == "state":
+                seq[node.id] += 1
+                msg = ZoneState(
+                    zone=node.zone,
+                    node=node.id,
+                    state=rng.choice(["clear", "caution", "blocked"]),
+                    seq=seq[node.id],
+                )
+                send(nodes[node.id], topics.zone_state(site.name, node.zone, node.id), msg.to_payload())
+            elif kind in ("offline", "online"):
+                status = NodeStatus(node=node.id, status=kind)
+                send(nodes[node.id], topics.node_status(site.name, node.id), status.to_payload())
+            elif kind == "block":
+                block_id = f"b{rng.randrange(3)}"
+                if rng.random() < 0.5:
+                    block = OperatorBlock(zone=rng.choice(site.spec.zones).id)
+                else:
+                    x, y = rng.uniform(2, 45), rng.uniform(2, 28)
+                    block = OperatorBlock(
+                        polygon=[(x, y), (x + rng.uniform(0.5, 4), y), (x, y + rng.uniform(0.5, 4))]
+                    )
+                send(operator, topics.operator_block(site.name, block_id), block.to_payload())
+            else:
+                send(operator, topics.operator_block(site.name, f"b{rng.randrange(3)}"), b"")
+            expected = reference.costs
+            seen.update(int(c) for c in np.unique(expected))
+            wait_until(
+                lambda: np.array_equal(peer.grid(), expected),  # noqa: B023  (checked before the next event)
+                10,
+                f"event {i} ({kind}) to reach the StaticLayer",
+            )
+        assert peer.grids == 1, "a change must travel as an update, never as the whole grid again"
+        whole = grid.width * grid.height
+        # one zone's window, or the box around the two zones a moved operator block touched at once
+        assert peer.update_cells and float(np.median(peer.update_cells)) < whole / 100, peer.update_cells
+        assert max(peer.update_cells) < whole / 2, peer.update_cells
+        assert seen >= {0, 200, 254, 255}, seen  # clear, caution, blocked and unknown all travelled
+    finally:
+        if peer is not None:
+            peer.close()
+        bridge.stop()
+        operator.close()
+        for bus in nodes.values():
+            bus.close()
