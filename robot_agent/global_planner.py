@@ -22,7 +22,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from robot_agent.inflation import INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
-from robot_agent.zone_geometry import Bounds
+from robot_agent.zone_geometry import Bounds, GridFrame
 
 _PYASTAR: Any = importlib.import_module("pyastar2d.astar")
 """The compiled module behind pyastar2d.astar_path."""
@@ -124,11 +124,12 @@ def plan_path(
     t0 = time.perf_counter()
     height, width = costs.shape
     ox, oy = float(origin[0]), float(origin[1])
-    s = _cell(start, resolution, ox, oy)
-    g = _cell(goal, resolution, ox, oy)
-    if not (0 <= s[0] < height and 0 <= s[1] < width):
+    frame = GridFrame(width, height, resolution, ox, oy)
+    s = frame.world_to_cell(*start)
+    g = frame.world_to_cell(*goal)
+    if not frame.contains_cell(*s):
         return Plan(False, "start_outside", plan_ms=_ms(t0))
-    if not (0 <= g[0] < height and 0 <= g[1] < width):
+    if not frame.contains_cell(*g):
         return Plan(False, "goal_outside", plan_ms=_ms(t0))
     w = weights if weights is not None else weights_for(costs, p)
     if not np.isfinite(w[g]):
@@ -242,10 +243,6 @@ def simplify(path: NDArray[np.float64], tolerance_m: float) -> NDArray[np.float6
             keep[i + 1 + k] = True
             stack += [(i, i + 1 + k), (i + 1 + k, j)]
     return path[keep]
-
-
-def _cell(xy: XY, resolution: float, ox: float, oy: float) -> tuple[int, int]:
-    return int(np.floor((xy[1] - oy) / resolution)), int(np.floor((xy[0] - ox) / resolution))
 
 
 def _ms(t0: float) -> float:
