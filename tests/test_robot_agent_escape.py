@@ -20,7 +20,7 @@ from robot_agent.offline_plan import frame_of
 from robot_agent.zone_escape import ESCAPE_COST, ZoneEscape, plan_escape
 from robot_agent.zone_layer import BlockedArea, ZoneLayer
 from schemas import topics
-from schemas.messages import SimObstacle, SimWorld, ZoneState
+from schemas.messages import OperatorBlock, SimObstacle, SimWorld, ZoneState
 from schemas.site import Site, load_site
 from tests.robot_agent_rig import SCHOOL, Rig, distance_to_polygon
 
@@ -93,6 +93,27 @@ def test_the_escape_view_lets_the_robot_out_of_its_zone_and_never_into_walls_or_
     assert not any(
         0 <= r < zone.mask.shape[0] and 0 <= c < zone.mask.shape[1] and zone.mask[r, c] for r, c in onward
     ), "the route on never goes back into the zone"
+
+
+def test_an_operator_polygon_block_is_left_like_a_zone(school: Site) -> None:
+    layer = ZoneLayer(school.spec, frame_of(school))
+    costmap = LayeredCostmap(school.grid, InflationParams(inscribed_radius=RADIUS), zone_layer=layer)
+    spill = [(30.0, 22.0), (31.0, 22.0), (31.0, 23.5), (30.0, 23.5)]
+    layer.on_operator_block("spill", OperatorBlock(polygon=spill), 0.0)
+    costmap.update_zones(0.0)
+    escape = ZoneEscape(costmap)
+    here = (30.5, 22.8)
+    assert costmap.in_lethal(*here) and escape.areas_at(*here) == [BlockedArea("block", "spill")]
+    view = escape.view(escape.areas_at(*here))
+    assert view is not None
+    row, col = costmap.frame.world_to_cell(*here)
+    assert view.costs[row - view.bounds.row0, col - view.bounds.col0] < INSCRIBED_INFLATED_OBSTACLE
+    plan = plan_escape(GlobalPlanner(PlannerParams(), 3), costmap, view, here, school.point("B")[:2])
+    assert plan.out.reachable and escape.areas_at(*plan.out.path[-1]) == []
+    # Once the block is removed, there is nothing to leave.
+    layer.on_operator_block("spill", None, 1.0)
+    costmap.update_zones(1.0)
+    assert escape.areas_at(*here) == [] and escape.view([BlockedArea("block", "spill")]) is None
 
 
 def set_world(rig: Rig, obstacles: dict[str, list[tuple[float, float]]]) -> None:
