@@ -142,7 +142,7 @@ def test_zone_costs_are_painted_by_policy(school: Site) -> None:
     assert costmap.cost_at(-100.0, -100.0) == NO_INFORMATION
 
 
-def test_zones_at_names_a_zone_the_robot_would_touch_and_operator_polygons(school: Site) -> None:
+def test_areas_at_names_a_zone_the_robot_would_touch_and_operator_polygons(school: Site) -> None:
     costmap, layer = school_costmap(school)
     layer.on_operator_block("spill", OperatorBlock(polygon=[(30, 22), (31, 22), (31, 23.5), (30, 23.5)]), 0.0)
     layer.on_zone_state(ZoneState(zone="z1", node="n2", state="blocked", seq=7), 0.0)
