@@ -26,11 +26,14 @@ from robot_agent.backend import Pose, RobotBackend
 from robot_agent.controller import ControllerParams, PathFollower
 from robot_agent.costmap_planner import GlobalPlanner
 from robot_agent.layered_costmap import LayeredCostmap
-from robot_agent.navigator import Every, GoalLabel, Navigator, NavigatorParams
+from robot_agent.navigator import GoalLabel, Navigator, NavigatorParams
+from robot_agent.zone_escape import ZoneEscape
+from robot_agent.zone_geometry import GridFrame
 from robot_agent.zone_intake import ZoneIntake
 from robot_agent.zone_layer import ZoneLayer
 from runtime.bus import Bus, Message
 from runtime.clock import Clock
+from runtime.timers import Every
 from schemas import topics
 from schemas.messages import (
     MAX_OPERATOR_PAYLOAD_BYTES,
@@ -104,13 +107,12 @@ class RobotAgent:
         inflation = config.inflation.params(radius)
         self.zone_layer: ZoneLayer | None = None
         self.intake: ZoneIntake | None = None
-        self.costmap = LayeredCostmap(site.grid, inflation, obstacle_layer=config.obstacle_layer)
         if config.zone_layer:
-            self.zone_layer = ZoneLayer(site.spec, self.costmap.frame, site.spec.policy)
-            self.costmap = LayeredCostmap(
-                site.grid, inflation, zone_layer=self.zone_layer, obstacle_layer=config.obstacle_layer
-            )
+            self.zone_layer = ZoneLayer(site.spec, GridFrame.of_grid(site.grid), site.spec.policy)
             self.intake = ZoneIntake(site.spec, self.zone_layer)
+        self.costmap = LayeredCostmap(
+            site.grid, inflation, zone_layer=self.zone_layer, obstacle_layer=config.obstacle_layer
+        )
         controller = PathFollower(
             ControllerParams(
                 inscribed_radius=radius,
@@ -131,6 +133,7 @@ class RobotAgent:
                 local_costmap_size_m=config.local_costmap_size_m,
             ),
             blocked_zones=self.blocked_zones,
+            escape=ZoneEscape(self.costmap) if self.zone_layer is not None else None,
         )
         self.sim_world = sim_world
         self.on_status = on_status

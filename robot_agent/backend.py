@@ -31,6 +31,16 @@ class LaserScan:
 
 
 @dataclass(frozen=True)
+class DriveLimits:
+    """How fast the robot may go and accelerate; defaults are TurtleBot3 Burger's (as its Nav2 configuration)."""
+
+    max_linear: float = 0.22
+    max_angular: float = 2.84
+    linear_accel: float = 2.5
+    angular_accel: float = 3.2
+
+
+@dataclass(frozen=True)
 class Velocity:
     linear: float
     """m/s, forward positive."""

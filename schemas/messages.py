@@ -1,4 +1,4 @@
-"""Pydantic models of every MQTT payload in the wsnav contract (DESIGN.md, "MQTT contract").
+"""Pydantic models of every MQTT payload in the wsnav contract (docs/architecture.md, "The message contract").
 
 Payloads are small JSON objects with a version field `v`; unknown fields are refused so that a typo on a node
 is noticed instead of silently ignored.

@@ -1,4 +1,4 @@
-"""The layering DESIGN.md asks for, read from the source: no component imports the wsnav CLI, and robot_agent and
+"""The layering docs/architecture.md describes, read from the source: no component imports the wsnav CLI, and robot_agent and
 zone_sim never import each other (a violation would tie a robot's install to the CLI or to the simulator)."""
 
 from __future__ import annotations
