@@ -289,6 +289,7 @@ def ros_session(args: argparse.Namespace, site: Site, robot_id: str, start: Pose
 
     def close() -> None:
         backend.close()
+        time.sleep(0.2)  # the last zero velocity leaves before the node goes (the base's watchdog: backstop)
         rospy.signal_shutdown("wsnav robot done")
 
     return RobotSession(backend, tick, f"ROS robot on {uri} ({topics.cmd_vel})", close=close)

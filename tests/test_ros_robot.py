@@ -129,9 +129,10 @@ def test_wsnav_robot_ros_drives_the_ros_sim_around_a_zone_blocked_mid_route(
             )
             first = robot.wait_for(" navigating ", 30)
             assert "plan=10." in first  # straight along the corridor, through z8
-            wait_until(lambda: len(track.poses) > 0, 10, "odometry at the test node")
+            # Under way towards z8: block it now, while it is beyond the lidar's reach (only the node can tell).
+            wait_until(lambda: bool(track.poses) and track.poses[-1][0] > 22.25, 20, "the robot under way")
             x, y = track.poses[-1]
-            assert distance_to_polygon(LIBRARY_ZONE, x, y) > LIDAR_RANGE_M  # only the node can tell it
+            assert distance_to_polygon(LIBRARY_ZONE, x, y) > LIDAR_RANGE_M
 
             operator, node = connect(broker, "operator"), connect(broker, "n10")
             world = SimWorld(t=0.0, obstacles=[SimObstacle(id="ob-z8", zone="z8", polygon=LIBRARY_ZONE)])
@@ -152,6 +153,9 @@ def test_wsnav_robot_ros_drives_the_ros_sim_around_a_zone_blocked_mid_route(
     blocked = [line for line in robot.lines if "blocked=z8" in line]
     assert blocked, "\n".join(robot.lines)
     detour = float(blocked[0].split("plan=")[1].split("m")[0])
+    assert (
+        float(blocked[0].split("pose=[")[1].split(",")[0]) > 22.25
+    )  # replanned under way, not before leaving
     assert 14.0 < detour < 18.0, blocked[0]  # through the library
     assert " arrived " in robot.lines[-1]
     gx, gy, _ = (float(v) for v in GOAL.split(","))
