@@ -197,6 +197,11 @@ def test_the_ros_sim_drives_on_cmd_vel_stops_when_it_falls_silent_and_bumps_into
             )
             assert math.isinf(scans[-1].ranges[0])  # the corridor ahead is open beyond the lidar's range
             x0 = odoms[-1].pose.pose.position.x
+            for _ in range(3):  # a hostile or broken driver: not a number is no motion
+                cmd.publish(Twist(linear=Vector3(x=math.nan), angular=Vector3(z=math.inf)))
+                time.sleep(0.1)
+            assert odoms[-1].twist.twist.linear.x == 0.0 and odoms[-1].twist.twist.angular.z == 0.0
+            assert sim.proc.poll() is None
 
             def drive(speed: float, until: Callable[[], bool], what: str) -> None:
                 deadline = time.monotonic() + 15
@@ -256,14 +261,34 @@ def test_the_ros_backend_takes_tf_s_map_pose_else_odometry_from_start_and_stops_
     odom_pub = rospy.Publisher("/fb/odom", Odometry, queue_size=5)
     commands: list[Twist] = []
     cmd_sub = rospy.Subscriber("/fb/cmd_vel", Twist, commands.append, queue_size=20)
-    try:
-        wait_until(lambda: odom_pub.get_num_connections() > 0, 10, "the backend's /fb/odom subscription")
+    speaking = threading.Event()
+    speaking.set()
+
+    def odometry() -> None:  # the base's driver, at 20 Hz while `speaking`
         odom = Odometry()
         odom.header.frame_id, odom.child_frame_id = "fb_odom", "fb_base"
         odom.pose.pose.position.x = 1.0
         odom.pose.pose.orientation.w = 1.0
         odom.twist.twist.linear.x = 0.2
-        odom_pub.publish(odom)
+        while speaking.is_set():
+            odom_pub.publish(odom)
+            time.sleep(0.05)
+
+    def sent(velocity: Velocity) -> tuple[float, float]:
+        """What reaches /fb/cmd_vel when the agent commands `velocity`."""
+        n = len(commands)
+
+        def arrived() -> bool:
+            backend.command(velocity)
+            return len(commands) > n
+
+        wait_until(arrived, 5, f"a /fb/cmd_vel command for {velocity}", step_s=0.05)
+        return commands[-1].linear.x, commands[-1].angular.z
+
+    driver = threading.Thread(target=odometry, daemon=True)
+    try:
+        wait_until(lambda: odom_pub.get_num_connections() > 0, 10, "the backend's /fb/odom subscription")
+        driver.start()
         wait_until(backend.has_odometry, 5, "odometry at the backend")
         # No fb_map frame on tf: odometry, placed on the map where --start says it began.
         x, y, yaw = backend.pose()
@@ -285,15 +310,16 @@ def test_the_ros_backend_takes_tf_s_map_pose_else_odometry_from_start_and_stops_
         assert backend.pose()[2] == pytest.approx(0.5)
         assert said[-1] == "pose from tf fb_map -> fb_base"
 
-        backend.command(Velocity(0.1, 0.3))
-        wait_until(lambda: bool(commands), 5, "a /fb/cmd_vel command")
-        assert (commands[-1].linear.x, commands[-1].angular.z) == (0.1, 0.3)
-        time.sleep(ODOM_SILENCE_S + 0.1)  # odometry falls silent: nothing but zero goes out
-        backend.command(Velocity(0.1, 0.3))
-        wait_until(lambda: len(commands) >= 2, 5, "a second /fb/cmd_vel command")
-        assert (commands[-1].linear.x, commands[-1].angular.z) == (0.0, 0.0)
+        assert sent(Velocity(0.1, 0.3)) == (0.1, 0.3)
+        assert sent(Velocity(5.0, -9.0)) == (0.22, -2.84)  # the Burger's limits
+        assert sent(Velocity(math.nan, math.inf)) == (0.0, 0.0)
+        speaking.clear()  # the driver dies: nothing but zero goes out
+        driver.join()
+        time.sleep(ODOM_SILENCE_S + 0.1)
+        assert sent(Velocity(0.1, 0.3)) == (0.0, 0.0)
         assert said[-1].startswith("no odometry on /fb/odom for 0.5 s")
     finally:
+        speaking.clear()
         backend.close()
         odom_pub.unregister()
         cmd_sub.unregister()
