@@ -78,6 +78,7 @@ class RosRobotBackend:
         self._rospy = rospy
         self._twist = Twist
         self._lock = threading.Lock()
+        """Guards the pose's bookkeeping (map -> odom, its source)."""
         self._odom: _Odom | None = None
         self._scan: LaserScan | None = None
         self._map_to_odom = map_to_odom
@@ -106,17 +107,18 @@ class RosRobotBackend:
         return self.limits.radius
 
     def pose(self) -> Pose:
-        odom = self._odom
-        if odom is None:
-            return self._map_to_odom
-        try:
-            pose = self._lookup(self.topics.map_frame, self.topics.base_frame, None)
-        except self._tf_error:
-            self._set_source("odom")
-            return compose(self._map_to_odom, odom.pose)
-        self._set_source("tf")
-        self._map_to_odom = compose(pose, invert(odom.pose))
-        return pose
+        with self._lock:  # the agent's loop and the scan callback both ask
+            odom = self._odom
+            if odom is None:
+                return self._map_to_odom
+            try:
+                pose = self._lookup(self.topics.map_frame, self.topics.base_frame, None)
+            except self._tf_error:
+                self._set_source("odom")
+                return compose(self._map_to_odom, odom.pose)
+            self._set_source("tf")
+            self._map_to_odom = compose(pose, invert(odom.pose))
+            return pose
 
     def velocity(self) -> Velocity:
         odom = self._odom
