@@ -30,7 +30,9 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     )
     robot.add_argument("--sim", action="store_true", help="drive a simulated TurtleBot3 in real time")
     robot.add_argument(
-        "--start", metavar="POINT", help="named point, x,y or x,y,yaw: where the simulated robot stands"
+        "--start",
+        metavar="POINT",
+        help="named point, x,y or x,y,yaw: where the robot starts (needed with --sim)",
     )
     robot.add_argument("--goal", metavar="POINT", help="go there at once (more goals come over MQTT)")
     robot.add_argument(
