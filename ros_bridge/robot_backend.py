@@ -5,9 +5,10 @@ TurtleBot3 (or `wsnav sim --ros`) where no move_base runs.
 In: `/odom` (nav_msgs/Odometry: velocity, and the pose when no map frame exists), `/scan` (sensor_msgs/LaserScan),
 tf. Out: `/cmd_vel` (geometry_msgs/Twist). The pose is tf's map -> base_footprint (amcl, a SLAM node, or the
 simulator's identity map -> odom). Where tf has no map frame, the pose is /odom's composed with a fixed map -> odom
-(`--start`: where odometry began on the map; identity without it); if tf loses the map frame after having had
-it, the last map -> odom it gave is kept, so the robot dead-reckons on odometry instead of jumping. A robot whose
-odometry falls silent is not driven blind: commands become zero until it speaks again.
+(`--start`: where odometry began on the map; identity without it); if tf's map pose stops being current (more
+than MAP_POSE_MAX_AGE_S old) the last map -> odom it gave is kept, so the robot dead-reckons on odometry instead of
+holding a frozen pose or jumping. A robot whose odometry falls silent is not driven blind: commands become zero
+until it speaks again.
 """
 
 from __future__ import annotations
@@ -30,6 +31,9 @@ from schemas.site import Site
 
 ODOM_SILENCE_S = 0.5
 """Odometry older than this stops the robot (the TurtleBot3's own cmd_vel watchdog is of this order)."""
+MAP_POSE_MAX_AGE_S = 1.0
+"""tf's map pose older than this (localization stopped, its map -> odom no longer refreshed) is not used: the
+robot dead-reckons on odometry from the last map -> odom instead of holding a frozen pose."""
 TF_SETTLE_S = 1.0
 """After the first odometry, how long tf gets to show a map frame before the pose falls back to odometry."""
 
@@ -112,7 +116,7 @@ class RosRobotBackend:
             if odom is None:
                 return self._map_to_odom
             try:
-                pose = self._lookup(self.topics.map_frame, self.topics.base_frame, None)
+                pose = self._lookup(self.topics.map_frame, self.topics.base_frame, None, MAP_POSE_MAX_AGE_S)
             except self._tf_error:
                 self._set_source("odom")
                 return compose(self._map_to_odom, odom.pose)
@@ -214,9 +218,12 @@ class RosRobotBackend:
         self._laser_offset[laser_frame] = offset
         return offset
 
-    def _lookup(self, target: str, source: str, stamp: Any) -> Pose:
-        when = stamp if stamp is not None else self._rospy.Time(0)
-        t = self._tf.lookup_transform(target, source, when)
+    def _lookup(self, target: str, source: str, stamp: Any, max_age_s: float | None = None) -> Pose:
+        """`target` -> `source` at `stamp` (None: the newest tf has; older than `max_age_s` counts as missing)."""
+        rospy = self._rospy
+        t = self._tf.lookup_transform(target, source, stamp if stamp is not None else rospy.Time(0))
+        if max_age_s is not None and (rospy.Time.now() - t.header.stamp).to_sec() > max_age_s:
+            raise self._tf_error(f"{target} -> {source} is {max_age_s:g} s old")
         tr = t.transform.translation
         return (tr.x, tr.y, yaw_of(t.transform.rotation))
 
@@ -228,7 +235,7 @@ class RosRobotBackend:
         else:
             x, y, yaw = self._map_to_odom
             self._say(
-                f"no {self.topics.map_frame} frame on tf: pose from {self.topics.odom} with "
+                f"no current {self.topics.map_frame} -> {self.topics.base_frame} on tf: pose from {self.topics.odom} with "
                 f"{self.topics.map_frame} -> odom at [{x:.2f}, {y:.2f}, {yaw:.2f}]"
             )
         self.pose_source = source
