@@ -1,6 +1,6 @@
 """The interface between the agent and a robot: where it is, what its lidar sees, the velocity it is told.
 
-The simulated TurtleBot3 implements it now; a ROS backend (odometry/tf, /scan, /cmd_vel) can later.
+The simulated TurtleBot3 implements it, and so does ros_bridge.robot_backend over ROS (tf/odometry, /scan, /cmd_vel).
 The agent never steps a robot: whoever owns the world (a real-time loop, the experiment) advances the simulation.
 """
 
