@@ -103,6 +103,17 @@ class MqttBus:
         """Queued by paho while disconnected (QoS 1 is sent after reconnecting)."""
         self._client.publish(topic, payload, qos=qos, retain=retain)
 
+    def publish_confirmed(
+        self, topic: str, payload: bytes, *, retain: bool = False, timeout_s: float = 10.0
+    ) -> bool:
+        """QoS 1, waiting for the broker's PUBACK: a command that exits right after can say it was delivered."""
+        info = self._client.publish(topic, payload, qos=1, retain=retain)
+        try:
+            info.wait_for_publish(timeout_s)
+        except (RuntimeError, ValueError):  # not connected, or the queue refused it
+            return False
+        return info.is_published()
+
     def subscribe(self, topic_filter: str, qos: int = 1) -> None:
         self._filters[topic_filter] = qos
         if self._connected.is_set():
