@@ -127,7 +127,10 @@ class LiveState:
                 next_tick = mono + TICK_S
                 with self.lock:
                     now = self.clock.now()
-                    dirty |= self.view.expire(now)
+                    expired = self.view.expire(now)
+                dirty |= expired
+                self._forget_expired(expired)
+                with self.lock:
                     states = self.view.zone_states(now)
                     now_fresh = {n: self.view.node_fresh(v, now) for n, v in self.view.nodes.items()}
                 dirty |= {("zone", z) for z, s in states.items() if zone_states.get(z) != s}
@@ -138,6 +141,12 @@ class LiveState:
                 self._flush(dirty)
                 dirty = set()
                 flush_at = None
+
+    def _forget_expired(self, expired: set[Key]) -> None:
+        """An expired block is cleared from the broker's retained store too, so it is not replayed forever."""
+        for kind, ident in expired:
+            if kind == "block" and self.bus.connected:
+                self.bus.publish(topics.operator_block(self.view.site.name, ident), b"", qos=1, retain=True)
 
     def _flush(self, dirty: set[Key]) -> None:
         event: dict[str, Any] = {

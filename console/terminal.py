@@ -132,6 +132,7 @@ def status_command(args: argparse.Namespace) -> int:
     link, view = _subscribed(args, "status")
     try:
         _gather(link, view, SETTLE_QUIET_S, SETTLE_MAX_S)
+        view.expire(link.clock.now())
         snapshot = view.snapshot(link.clock.now())
     finally:
         link.bus.close()
