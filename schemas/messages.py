@@ -18,6 +18,9 @@ MAX_PAYLOAD_BYTES = 1024
 MAX_OPERATOR_PAYLOAD_BYTES = 8192
 """Operator blocks and the simulated world carry polygons, so they get a larger allowance."""
 
+ROBOT_PATH_POINTS = 24
+"""A robot status carries its path ahead thinned to this many points: it stays well under MAX_PAYLOAD_BYTES."""
+
 ZoneStateValue = Literal["blocked", "clear", "caution"]
 NodeStatusValue = Literal["online", "offline"]
 RobotStateValue = Literal["idle", "navigating", "waiting", "arrived", "cancelled"]
@@ -66,6 +69,9 @@ class RobotStatus(_Message):
     reason: Annotated[str, Field(max_length=200)] | None = None
     """Why the robot is `waiting` or `cancelled`, in words an operator can act on; while `navigating`, set only
     when it is driving out of a zone that became blocked around it (`leaving blocked zone z1`)."""
+    path: Annotated[list[Point2], Field(max_length=ROBOT_PATH_POINTS)] | None = None
+    """The global plan still ahead while navigating, thinned to at most ROBOT_PATH_POINTS points (cm), for
+    operators' maps; the planner keeps the full-resolution plan."""
     t: float | None = None
     """When the status was made, on the site clock: Unix time in a real deployment (so another host can tell
     how old it is), simulated time in simulation."""
