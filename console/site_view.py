@@ -42,6 +42,7 @@ class NodeView:
     zone: str
     heartbeat_s: float
     state: str | None = None
+    seq: int | None = None
     heard_at: float | None = None
     online: bool | None = None
     status_at: float | None = None
@@ -109,7 +110,7 @@ class SiteView:
         node = self.nodes.get(node_id)
         if node is None or msg.node != node_id or msg.zone != node.zone:
             return self._drop(f"zone state of unknown node or wrong zone: {node_id}")
-        node.state, node.heard_at = msg.state, at
+        node.state, node.seq, node.heard_at = msg.state, msg.seq, at
         if node.online is None:
             node.online = True  # a node that speaks is connected, even before its retained birth arrives
         return {("node", node_id), ("zone", node.zone)}
@@ -224,6 +225,7 @@ class SiteView:
                 "id": ident,
                 "zone": n.zone,
                 "state": n.state,
+                "seq": n.seq,
                 "online": n.online,
                 "heard_at": n.heard_at,
                 "age_s": None if n.heard_at is None else round(now - n.heard_at, 1),
