@@ -167,16 +167,17 @@ class ConsoleApp:
         async def wrapped(request: Request) -> Response:
             session = self._session(request)
             basic = request.headers.get("authorization")
-            if session is None:
-                if basic is None:
-                    raise Refused(
-                        401, "log in first (a session cookie or HTTP Basic auth with the operator's password)"
-                    )
+            if basic is not None:  # checked whenever given: it also stands in for the CSRF token below
                 if not self.auth.check_basic(basic):
                     await asyncio.sleep(WRONG_PASSWORD_DELAY_S)
                     raise Refused(401, "wrong username or password")
+                session = None
+            elif session is None:
+                raise Refused(
+                    401, "log in first (a session cookie or HTTP Basic auth with the operator's password)"
+                )
             if write:
-                self._check_write(request, session if basic is None else None)
+                self._check_write(request, session)
             return await handler(request)
 
         return wrapped

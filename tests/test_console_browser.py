@@ -156,6 +156,12 @@ def test_malformed_requests_get_a_clear_4xx_and_change_nothing(page: Any, site_s
         headers={"X-CSRF-Token": csrf, "Content-Type": "text/plain"},
     )
     assert form.status == 415
+    bogus = page.request.post(
+        site_stack.url + "/api/robots/robot1/cancel",
+        data={},
+        headers={"Authorization": "Basic b3BlcmF0b3I6eA=="},
+    )
+    assert bogus.status == 401, "a wrong Basic password next to a session cookie must not stand in for CSRF"
     time.sleep(1.0)
     assert bus.poll() == [], "a refused request published something"
     assert site_stack.state()["blocks"] == before

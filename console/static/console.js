@@ -248,7 +248,7 @@ function scheduleTables() {
   setTimeout(() => {
     tablesDue = false;
     renderTables();
-  }, 200);
+  }, 300);
 }
 
 function renderBanner() {
