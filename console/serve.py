@@ -28,7 +28,13 @@ def console_command(args: argparse.Namespace) -> int:
     )
     live.start()
     config = uvicorn.Config(
-        app.app, host=host, port=port, log_level="warning", access_log=False, lifespan="off"
+        app.app,
+        host=host,
+        port=port,
+        log_level="warning",
+        access_log=False,
+        lifespan="off",
+        timeout_graceful_shutdown=2,  # open pages' event streams never end by themselves
     )
     server = uvicorn.Server(config)
     shown = f"[{host}]" if ":" in host else host

@@ -86,6 +86,7 @@ function drawSite() {
 
 function renderZone(z) {
   state.zones[z.id] = z;
+  dirty.zones.add(z.id);
   const poly = $(`zone-${z.id}`);
   if (poly) {
     poly.setAttribute("class", `zone ${z.state}`);
@@ -101,6 +102,7 @@ function nodeClass(n) {
 
 function renderNode(n) {
   state.nodes[n.id] = n;
+  dirty.nodes.add(n.id);
   const dot = $(`node-${n.id}`);
   if (dot) {
     dot.setAttribute("class", `node ${nodeClass(n)}`);
@@ -110,6 +112,7 @@ function renderNode(n) {
 
 function renderRobot(r) {
   state.robots[r.id] = r;
+  dirty.robots.add(r.id);
   if (!r.pose) return;
   const trail = (state.trails[r.id] = state.trails[r.id] || []);
   if (r.trail) trail.splice(0, trail.length, ...r.trail.map(([x, y]) => [x, y, r.t || 0]));
@@ -149,6 +152,7 @@ function renderRobot(r) {
 
 function renderBlock(b) {
   state.blocks[b.id] = b;
+  dirty.blocks.add(b.id);
   const layer = $("layer-blocks");
   let shape = $(`block-${b.id}`);
   if (!shape) shape = el("polygon", { id: `block-${b.id}`, class: "opblock" }, layer);
@@ -158,87 +162,128 @@ function renderBlock(b) {
 
 function dropBlock(id) {
   delete state.blocks[id];
+  dirty.blocks.add(id);
   const shape = $(`block-${id}`);
   if (shape) shape.remove();
 }
 
-// -- tables ---------------------------------------------------------------------------------------------
+// -- tables: rows are made once per entry and updated in place (a thousand nodes cost no rebuild) ----------
 
-function cell(row, text, cls) {
-  const td = row.insertCell();
-  td.textContent = text;
-  if (cls) td.className = cls;
-  return td;
+const dirty = { robots: new Set(), blocks: new Set(), zones: new Set(), nodes: new Set() };
+
+function setText(td, text, cls) {
+  const value = String(text);
+  if (td.textContent !== value) td.textContent = value;
+  if (cls !== undefined && td.className !== cls) td.className = cls;
 }
-function button(td, label, onClick) {
+function button(parent, label, cls, onClick) {
   const b = document.createElement("button");
   b.type = "button";
   b.textContent = label;
+  b.className = cls;
   b.addEventListener("click", onClick);
-  td.appendChild(b);
+  parent.appendChild(b);
   return b;
+}
+function row(table, id, cells) {
+  let tr = document.getElementById(id);
+  if (!tr) {
+    tr = table.tBodies[0].insertRow();
+    tr.id = id;
+    for (let i = 0; i < cells; i++) tr.insertCell();
+  }
+  return tr;
+}
+
+function robotRow(r) {
+  const isNew = !document.getElementById(`robot-row-${r.id}`);
+  const tr = row($("robots"), `robot-row-${r.id}`, 7);
+  if (isNew) {
+    const actions = tr.cells[6];
+    const pick = document.createElement("select");
+    pick.setAttribute("aria-label", `goal for ${r.id}`);
+    pick.add(new Option("go to...", ""));
+    for (const name of Object.keys(geo.points)) pick.add(new Option(name, name));
+    pick.addEventListener("change", () => {
+      if (pick.value) api("POST", `/api/robots/${r.id}/goal`, { point: pick.value });
+      pick.value = "";
+    });
+    actions.appendChild(pick);
+    button(actions, "Click goal", "click-goal", () => setMode({ kind: "goal", robot: r.id }));
+    button(actions, "Cancel", "cancel", () => api("POST", `/api/robots/${r.id}/cancel`));
+  }
+  const c = tr.cells;
+  setText(c[0], r.id);
+  setText(c[1], r.state ? r.state + (r.reason ? `: ${r.reason}` : "") : "no status", "robot-state");
+  setText(c[2], r.goal == null ? "" : typeof r.goal === "string" ? r.goal : r.goal.slice(0, 2).map((v) => v.toFixed(1)).join(", "));
+  setText(c[3], r.replans ?? "", "robot-replans");
+  setText(c[4], (r.blocked_zones || []).join(" "));
+}
+
+function blockRow(b) {
+  const isNew = !document.getElementById(`block-row-${b.id}`);
+  const tr = row($("blocks"), `block-row-${b.id}`, 5);
+  if (isNew) button(tr.cells[4], "Lift", "lift", () => api("DELETE", `/api/blocks/${b.id}`));
+  setText(tr.cells[0], b.id);
+  setText(tr.cells[1], b.zone || `polygon of ${b.polygon.length}`);
+  setText(tr.cells[3], b.reason || "");
+}
+
+function zoneRow(z) {
+  const tr = row($("zones"), `zone-row-${z.id}`, 3);
+  setText(tr.cells[0], z.id);
+  setText(tr.cells[1], z.state + (z.operator_blocks.length ? " (operator)" : ""), `state-${z.state}`);
+  setText(tr.cells[2], z.nodes.join(" "));
+}
+
+function nodeRow(n) {
+  const tr = row($("nodes"), `node-row-${n.id}`, 6);
+  const link = n.online === false ? "offline" : n.online ? (n.fresh ? "online" : "silent") : "unknown";
+  setText(tr.cells[0], n.id);
+  setText(tr.cells[1], n.zone);
+  setText(tr.cells[2], n.state || "");
+  setText(tr.cells[3], link, n.online === false ? "offline link" : "link");
+  setText(tr.cells[5], n.info ? Object.entries(n.info).map(([k, v]) => `${k}=${v}`).join(" ") : "", "info");
 }
 
 function renderTables() {
+  for (const id of dirty.robots) if (state.robots[id]) robotRow(state.robots[id]);
+  for (const id of dirty.blocks) {
+    if (state.blocks[id]) blockRow(state.blocks[id]);
+    else document.getElementById(`block-row-${id}`)?.remove();
+  }
+  for (const id of dirty.zones) if (state.zones[id]) zoneRow(state.zones[id]);
+  for (const id of dirty.nodes) if (state.nodes[id]) nodeRow(state.nodes[id]);
+  for (const set of Object.values(dirty)) set.clear();
+}
+
+function renderClock() {
+  // Once a second: the ages and times left, which change without any message.
   const now = serverNow();
-  const filter = $("filter").value.trim().toLowerCase();
-  const robots = $("robots").tBodies[0];
-  robots.replaceChildren();
-  for (const r of Object.values(state.robots).sort((a, b) => a.id.localeCompare(b.id))) {
-    const row = robots.insertRow();
-    row.id = `robot-row-${r.id}`;
-    cell(row, r.id);
-    cell(row, r.state ? r.state + (r.reason ? `: ${r.reason}` : "") : "no status", "robot-state");
-    cell(row, r.goal == null ? "" : typeof r.goal === "string" ? r.goal : r.goal.slice(0, 2).map((v) => v.toFixed(1)).join(", "));
-    cell(row, r.replans ?? "", "robot-replans");
-    cell(row, (r.blocked_zones || []).join(" "));
-    cell(row, r.t ? fmtAge(Math.max(0, now - r.t)) : "");
-    const actions = row.insertCell();
-    const pick = document.createElement("select");
-    pick.setAttribute("aria-label", `goal for ${r.id}`);
-    pick.innerHTML = "<option value=''>go to...</option>";
-    for (const name of Object.keys(geo.points)) pick.add(new Option(name, name));
-    pick.addEventListener("change", () => pick.value && api("POST", `/api/robots/${r.id}/goal`, { point: pick.value }));
-    actions.appendChild(pick);
-    button(actions, "Click goal", () => setMode({ kind: "goal", robot: r.id })).className = "click-goal";
-    button(actions, "Cancel", () => api("POST", `/api/robots/${r.id}/cancel`)).className = "cancel";
+  for (const r of Object.values(state.robots)) {
+    const tr = document.getElementById(`robot-row-${r.id}`);
+    if (tr) setText(tr.cells[5], r.t ? fmtAge(Math.max(0, now - r.t)) : "");
   }
-  const blocks = $("blocks").tBodies[0];
-  blocks.replaceChildren();
-  for (const b of Object.values(state.blocks).sort((a, b) => a.id.localeCompare(b.id))) {
-    const row = blocks.insertRow();
-    row.id = `block-row-${b.id}`;
-    cell(row, b.id);
-    cell(row, b.zone || `polygon of ${b.polygon.length}`);
-    cell(row, b.expires_at == null ? "until lifted" : fmtAge(Math.max(0, b.expires_at - now)), "left");
-    cell(row, b.reason || "");
-    button(row.insertCell(), "Lift", () => api("DELETE", `/api/blocks/${b.id}`)).className = "lift";
+  for (const b of Object.values(state.blocks)) {
+    const tr = document.getElementById(`block-row-${b.id}`);
+    if (tr) setText(tr.cells[2], b.expires_at == null ? "until lifted" : fmtAge(Math.max(0, b.expires_at - now)), "left");
   }
-  const zones = $("zones").tBodies[0];
-  zones.replaceChildren();
-  for (const z of Object.values(state.zones)) {
-    if (filter && !z.id.toLowerCase().includes(filter)) continue;
-    const row = zones.insertRow();
-    cell(row, z.id);
-    cell(row, z.state + (z.operator_blocks.length ? " (operator)" : ""), `state-${z.state}`);
-    cell(row, z.nodes.join(" "));
-  }
-  const nodes = $("nodes").tBodies[0];
-  nodes.replaceChildren();
   for (const n of Object.values(state.nodes)) {
-    if (filter && !n.id.toLowerCase().includes(filter) && !n.zone.toLowerCase().includes(filter)) continue;
-    const row = nodes.insertRow();
-    row.id = `node-row-${n.id}`;
-    cell(row, n.id);
-    cell(row, n.zone);
-    cell(row, n.state || "");
-    cell(row, n.online === false ? "offline" : n.online ? (n.fresh ? "online" : "silent") : "unknown", n.online === false ? "offline link" : "link");
-    cell(row, n.heard_at == null ? "never" : `${fmtAge(Math.max(0, now - n.heard_at))} ago`);
-    cell(row, n.info ? Object.entries(n.info).map(([k, v]) => `${k}=${v}`).join(" ") : "", "info");
+    const tr = document.getElementById(`node-row-${n.id}`);
+    if (tr) setText(tr.cells[4], n.heard_at == null ? "never" : `${fmtAge(Math.max(0, now - n.heard_at))} ago`);
   }
   const counts = Object.values(state.zones).reduce((a, z) => ((a[z.state] = (a[z.state] || 0) + 1), a), {});
   $("counts").textContent = Object.entries(counts).map(([k, v]) => `${v} ${k}`).join(", ");
   $("clock").textContent = new Date(now * 1000).toLocaleTimeString();
+}
+
+function applyFilter() {
+  const filter = $("filter").value.trim().toLowerCase();
+  for (const tr of $("zones").tBodies[0].rows) tr.hidden = !!filter && !tr.id.slice(9).toLowerCase().includes(filter);
+  for (const tr of $("nodes").tBodies[0].rows) {
+    const n = state.nodes[tr.id.slice(9)];
+    tr.hidden = !!filter && !(n && (n.id.toLowerCase().includes(filter) || n.zone.toLowerCase().includes(filter)));
+  }
 }
 
 let tablesDue = false;
@@ -248,6 +293,7 @@ function scheduleTables() {
   setTimeout(() => {
     tablesDue = false;
     renderTables();
+    if ($("filter").value) applyFilter();
   }, 300);
 }
 
@@ -365,7 +411,7 @@ function setupSteering() {
     const body = blockBody({ polygon: points });
     if (body) api("POST", "/api/blocks", body);
   });
-  $("filter").addEventListener("input", renderTables);
+  $("filter").addEventListener("input", applyFilter);
   $("logout").addEventListener("click", async () => {
     await api("POST", "/api/logout");
     window.location.assign("/login");
@@ -380,6 +426,6 @@ async function main() {
   drawSite();
   setupSteering();
   connect();
-  setInterval(renderTables, 1000);
+  setInterval(renderClock, 1000);
 }
 main();
