@@ -272,6 +272,29 @@ def test_a_goal_clicked_is_reached_and_a_drawn_block_makes_the_robot_replan_then
     )
 
 
+def test_a_zone_block_and_a_drawn_polygon_from_the_page_are_lifted_from_the_page(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    page.select_option("#block-zone", "lower")
+    page.fill("#block-for", "1h")
+    page.fill("#block-reason", "spill")
+    page.click("#block-zone-btn")
+    page.wait_for_function("document.querySelector('#zone-lower').dataset.state === 'blocked'", timeout=5000)
+    page.click("#draw-poly")
+    for x, y in [(1.0, -1.0), (1.5, -1.0), (1.25, -0.5)]:
+        click_world(page, x, y)
+    page.mouse.dblclick(*page.evaluate("window.worldToClient(1.25, -0.5)"))
+    until("two blocks", lambda: len(site_stack.state()["blocks"]) == 2, 5)
+    blocks = {b["zone"] or "polygon": b for b in site_stack.state()["blocks"]}
+    assert blocks["lower"]["reason"] == "spill" and 3590 < blocks["lower"]["left_s"] <= 3600
+    assert blocks["polygon"]["polygon"] == pytest.approx([[1.0, -1.0], [1.5, -1.0], [1.25, -0.5]], abs=0.03)
+    for block in blocks.values():
+        page.click(f"#block-row-{block['id']} .lift")
+    until("both blocks lifted", lambda: site_stack.state()["blocks"] == [], 5)
+    page.wait_for_function("document.querySelector('#zone-lower').dataset.state === 'clear'", timeout=5000)
+    assert page.locator("#layer-blocks polygon").count() == 0
+
+
 def test_a_killed_node_shows_offline_after_its_will(page: Any, site_stack: ConsoleStack) -> None:
     site_stack.zones.popen.send_signal(signal.SIGKILL)
     site_stack.zones.popen.wait(10)
