@@ -328,9 +328,12 @@ function connect() {
     state.streamOk = true;
     apply(JSON.parse(msg.data));
   };
-  source.onerror = () => {
+  source.onerror = async () => {
     state.streamOk = false;
     renderBanner();
+    // EventSource retries by itself; a console restarted meanwhile has forgotten the session: log in again.
+    const res = await fetch("/api/session").catch(() => null);
+    if (res && res.status === 401) window.location.assign("/login");
   };
 }
 
