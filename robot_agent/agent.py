@@ -21,6 +21,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
+import numpy as np
+from numpy.typing import NDArray
+
 from robot_agent.agent_config import AgentConfig
 from robot_agent.backend import Pose, RobotBackend
 from robot_agent.controller import ControllerParams, PathFollower
@@ -37,6 +40,7 @@ from runtime.timers import Every
 from schemas import topics
 from schemas.messages import (
     MAX_OPERATOR_PAYLOAD_BYTES,
+    ROBOT_PATH_POINTS,
     PayloadError,
     RobotGoal,
     RobotStatus,
@@ -44,6 +48,15 @@ from schemas.messages import (
     parse_payload,
 )
 from schemas.site import Site
+
+
+def path_ahead(path: NDArray[np.float64], x: float, y: float) -> list[tuple[float, float]] | None:
+    """The plan from its point nearest the robot to the goal, thinned evenly to the status's point budget."""
+    if len(path) == 0:
+        return None
+    ahead = path[int(np.argmin(np.hypot(path[:, 0] - x, path[:, 1] - y))) :]
+    keep = np.unique(np.linspace(0, len(ahead) - 1, min(len(ahead), ROBOT_PATH_POINTS)).round().astype(int))
+    return [(round(float(px), 2), round(float(py), 2)) for px, py in ahead[keep]]
 
 
 class SimWorldSink(Protocol):
@@ -198,6 +211,7 @@ class RobotAgent:
             replans=nav.replans,
             plan_length_m=round(nav.plan_length_m, 3) if nav.plan_length_m is not None else None,
             reason=nav.reason[:200] if nav.reason else None,
+            path=path_ahead(nav.path, x, y) if nav.state == "navigating" else None,
             t=round(now, 3),
         )
 

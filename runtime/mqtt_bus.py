@@ -145,6 +145,17 @@ class MqttBus:
         if rc != mqtt.MQTT_ERR_NO_CONN or _is_power_of_ten(self.unsent):
             log.warning("publish to %s not sent (%d so far): %s", topic, self.unsent, mqtt.error_string(rc))
 
+    def publish_confirmed(
+        self, topic: str, payload: bytes, *, retain: bool = False, timeout_s: float = 10.0
+    ) -> bool:
+        """QoS 1, waiting for the broker's PUBACK: a command that exits right after can say it was delivered."""
+        info = self._client.publish(topic, payload, qos=1, retain=retain)
+        try:
+            info.wait_for_publish(timeout_s)
+        except (RuntimeError, ValueError):  # not connected, or the queue refused it
+            return False
+        return info.is_published()
+
     def subscribe(self, topic_filter: str, qos: int = 1) -> None:
         with self._filters_lock:
             self._filters[topic_filter] = qos

@@ -19,11 +19,13 @@ COMPONENTS = [
     "runtime",
     "experiments",
     "ros_bridge",
+    "console",
 ]
 FORBIDDEN = {
     "robot_agent": {"zone_sim", "ros_bridge"},  # the agent runs where no ROS is installed
     "zone_sim": {"robot_agent", "ros_bridge"},
     "ros_bridge": {"zone_sim"},
+    "console": {"robot_agent", "zone_sim", "ros_bridge", "experiments"},  # only the MQTT contract
 }
 
 

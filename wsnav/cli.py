@@ -8,6 +8,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from broker import cli as broker_cli
+from console import cli as console_cli
 from firmware import cli as firmware_cli
 from robot_agent import cli as robot_agent_cli
 from ros_bridge import cli as ros_bridge_cli
@@ -28,6 +29,7 @@ REGISTRARS: list[Registrar] = [
     experiment_cli.register,
     ros_bridge_cli.register,
     ros_bridge_robot_cli.register,
+    console_cli.register,
 ]
 
 
