@@ -104,7 +104,7 @@ class ZoneBridgeNode:
         grid = site.grid
         self.site = site
         self.options = options
-        self.frame = GridFrame(grid.width, grid.height, grid.resolution, grid.origin[0], grid.origin[1])
+        self.frame = GridFrame.of_grid(grid)
         self.bus = bus
         self.codec = codec
         self.clock = WallClock()

@@ -109,9 +109,8 @@ class MoveBaseSupervisor:
             self._plan_cells = np.zeros((0, 2), dtype=np.int64)
             self.plan_length_m = None
             return
-        rows = np.floor((xy[:, 1] - frame.origin_y) / frame.resolution).astype(np.int64)
-        cols = np.floor((xy[:, 0] - frame.origin_x) / frame.resolution).astype(np.int64)
-        self._plan_cells = np.stack([rows, cols], axis=1)
+        rows, cols = frame.world_to_cells(xy[:, 0], xy[:, 1])
+        self._plan_cells = np.stack([rows, cols], axis=1).astype(np.int64)
         self.plan_length_m = float(np.hypot(*np.diff(xy, axis=0).T).sum()) if len(xy) > 1 else 0.0
 
     # -- what the zones say --------------------------------------------------------------------------------

@@ -127,7 +127,9 @@ class SimNode:
         self._rospy = rospy
         self._lock = threading.Lock()
         """Held while the robot steps and while a command is applied (rospy calls back on its own thread)."""
+        self._clock = WallClock()
         self._last_cmd = -math.inf
+        """When the last /cmd_vel came, on `_clock` (the watchdog compares it with the loop's now)."""
         self._stopped_by_watchdog = True
         self._published_scan: LaserScan | None = None
         self._odom_type, self._scan_type, self._tf_type, self._count_type = (
@@ -157,7 +159,7 @@ class SimNode:
             self._stop.set()
 
         previous = signal.signal(signal.SIGTERM, on_signal)
-        clock = WallClock()
+        clock = self._clock
         last = clock.now()
         collisions = 0
         try:
@@ -200,7 +202,7 @@ class SimNode:
     def _on_cmd_vel(self, msg: Any) -> None:
         with self._lock:
             self.robot.command(Velocity(float(msg.linear.x), float(msg.angular.z)))
-            self._last_cmd = time.monotonic()
+            self._last_cmd = self._clock.now()
             self._stopped_by_watchdog = False
 
     def _take_world(self) -> None:

@@ -53,16 +53,11 @@ class ZoneFeed:
         return out
 
     def blocked_zones_at(self, x: float, y: float) -> list[str]:
-        """Blocked zones (and operator polygon blocks, as `operator/<id>`) whose cells hold the point."""
+        """Blocked zones and operator polygon blocks whose cells hold the point, by their display names."""
         row, col = self.frame.world_to_cell(x, y)
         if not self.frame.contains_cell(row, col):
             return []
-        out = [z for z in self.layer.blocked_zones() if _in_window(self.layer.zone_window(z), row, col)]
-        for block_id in self.layer.active_blocks():
-            window = self.layer.block_window(block_id)
-            if window is not None and _in_window(window, row, col):
-                out.append(f"operator/{block_id}")
-        return out
+        return [area.name for area, window in self.layer.blocked_areas() if _in_window(window, row, col)]
 
 
 def _in_window(window: CellWindow, row: int, col: int) -> bool:

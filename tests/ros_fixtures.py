@@ -10,6 +10,8 @@ from __future__ import annotations
 import os
 import socket
 import subprocess
+import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -119,3 +121,47 @@ def wait_until(condition: Callable[[], bool], timeout_s: float, what: str, step_
         if time.monotonic() > deadline:
             pytest.fail(f"timed out after {timeout_s:g} s waiting for {what}")
         time.sleep(step_s)
+
+
+class WsnavChild:
+    """A wsnav command as a child process; its output lines are kept for the test to read."""
+
+    def __init__(self, args: list[str], env: dict[str, str]) -> None:
+        self.lines: list[str] = []
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "wsnav.cli", *args],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            start_new_session=True,
+        )
+        self._pump = threading.Thread(target=self._read, daemon=True)
+        self._pump.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line.rstrip("\n"))
+
+    def wait_for(self, text: str, timeout_s: float) -> str:
+        def seen() -> bool:
+            return any(text in line for line in self.lines) or self.proc.poll() is not None
+
+        wait_until(seen, timeout_s, f"{text!r} from wsnav {self.proc.args}")
+        found = [line for line in self.lines if text in line]
+        assert found, "\n".join(self.lines)
+        return found[0]
+
+    def finish(self, timeout_s: float) -> int:
+        try:
+            code = self.proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            stop_process_group(self.proc)
+            raise AssertionError("still running:\n" + "\n".join(self.lines)) from None
+        self._pump.join(5)
+        return code
+
+    def stop(self) -> None:
+        stop_process_group(self.proc)
+        self._pump.join(5)

@@ -13,7 +13,6 @@ from __future__ import annotations
 import random
 import shutil
 import subprocess
-import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -33,7 +32,7 @@ from schemas.messages import NodeStatus, OperatorBlock, ZoneState
 from schemas.site import load_site
 from tests.conftest import SITES, require_tool
 from tests.costmap2d_model import StaticLayerModel
-from tests.ros_fixtures import RosMaster, stop_process_group, wait_until
+from tests.ros_fixtures import RosMaster, WsnavChild, wait_until
 
 EVENTS = 100
 
@@ -47,38 +46,6 @@ def slow_heartbeat_school(directory: Path) -> Path:
     spec["policy"] = {**spec.get("policy", {}), "stale": "unknown"}
     (site_dir / "site.yaml").write_text(yaml.safe_dump(spec, sort_keys=False))
     return site_dir
-
-
-class Bridge:
-    """`wsnav ros bridge` as a child process; its output lines are kept for the test to read."""
-
-    def __init__(self, args: list[str], env: dict[str, str]) -> None:
-        self.lines: list[str] = []
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "wsnav.cli", "ros", "bridge", *args],
-            env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            start_new_session=True,
-        )
-        threading.Thread(target=self._pump, daemon=True).start()
-
-    def _pump(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.append(line.rstrip("\n"))
-
-    def wait_for(self, text: str, timeout_s: float = 30.0) -> None:
-        wait_until(
-            lambda: any(text in line for line in self.lines) or self.proc.poll() is not None,
-            timeout_s,
-            f"bridge line {text!r}",
-        )
-        assert any(text in line for line in self.lines), "\n".join(self.lines)
-
-    def stop(self) -> None:
-        stop_process_group(self.proc)
 
 
 @pytest.fixture
@@ -160,10 +127,12 @@ def test_the_static_layer_grid_equals_the_zone_layer_after_100_random_events(
     }
     operator = connect_with_credentials(broker.host, broker.port, broker.credentials("operator"))
     # no hold: each update is exactly the window that changed (the hold is tested in test_ros_zone_grid.py)
-    bridge = Bridge(bridge_args(site_dir, broker, "--update-hold", "0"), ros_node.env())
+    bridge = WsnavChild(
+        ["ros", "bridge", *bridge_args(site_dir, broker, "--update-hold", "0")], ros_node.env()
+    )
     peer: StaticLayerPeer | None = None
     try:
-        bridge.wait_for("zone bridge for site school")
+        bridge.wait_for("zone bridge for site school", 30)
         echo = subprocess.run(
             ["rostopic", "echo", "-n", "1", "/wsn/zone_grid/info"],
             env=ros_node.env(),

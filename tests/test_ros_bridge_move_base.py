@@ -23,8 +23,8 @@ from broker.embedded import BrokerThread
 from runtime.mqtt_bus import MqttBus, connect_with_credentials
 from schemas import topics
 from schemas.messages import RobotStatus, ZoneState
-from tests.ros_fixtures import RosMaster, wait_until
-from tests.test_ros_bridge_grid import Bridge, bridge_args, slow_heartbeat_school
+from tests.ros_fixtures import RosMaster, WsnavChild, wait_until
+from tests.test_ros_bridge_grid import bridge_args, slow_heartbeat_school
 
 PLAN = [(12.0, 7.2), (25.0, 7.2), (25.0, 22.8), (29.0, 22.8)]
 """A -> B by the south corridor (through z1) and the middle one (through z4)."""
@@ -128,7 +128,7 @@ class Operator:
 @pytest.fixture
 def rig(
     tmp_path: Path, ros_node: RosMaster, move_base: FakeMoveBase
-) -> Iterator[tuple[Bridge, Operator, dict[str, MqttBus]]]:
+) -> Iterator[tuple[WsnavChild, Operator, dict[str, MqttBus]]]:
     site_dir = slow_heartbeat_school(tmp_path)
     with BrokerThread(site_dir) as broker:
         bus = connect_with_credentials(broker.host, broker.port, broker.credentials("operator"))
@@ -137,9 +137,11 @@ def rig(
             n: connect_with_credentials(broker.host, broker.port, broker.credentials(n))
             for n in ("n1", "n2", "n7")
         }
-        bridge = Bridge(bridge_args(site_dir, broker, "--robot", "robot1"), ros_node.env())
+        bridge = WsnavChild(
+            ["ros", "bridge", *bridge_args(site_dir, broker, "--robot", "robot1")], ros_node.env()
+        )
         try:
-            bridge.wait_for("supervising /move_base for robot1")
+            bridge.wait_for("supervising /move_base for robot1", 30)
             yield bridge, Operator(bus, "school"), nodes
         finally:
             bridge.stop()
@@ -159,7 +161,7 @@ def send_goal(operator: Operator, goal: object) -> None:
 
 
 def test_a_zone_on_the_plan_makes_move_base_replan_at_once(
-    rig: tuple[Bridge, Operator, dict[str, MqttBus]], move_base: FakeMoveBase
+    rig: tuple[WsnavChild, Operator, dict[str, MqttBus]], move_base: FakeMoveBase
 ) -> None:
     bridge, operator, nodes = rig
     before = len(move_base.goals)
@@ -193,7 +195,7 @@ def test_a_zone_on_the_plan_makes_move_base_replan_at_once(
 
 
 def test_a_goal_in_a_blocked_zone_is_cancelled_whoever_sent_it(
-    rig: tuple[Bridge, Operator, dict[str, MqttBus]], move_base: FakeMoveBase
+    rig: tuple[WsnavChild, Operator, dict[str, MqttBus]], move_base: FakeMoveBase
 ) -> None:
     import actionlib
     import rospy

@@ -26,7 +26,7 @@ from schemas import topics
 from schemas.messages import SimObstacle, SimWorld, ZoneState
 from tests.conftest import SITES
 from tests.robot_agent_rig import connect, distance_to_polygon
-from tests.ros_fixtures import RosMaster, free_port, require_ros, stop_process_group, wait_until
+from tests.ros_fixtures import RosMaster, WsnavChild, free_port, require_ros, wait_until
 
 LIBRARY_ZONE = [(26.5, 21.5), (28.5, 21.5), (28.5, 24.1), (26.5, 24.1)]
 """z8, added to the school for this test: the north corridor between the library's two doors (x 22.5 and 33.5),
@@ -47,50 +47,6 @@ def school_with_library_zone(directory: Path) -> Path:
     )
     (site_dir / "site.yaml").write_text(yaml.safe_dump(spec, sort_keys=False))
     return site_dir
-
-
-class Child:
-    """A wsnav command as a child process; its output lines are kept for the test to read."""
-
-    def __init__(self, args: list[str], env: dict[str, str]) -> None:
-        self.lines: list[str] = []
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "wsnav.cli", *args],
-            env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            start_new_session=True,
-        )
-        self._pump = threading.Thread(target=self._read, daemon=True)
-        self._pump.start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.append(line.rstrip("\n"))
-
-    def wait_for(self, text: str, timeout_s: float) -> str:
-        def seen() -> bool:
-            return any(text in line for line in self.lines) or self.proc.poll() is not None
-
-        wait_until(seen, timeout_s, f"{text!r} from wsnav {self.proc.args}")
-        found = [line for line in self.lines if text in line]
-        assert found, "\n".join(self.lines)
-        return found[0]
-
-    def finish(self, timeout_s: float) -> int:
-        try:
-            code = self.proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            stop_process_group(self.proc)
-            raise AssertionError("still running:\n" + "\n".join(self.lines)) from None
-        self._pump.join(5)
-        return code
-
-    def stop(self) -> None:
-        stop_process_group(self.proc)
-        self._pump.join(5)
 
 
 class OdomTrack:
@@ -120,11 +76,11 @@ def test_wsnav_robot_ros_drives_the_ros_sim_around_a_zone_blocked_mid_route(
         creds = str(broker.credentials_dir / "robot1.json")
         mqtt = ["--broker", f"{broker.host}:{broker.port}", "--credentials", creds]
         track = OdomTrack()
-        sim = Child(["sim", "--ros", "--site", str(site_dir), "--start", START, *mqtt], env)
-        robot: Child | None = None
+        sim = WsnavChild(["sim", "--ros", "--site", str(site_dir), "--start", START, *mqtt], env)
+        robot: WsnavChild | None = None
         try:
             sim.wait_for("simulated TurtleBot3 robot1", 30)
-            robot = Child(
+            robot = WsnavChild(
                 ["robot", "--ros", "--site", str(site_dir), *mqtt, "--goal", GOAL, "--exit-on-arrival"], env
             )
             first = robot.wait_for(" navigating ", 30)
@@ -188,7 +144,7 @@ def test_the_ros_sim_drives_on_cmd_vel_stops_when_it_falls_silent_and_bumps_into
             rospy.Subscriber("/scan", LaserScan, scans.append, queue_size=5),
         ]
         cmd = rospy.Publisher("/cmd_vel", Twist, queue_size=1)
-        sim = Child(["sim", "--ros", "--site", str(school), "--start", "A", *mqtt], ros_node.env())
+        sim = WsnavChild(["sim", "--ros", "--site", str(school), "--start", "A", *mqtt], ros_node.env())
         try:
             sim.wait_for("simulated TurtleBot3 robot1 on school at A", 30)
             wait_until(
@@ -282,7 +238,10 @@ def test_the_ros_backend_takes_tf_s_map_pose_else_odometry_from_start_and_stops_
         stall of this loaded machine can interrupt for longer than the silence limit)."""
         if fresh:
             wait_until(lambda: not backend.odometry_silent(), 5, "current odometry")
-        n = len(commands)
+        n = -1
+        while n != len(commands):  # the previous call's repeats may still be in flight: let them land
+            n = len(commands)
+            time.sleep(0.3)
 
         def arrived() -> bool:
             backend.command(velocity)
@@ -358,7 +317,7 @@ def test_no_ros_master_is_one_line_then_retries(tmp_path: Path, command: str) ->
         creds = str(robot_credentials(tmp_path))
         args = ["robot", "--ros", "--site", school, "--broker", "127.0.0.1:1", "--credentials", creds]
     env = dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{free_port()}", ROS_LOG_DIR=str(tmp_path))
-    child = Child(args, env)
+    child = WsnavChild(args, env)
     try:
         line = child.wait_for("no ROS master at", 30)
         time.sleep(1.5)  # a retry or two later it is still waiting, and has said so only once
