@@ -1,0 +1,106 @@
+"""Who gets a socket: a connection cap below the descriptor limit, and idle sockets that make way for real logins.
+
+An attacker who opens sockets and never logs in must not lock out the site's nodes. Every accepted connection
+is *pending* until it has logged in; pending connections are closed after the CONNECT timeout (packet_gate), and
+when the broker is full a new connection pushes out the oldest pending one instead of waiting behind it.
+Logged-in connections are never pushed out: when all slots are logged in, a new connection is closed at once.
+The cap stays below the process's open-file limit with a reserve for the store, logs and the bursts of sockets
+asyncio accepts in one loop turn, so `accept()` itself never fails with "Too many open files".
+"""
+
+from __future__ import annotations
+
+import logging
+import resource
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+log = logging.getLogger("wsnav.broker")
+
+DESCRIPTOR_RESERVE = 320
+"""Descriptors kept free of connections: asyncio accepts up to 100 sockets per listener before any of them is
+seen here (and closing takes one more loop turn), plus the retained store, logs, TLS and the event loop."""
+
+
+def raise_descriptor_limit() -> int:
+    """Raise the soft open-file limit to the hard one (systemd's LimitNOFILE) and return the soft limit."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard == resource.RLIM_INFINITY or soft < hard:
+        target = hard if hard != resource.RLIM_INFINITY else max(soft, 65536)
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+            soft = target
+        except (ValueError, OSError):
+            pass
+    return soft
+
+
+def connection_capacity(max_connections: int, descriptor_limit: int) -> int:
+    """How many client connections fit: `max_connections` (0: no own cap) but never past the descriptors."""
+    by_descriptors = max(1, descriptor_limit - DESCRIPTOR_RESERVE)
+    return by_descriptors if max_connections <= 0 else min(max_connections, by_descriptors)
+
+
+@dataclass(eq=False)
+class Ticket:
+    """One admitted connection; `close` aborts its socket (frees the descriptor at once)."""
+
+    close: Callable[[], None]
+    logged_in: bool = False
+    since: float = field(default_factory=time.monotonic)
+
+
+class Admission:
+    """The broker's connection slots (all listeners share them, since they share the descriptors)."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self._pending: OrderedDict[Ticket, None] = OrderedDict()
+        self._logged_in: set[Ticket] = set()
+        self.evicted = 0
+        self.refused = 0
+        self._reported = (0, 0)
+        self._last_report = 0.0
+
+    @property
+    def open(self) -> int:
+        return len(self._pending) + len(self._logged_in)
+
+    def admit(self, close: Callable[[], None]) -> Ticket | None:
+        """A ticket for a new connection, pushing out the oldest pending one if full; None: refuse it."""
+        if self.open >= self.capacity:
+            if not self._pending:
+                self.refused += 1
+                self._report()
+                return None
+            oldest, _ = self._pending.popitem(last=False)
+            self.evicted += 1
+            oldest.close()
+            self._report()
+        ticket = Ticket(close)
+        self._pending[ticket] = None
+        return ticket
+
+    def logged_in(self, ticket: Ticket) -> None:
+        if ticket in self._pending:
+            del self._pending[ticket]
+            ticket.logged_in = True
+            self._logged_in.add(ticket)
+
+    def release(self, ticket: Ticket) -> None:
+        self._pending.pop(ticket, None)
+        self._logged_in.discard(ticket)
+
+    def _report(self) -> None:
+        """One warning per 10 s at most, however hard the port is hammered (the log must not fill the disk)."""
+        now = time.monotonic()
+        if now - self._last_report < 10.0:
+            return
+        evicted, refused = self.evicted - self._reported[0], self.refused - self._reported[1]
+        self._reported, self._last_report = (self.evicted, self.refused), now
+        log.warning(
+            f"connection slots full ({self.capacity}): closed {evicted} idle connection(s) that had not logged "
+            f"in and refused {refused} new one(s) since the last report"
+        )
