@@ -94,6 +94,12 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     mosq.add_argument(
         "--user", help="system user Mosquitto drops to when started as root (default: mosquitto)"
     )
+    mosq.add_argument(
+        "--shared-client-ids",
+        action="store_true",
+        help="let one identity hold several connections (simulation stacks); then any identity can kick "
+        "another's connection by reusing its client id",
+    )
     mosq.set_defaults(func=mosquitto_command)
 
 
@@ -197,7 +203,12 @@ def mosquitto_command(args: argparse.Namespace) -> int:
     from broker.mosquitto import MosquittoOptions, write_mosquitto_config
 
     site = _site(args.site)
-    options = MosquittoOptions(bind=args.bind, data_dir=args.data.resolve(), user=args.user)
+    options = MosquittoOptions(
+        bind=args.bind,
+        data_dir=args.data.resolve(),
+        user=args.user,
+        bind_client_ids=not args.shared_client_ids,
+    )
     try:
         files = write_mosquitto_config(site.spec, args.credentials, args.out, options)
     except CredentialsError as exc:
