@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import socket
 import subprocess
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -22,7 +23,15 @@ from schemas import topics
 from schemas.site import load_site
 from tests.conftest import require_tool
 from tests.site_fixtures import tiny_site
-from tests.test_broker_helpers import Client, Endpoint, client, connect_reason, free_port, wait_listening
+from tests.test_broker_helpers import (
+    TIMEOUT,
+    Client,
+    Endpoint,
+    client,
+    connect_reason,
+    free_port,
+    wait_listening,
+)
 
 SITE = "tiny"
 
@@ -263,3 +272,30 @@ def test_node_using_another_identitys_client_id_kicks_no_one(endpoint: Endpoint,
             node.publish(state, b"victim-still-hears")
         victim.wait_for(state, b"victim-still-hears")
         assert victim.disconnects == []
+
+
+def test_oversized_retained_message_is_refused_never_stored_or_delivered(endpoint: Endpoint) -> None:
+    """One 100 KB retained message used to be stored (memory, SQLite) and pushed to the robot; the cap (32 KiB)
+    is 4x the largest valid payload, which still passes."""
+    state = topics.zone_state(SITE, "z1", "n1")
+    big = b'{"pad": "' + b"x" * 100_000 + b'"}'
+    largest_valid = b'{"pad": "' + b"y" * 8_000 + b'"}'
+    with client(endpoint, "operator", "watcher") as watcher:
+        assert watcher.subscribe(f"wsn/{SITE}/#") == [1]
+        with client(endpoint, "n1") as node:
+            node.publish(state, largest_valid, retain=True)
+            watcher.wait_for(state, largest_valid)
+            node.mqtt.publish(state, big, qos=1, retain=True)
+            deadline = time.monotonic() + TIMEOUT
+            while not node.disconnects and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert node.disconnects, "the broker kept the connection of an oversized publish"
+        with client(endpoint, "n1") as node:
+            node.publish(topics.node_status(SITE, "n1"), b"sentinel")
+            watcher.wait_for(topics.node_status(SITE, "n1"), b"sentinel")
+        assert all(len(m.payload) < 10_000 for m in watcher.received)
+    with client(endpoint, "robot1") as fresh:
+        assert fresh.subscribe(state) == [1]
+        assert fresh.wait_for(state).payload == largest_valid  # the retained copy is the last valid one
+    with client(endpoint, "n1") as node:
+        node.publish(state, b"", retain=True)
