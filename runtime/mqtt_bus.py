@@ -17,7 +17,6 @@ from runtime.bus import Message, Will
 from runtime.clock import Clock, WallClock
 from schemas.credentials import Credentials
 
-
 MAX_PAYLOAD_BYTES = 16 * 1024
 """Twice the largest valid payload of the contract (8 KiB, schemas.messages) and half the brokers' packet cap."""
 

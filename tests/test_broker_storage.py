@@ -20,7 +20,7 @@ from schemas import topics
 from schemas.site import load_site
 from tests.site_fixtures import tiny_site
 from tests.test_broker_helpers import TIMEOUT, Endpoint, client
-from tests.test_broker_process import wait_stored
+from tests.test_broker_process import wait_stored, wsnav
 
 SITE = "tiny"
 STATE = topics.zone_state(SITE, "z1", "n1")
@@ -138,3 +138,19 @@ def test_full_disk_is_loud_loses_nothing_while_running_and_counts_what_is_lost(
                 assert robot.wait_for(STATE).payload.startswith(b"clear")
             assert not [line for line in again.errors if "damaged" in line]
         assert read_retained(data)[STATUS][0] == b"x" * 8000
+
+
+def test_store_that_cannot_be_opened_stops_the_start_in_one_line(
+    setup: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """Not damage (so nothing is moved): here the store's path is a folder; a read-only disk reads the same."""
+    site, creds = setup
+    data = tmp_path / "data"
+    (data / DB_NAME).mkdir(parents=True)
+    result = wsnav(
+        "broker", "run", "--site", site, "--credentials", creds, "--bind", "127.0.0.1:0", "--data", data
+    )
+    assert result.returncode != 0
+    assert len(result.stderr.splitlines()) == 1, result.stderr
+    assert "cannot open the retained store" in result.stderr and "left as it is" in result.stderr
+    assert (data / DB_NAME).is_dir()
