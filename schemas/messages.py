@@ -6,6 +6,8 @@ is noticed instead of silently ignored.
 
 from __future__ import annotations
 
+import contextlib
+import json
 from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -135,11 +137,22 @@ class PayloadError(ValueError):
     """A payload that must be dropped: the message says why, in one line."""
 
 
+def _refuse_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """`{"state": "clear", "state": "blocked"}` means two things; JSON parsers keep the last, so refuse it."""
+    keys = [key for key, _ in pairs]
+    if len(set(keys)) != len(keys):
+        duplicate = next(key for key in keys if keys.count(key) > 1)
+        raise PayloadError(f"duplicate key {duplicate!r}")
+    return dict(pairs)
+
+
 def parse_payload(model: type[M], payload: bytes | str, *, max_bytes: int = MAX_PAYLOAD_BYTES) -> M:
     """Validate raw bytes against a model; raises PayloadError with a one-line reason, never anything else."""
     raw = payload.encode() if isinstance(payload, str) else payload
     if len(raw) > max_bytes:
         raise PayloadError(f"payload of {len(raw)} bytes exceeds {max_bytes}")
+    with contextlib.suppress(json.JSONDecodeError, UnicodeDecodeError):  # pydantic below says where
+        json.loads(raw, object_pairs_hook=_refuse_duplicate_keys)
     try:
         return model.model_validate_json(raw)
     except ValidationError as exc:

@@ -218,11 +218,24 @@ def test_seq_must_increase_but_a_reboot_after_its_birth_and_a_wrap_are_accepted(
         "only the first state after birth"
     )
     assert agent.intake.dropped["old_seq"] == 2
-    # Wrap-around at the firmware's 2**30 - 1.
+    # Wrap-around at the firmware's 2**30 - 1 (after a reboot whose random base lay near the top).
+    agent.feed(status, NodeStatus(node="n3", status="online").to_payload(), t=2.5)
     assert agent.feed(topic, state("z2", "n3", "clear", 2**30 - 1), t=3.0) is True
     assert agent.feed(topic, state("z2", "n3", "blocked", 2**30 - 1000), t=3.5) is False, "not a wrap: old"
     assert agent.feed(topic, state("z2", "n3", "blocked", 0), t=4.0) is True
     assert agent.layer.blocked_zones() == ["z2"]
+
+
+def test_two_captured_states_far_apart_cannot_be_replayed_in_turn(school: Site) -> None:
+    """The old wrap rule accepted any drop of more than 2**29 as a wrap: A, B, A, B... all accepted."""
+    agent = Agent(school)
+    topic = z_topic("z2", "n3")
+    a, b = state("z2", "n3", "blocked", 5), state("z2", "n3", "clear", 5 + 2**29 + 1)
+    assert agent.feed(topic, a, t=1.0) is True
+    accepted = [agent.feed(topic, payload, t=2.0 + i) for i, payload in enumerate([b, a, b, a, b, a])]
+    assert accepted == [False] * 6
+    assert agent.layer.blocked_zones() == ["z2"]
+    assert agent.intake.dropped["old_seq"] == 6
 
 
 def receive_into(agent: Agent, bus: MqttBus, until: object, timeout_s: float = 20.0) -> None:
