@@ -32,7 +32,9 @@ from schemas.messages import (
     MAX_PAYLOAD_BYTES,
     NodeStatus,
     OperatorBlock,
+    PayloadError,
     ZoneState,
+    refuse_duplicate_keys,
 )
 from schemas.site_file import SiteFile
 
@@ -167,7 +169,10 @@ class ZoneIntake:
             self._drop("oversized", message, f"{len(payload)} bytes exceed {max_bytes}")
             return None
         try:
-            json.loads(payload)
+            json.loads(payload, object_pairs_hook=refuse_duplicate_keys)
+        except PayloadError as exc:  # one key twice: two parsers could read two different messages
+            self._drop("malformed", message, str(exc))
+            return None
         except (ValueError, UnicodeDecodeError):
             self._drop("malformed", message, "not JSON")
             return None

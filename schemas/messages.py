@@ -24,7 +24,10 @@ ZoneStateValue = Literal["blocked", "clear", "caution"]
 NodeStatusValue = Literal["online", "offline"]
 RobotStateValue = Literal["idle", "navigating", "waiting", "arrived", "cancelled"]
 
-Point2 = tuple[float, float]
+MAX_COORDINATE_M = 10_000.0
+"""Polygons on the wire stay within 10 km of the map origin: finite, and small enough to clip cheaply."""
+Coordinate = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)]
+Point2 = tuple[Coordinate, Coordinate]
 Pose = tuple[float, float, float]
 
 
@@ -137,7 +140,7 @@ class PayloadError(ValueError):
     """A payload that must be dropped: the message says why, in one line."""
 
 
-def _refuse_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+def refuse_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     """`{"state": "clear", "state": "blocked"}` means two things; JSON parsers keep the last, so refuse it."""
     keys = [key for key, _ in pairs]
     if len(set(keys)) != len(keys):
@@ -152,7 +155,7 @@ def parse_payload(model: type[M], payload: bytes | str, *, max_bytes: int = MAX_
     if len(raw) > max_bytes:
         raise PayloadError(f"payload of {len(raw)} bytes exceeds {max_bytes}")
     with contextlib.suppress(json.JSONDecodeError, UnicodeDecodeError):  # pydantic below says where
-        json.loads(raw, object_pairs_hook=_refuse_duplicate_keys)
+        json.loads(raw, object_pairs_hook=refuse_duplicate_keys)
     try:
         return model.model_validate_json(raw)
     except ValidationError as exc:
