@@ -148,7 +148,7 @@ def test_robot_reads_zones_and_operator_gives_goals(endpoint: Endpoint) -> None:
 
 
 def test_client_that_subscribes_to_nothing_receives_nothing(endpoint: Endpoint) -> None:
-    """amqtt fact 1: a new client used to get the retained messages matching *other* clients' filters."""
+    """amqtt 0.12.1: a new client used to get the retained messages matching *other* clients' filters."""
     state = topics.zone_state(SITE, "z1", "n1")
     goal = topics.robot_goal(SITE, "robot1")
     with client(endpoint, "operator", "watcher") as watcher, client(endpoint, "n1") as node:
