@@ -20,8 +20,9 @@ from dataclasses import dataclass, field
 log = logging.getLogger("wsnav.broker")
 
 DESCRIPTOR_RESERVE = 320
-"""Descriptors kept free of connections: asyncio accepts up to 100 sockets per listener before any of them is
-seen here (and closing takes one more loop turn), plus the retained store, logs, TLS and the event loop."""
+"""Descriptors kept free of connections at least: asyncio accepts up to 100 sockets per listener and loop turn
+before any of them is seen here (and closing one takes another turn), plus the retained store, logs, TLS and the
+event loop. Under a low limit half of it is kept free, since a loaded machine runs more turns behind."""
 
 
 def raise_descriptor_limit() -> int:
@@ -39,7 +40,8 @@ def raise_descriptor_limit() -> int:
 
 def connection_capacity(max_connections: int, descriptor_limit: int) -> int:
     """How many client connections fit: `max_connections` (0: no own cap) but never past the descriptors."""
-    by_descriptors = max(1, descriptor_limit - DESCRIPTOR_RESERVE)
+    reserve = min(max(DESCRIPTOR_RESERVE, descriptor_limit // 2), 1024)
+    by_descriptors = max(1, descriptor_limit - reserve)
     return by_descriptors if max_connections <= 0 else min(max_connections, by_descriptors)
 
 
@@ -92,6 +94,11 @@ class Admission:
     def release(self, ticket: Ticket) -> None:
         self._pending.pop(ticket, None)
         self._logged_in.discard(ticket)
+
+    def out_of_descriptors(self) -> None:
+        """asyncio could not accept (EMFILE): counted and reported like a refusal, without its traceback."""
+        self.refused += 1
+        self._report()
 
     def _report(self) -> None:
         """One warning per 10 s at most, however hard the port is hammered (the log must not fill the disk)."""

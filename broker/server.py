@@ -16,6 +16,7 @@ import signal
 import socket
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 from amqtt.broker import Broker
@@ -114,6 +115,8 @@ async def serve(
             pass  # not the main thread (embedded use): the caller sets `stop` instead
     try:
         running = await start_broker(spec, credentials_dir, options)
+        if loop.get_exception_handler() is None:
+            loop.set_exception_handler(partial(_loop_exception, running.broker.admission))
         try:
             on_ready(running)
             await stop.wait()
@@ -122,6 +125,16 @@ async def serve(
     finally:
         for sig in installed:
             loop.remove_signal_handler(sig)
+
+
+def _loop_exception(
+    admission: Admission, loop: asyncio.AbstractEventLoop, context: dict[str, object]
+) -> None:
+    """asyncio logs a traceback per failed accept(); a port under attack would fill the disk with them."""
+    if context.get("message") == "socket.accept() out of system resource":
+        admission.out_of_descriptors()
+        return
+    loop.default_exception_handler(context)
 
 
 def _bound_addresses(broker: Broker) -> dict[str, tuple[str, int]]:
