@@ -3,7 +3,8 @@
 An attacker who opens sockets and never logs in must not lock out the site's nodes. Every accepted connection
 is *pending* until it has logged in; pending connections are closed after the CONNECT timeout (packet_gate), and
 when the broker is full a new connection pushes out the oldest pending one instead of waiting behind it.
-Logged-in connections are never pushed out: when all slots are logged in, a new connection is closed at once.
+Logged-in connections are never pushed out: when all slots are logged in, a new connection is closed at once;
+and one identity holds at most MAX_PER_IDENTITY of them, so a stolen credential cannot fill the slots either.
 The cap stays below the process's open-file limit with a reserve for the store, logs and the bursts of sockets
 asyncio accepts in one loop turn, so `accept()` itself never fails with "Too many open files".
 """
@@ -13,7 +14,7 @@ from __future__ import annotations
 import logging
 import resource
 import time
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -23,6 +24,10 @@ DESCRIPTOR_RESERVE = 320
 """Descriptors kept free of connections at least: asyncio accepts up to 100 sockets per listener and loop turn
 before any of them is seen here (and closing one takes another turn), plus the retained store, logs, TLS and the
 event loop. Under a low limit half of it is kept free, since a loaded machine runs more turns behind."""
+
+
+MAX_PER_IDENTITY = 16
+"""Logged-in connections of one identity: a node or robot needs one, the operator a few tools at once."""
 
 
 def raise_descriptor_limit() -> int:
@@ -50,7 +55,8 @@ class Ticket:
     """One admitted connection; `close` aborts its socket (frees the descriptor at once)."""
 
     close: Callable[[], None]
-    logged_in: bool = False
+    identity: str | None = None
+    """Set when the connection has logged in."""
     since: float = field(default_factory=time.monotonic)
 
 
@@ -61,6 +67,7 @@ class Admission:
         self.capacity = capacity
         self._pending: OrderedDict[Ticket, None] = OrderedDict()
         self._logged_in: set[Ticket] = set()
+        self._per_identity: Counter[str] = Counter()
         self.evicted = 0
         self.refused = 0
         self._reported = (0, 0)
@@ -85,15 +92,26 @@ class Admission:
         self._pending[ticket] = None
         return ticket
 
-    def logged_in(self, ticket: Ticket) -> None:
-        if ticket in self._pending:
-            del self._pending[ticket]
-            ticket.logged_in = True
-            self._logged_in.add(ticket)
+    def logged_in(self, ticket: Ticket, identity: str) -> bool:
+        """Move a pending connection to the logged-in ones; False (and no change) if its identity is at its cap."""
+        if ticket not in self._pending:
+            return ticket.identity == identity  # evicted meanwhile (False) or already counted
+        if self._per_identity[identity] >= MAX_PER_IDENTITY:
+            self.refused += 1
+            self._report()
+            return False
+        del self._pending[ticket]
+        ticket.identity = identity
+        self._logged_in.add(ticket)
+        self._per_identity[identity] += 1
+        return True
 
     def release(self, ticket: Ticket) -> None:
         self._pending.pop(ticket, None)
-        self._logged_in.discard(ticket)
+        if ticket in self._logged_in:
+            self._logged_in.discard(ticket)
+            assert ticket.identity is not None
+            self._per_identity[ticket.identity] -= 1
 
     def out_of_descriptors(self) -> None:
         """asyncio could not accept (EMFILE): counted and reported like a refusal, without its traceback."""
@@ -108,6 +126,6 @@ class Admission:
         evicted, refused = self.evicted - self._reported[0], self.refused - self._reported[1]
         self._reported, self._last_report = (self.evicted, self.refused), now
         log.warning(
-            f"connection slots full ({self.capacity}): closed {evicted} idle connection(s) that had not logged "
-            f"in and refused {refused} new one(s) since the last report"
+            f"connection slots full ({self.capacity}) or an identity at its {MAX_PER_IDENTITY}: closed {evicted} "
+            f"idle connection(s) that had not logged in and refused {refused} since the last report"
         )

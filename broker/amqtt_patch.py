@@ -187,10 +187,13 @@ class WsnavBroker(Broker):
             await handler.mqtt_connack_authorize(False)
             await writer.close()
             raise AMQTTError(f"connection refused: not authorized (client id {session.client_id!r})")
-        ticket = getattr(reader, "ticket", None)
-        if isinstance(ticket, Ticket):
-            self.admission.logged_in(ticket)
         username = session.username or ""
+        ticket = getattr(reader, "ticket", None)
+        if isinstance(ticket, Ticket) and not self.admission.logged_in(ticket, username):
+            handler.attach(session, reader, writer)
+            await handler.mqtt_connack_authorize(False)
+            await writer.close()
+            raise AMQTTError(f"connection refused: {username!r} holds its maximum of connections")
         if not session.client_id:
             session.client_id = gen_client_id()
         session.client_id = session_key(username, session.client_id)

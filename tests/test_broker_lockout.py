@@ -6,6 +6,7 @@ during and after the attack, the log does not fill, and the broker's descriptors
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
@@ -14,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from broker.admission import MAX_PER_IDENTITY
 from broker.credentials import write_credentials
 from broker.embedded import BrokerProcess
 from schemas import topics
@@ -24,6 +26,7 @@ from tests.test_broker_helpers import TIMEOUT, Client, Endpoint, client
 
 SITE = "tiny"
 LOGIN_S = 2.0
+SLOTS = 30
 
 
 def open_descriptors(pid: int) -> int:
@@ -32,8 +35,12 @@ def open_descriptors(pid: int) -> int:
 
 def login_seconds(ep: Endpoint) -> float:
     """How long node n1 takes from TCP connect to CONNACK (a refusal or no answer fails the test)."""
+    return login_seconds_as(ep, "n1")
+
+
+def login_seconds_as(ep: Endpoint, ident: str) -> float:
     started = time.monotonic()
-    node = Client(ep, "n1", "n1", ep.password("n1"))
+    node = Client(ep, ident, ident, ep.password(ident))
     try:
         assert not node.connect().is_failure
     finally:
@@ -125,3 +132,28 @@ def test_a_full_broker_makes_room_for_a_login_by_closing_idle_sockets(tmp_path: 
                 assert robot.disconnects == []
         finally:
             idle.wait(TIMEOUT)
+
+
+def test_a_stolen_credential_cannot_fill_the_slots_with_logins(tmp_path: Path) -> None:
+    """Logged-in connections are never pushed out, so without a per-identity cap one node's password and
+    distinct client ids could take every slot; the cap is MAX_PER_IDENTITY connections per identity."""
+    site = tiny_site(tmp_path / "site")
+    creds = tmp_path / "creds"
+    write_credentials(load_site(site).spec, creds)
+    with BrokerProcess(site, creds, extra_args=["--max-connections", str(SLOTS)]) as proc:
+        ep = Endpoint("amqtt", proc.host, proc.port, creds)
+        thief = [Client(ep, f"n1-{i}", "n1", ep.password("n1")) for i in range(SLOTS + 4)]
+        try:
+            reasons = [c.connect() for c in thief]
+            assert sum(not r.is_failure for r in reasons) == MAX_PER_IDENTITY
+            assert login_seconds_as(ep, "robot1") < LOGIN_S
+        finally:
+            for c in thief:
+                c.close()
+        deadline = time.monotonic() + TIMEOUT
+        while time.monotonic() < deadline:  # the broker sees the closes a moment later
+            with contextlib.suppress(AssertionError):
+                login_seconds(ep)
+                break
+            time.sleep(0.2)
+        assert login_seconds(ep) < LOGIN_S
