@@ -20,6 +20,7 @@ from skimage.graph import MCP_Geometric
 
 from bench.benchmarks_md import bench_parser, machine_note, write_section
 from bench.synthetic_building import BLOCK, building_grid
+from robot_agent.costmap_planner import PlannerWeights
 from robot_agent.global_planner import PlannerParams, plan_path, weights_for
 from robot_agent.inflation import InflationParams
 from robot_agent.layered_costmap import LayeredCostmap
@@ -47,7 +48,7 @@ def measure(cells: int, route: str, runs: int, dijkstra_runs: int) -> dict[str, 
     start = ((s[1] + 0.5) * res, (s[0] + 0.5) * res)
     goal = ((g[1] + 0.5) * res, (g[0] + 0.5) * res)
     params = PlannerParams()
-    weights = costmap.planner_weights(params)
+    weights = PlannerWeights(params).of(costmap)
     plan = plan_path(costmap.master, res, grid.origin, start, goal, params, weights)
     if not plan.reachable:
         raise SystemExit(f"bench: {route} on {cells} x {cells} unreachable ({plan.reason})")
@@ -106,7 +107,7 @@ def main() -> None:
         f"```\n{COMMAND}\n```\n\n"
         "Plans on a synthetic building floor (bench/synthetic_building.py: 0.05 m cells, corridors every 12.5 m, "
         "rooms with doors, inflation radius 1 m): `across` corner to corner, `along` one corridor. Columns: "
-        "`plan_path` given the costmap's cached weights (`LayeredCostmap.planner_weights`, updated in changed "
+        "`plan_path` given the costmap's cached weights (`costmap_planner.PlannerWeights`, updated in changed "
         "bounds only: what the agent does), the same building the weights itself, building the weights alone, "
         "pyastar2d over the whole grid (no hierarchy), and skimage 0.26 `MCP_Geometric` (whole-map Dijkstra, "
         f"8-connected, then traceback). Median of {args.runs} runs ({args.dijkstra_runs} for Dijkstra), "

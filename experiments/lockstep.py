@@ -9,7 +9,8 @@ import time
 from collections import Counter
 from collections.abc import Callable
 
-from runtime.bus import Bus, Message, topic_matches
+from runtime.bus import Bus, Message
+from schemas.topics import topic_matches
 
 REAL_TIMEOUT_S = 30.0
 

@@ -20,7 +20,8 @@ DEVICE = Path(__file__).resolve().parent / "device"
 HOST_STUBS = DEVICE / "host_stubs"
 """Test-only fakes and drivers for the unix port; never built or deployed (build takes device/*.py only)."""
 HEAP = "38k"
-"""The ESP8266's GC heap (DESIGN.md); on the 64-bit unix port objects are bigger, so this is conservative."""
+"""The ESP8266's GC heap (docs/architecture.md, "The ESP8266"); on the 64-bit unix port objects are bigger, so
+this is conservative."""
 
 
 def micropython_exe() -> str:

@@ -21,19 +21,26 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
+import numpy as np
+from numpy.typing import NDArray
+
 from robot_agent.agent_config import AgentConfig
 from robot_agent.backend import Pose, RobotBackend
 from robot_agent.controller import ControllerParams, PathFollower
 from robot_agent.costmap_planner import GlobalPlanner
 from robot_agent.layered_costmap import LayeredCostmap
-from robot_agent.navigator import Every, GoalLabel, Navigator, NavigatorParams
+from robot_agent.navigator import GoalLabel, Navigator, NavigatorParams
+from robot_agent.zone_escape import ZoneEscape
+from robot_agent.zone_geometry import GridFrame
 from robot_agent.zone_intake import ZoneIntake
 from robot_agent.zone_layer import ZoneLayer
 from runtime.bus import Bus, Message
 from runtime.clock import Clock
+from runtime.timers import Every
 from schemas import topics
 from schemas.messages import (
     MAX_OPERATOR_PAYLOAD_BYTES,
+    ROBOT_PATH_POINTS,
     PayloadError,
     RobotGoal,
     RobotStatus,
@@ -41,6 +48,15 @@ from schemas.messages import (
     parse_payload,
 )
 from schemas.site import Site
+
+
+def path_ahead(path: NDArray[np.float64], x: float, y: float) -> list[tuple[float, float]] | None:
+    """The plan from its point nearest the robot to the goal, thinned evenly to the status's point budget."""
+    if len(path) == 0:
+        return None
+    ahead = path[int(np.argmin(np.hypot(path[:, 0] - x, path[:, 1] - y))) :]
+    keep = np.unique(np.linspace(0, len(ahead) - 1, min(len(ahead), ROBOT_PATH_POINTS)).round().astype(int))
+    return [(round(float(px), 2), round(float(py), 2)) for px, py in ahead[keep]]
 
 
 class SimWorldSink(Protocol):
@@ -104,13 +120,12 @@ class RobotAgent:
         inflation = config.inflation.params(radius)
         self.zone_layer: ZoneLayer | None = None
         self.intake: ZoneIntake | None = None
-        self.costmap = LayeredCostmap(site.grid, inflation, obstacle_layer=config.obstacle_layer)
         if config.zone_layer:
-            self.zone_layer = ZoneLayer(site.spec, self.costmap.frame, site.spec.policy)
-            self.costmap = LayeredCostmap(
-                site.grid, inflation, zone_layer=self.zone_layer, obstacle_layer=config.obstacle_layer
-            )
+            self.zone_layer = ZoneLayer(site.spec, GridFrame.of_grid(site.grid), site.spec.policy)
             self.intake = ZoneIntake(site.spec, self.zone_layer)
+        self.costmap = LayeredCostmap(
+            site.grid, inflation, zone_layer=self.zone_layer, obstacle_layer=config.obstacle_layer
+        )
         controller = PathFollower(
             ControllerParams(
                 inscribed_radius=radius,
@@ -131,6 +146,7 @@ class RobotAgent:
                 local_costmap_size_m=config.local_costmap_size_m,
             ),
             blocked_zones=self.blocked_zones,
+            escape=ZoneEscape(self.costmap) if self.zone_layer is not None else None,
         )
         self.sim_world = sim_world
         self.on_status = on_status
@@ -195,6 +211,7 @@ class RobotAgent:
             replans=nav.replans,
             plan_length_m=round(nav.plan_length_m, 3) if nav.plan_length_m is not None else None,
             reason=nav.reason[:200] if nav.reason else None,
+            path=path_ahead(nav.path, x, y) if nav.state == "navigating" else None,
             t=round(now, 3),
         )
 

@@ -1,6 +1,6 @@
 """The interface between the agent and a robot: where it is, what its lidar sees, the velocity it is told.
 
-The simulated TurtleBot3 implements it now; a ROS backend (odometry/tf, /scan, /cmd_vel) can later.
+The simulated TurtleBot3 implements it, and so does ros_bridge.robot_backend over ROS (tf/odometry, /scan, /cmd_vel).
 The agent never steps a robot: whoever owns the world (a real-time loop, the experiment) advances the simulation.
 """
 
@@ -28,6 +28,16 @@ class LaserScan:
     range_min: float
     range_max: float
     ranges: NDArray[np.float32]
+
+
+@dataclass(frozen=True)
+class DriveLimits:
+    """How fast the robot may go and accelerate; defaults are TurtleBot3 Burger's (as its Nav2 configuration)."""
+
+    max_linear: float = 0.22
+    max_angular: float = 2.84
+    linear_accel: float = 2.5
+    angular_accel: float = 3.2
 
 
 @dataclass(frozen=True)

@@ -16,10 +16,9 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from robot_agent.backend import Pose, Velocity
+from robot_agent.backend import DriveLimits, Pose, Velocity
 from robot_agent.global_planner import densify
 from robot_agent.inflation import FREE_SPACE, INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
-from robot_agent.sim_turtlebot3 import TurtleBot3Params
 from robot_agent.zone_geometry import GridFrame
 
 Status = Literal["following", "arrived", "blocked", "idle"]
@@ -84,9 +83,9 @@ STOP = Velocity(0.0, 0.0)
 class PathFollower:
     """Follows one path at a time; call `compute` at the control rate with the robot's pose and odometry."""
 
-    def __init__(self, params: ControllerParams | None = None, robot: TurtleBot3Params | None = None) -> None:
+    def __init__(self, params: ControllerParams | None = None, robot: DriveLimits | None = None) -> None:
         self.params = params or ControllerParams()
-        self.robot = robot or TurtleBot3Params()
+        self.robot = robot or DriveLimits()
         self._path: NDArray[np.float64] = np.zeros((0, 2))
         self._cum: NDArray[np.float64] = np.zeros(0)
         self._progress = 0
@@ -278,15 +277,9 @@ class PathFollower:
         blocking = self._blocking(cost) & known
         if not bool(blocking.any()):
             return ""
-        # The robot may start (or be pushed) into inscribed space: the stretch it is leaving does not count,
-        # unless it is lethal (a real obstacle).
-        here = _cost_at(costs, frame, x, y)
-        if here is not None and here >= INSCRIBED_INFLATED_OBSTACLE:
-            lethal = known & (cost == LETHAL_OBSTACLE)
-            leaving = np.cumprod(blocking & ~lethal).astype(bool)
-            blocking &= ~leaving
-            if not bool(blocking.any()):
-                return ""
+        blocking = _ignore_stretch_being_left(blocking, cost, known, _cost_at(costs, frame, x, y))
+        if not bool(blocking.any()):
+            return ""
         k = int(np.argmax(blocking))
         ahead = float(self._cum[start + k] - self._cum[start])
         what = (
@@ -319,19 +312,26 @@ class PathFollower:
             py = y - r * (np.cos(yaws) - math.cos(yaw))
         cost, known = _costs_at(costs, frame, np.column_stack([px, py]))
         blocking = self._blocking(cost) & known
-        here = _cost_at(costs, frame, x, y)
-        if here is not None and here >= INSCRIBED_INFLATED_OBSTACLE:
-            lethal = known & (cost == LETHAL_OBSTACLE)
-            blocking &= ~np.cumprod(blocking & ~lethal).astype(bool)
+        blocking = _ignore_stretch_being_left(blocking, cost, known, _cost_at(costs, frame, x, y))
         return bool(blocking.any())
+
+
+def _ignore_stretch_being_left(
+    blocking: NDArray[np.bool_], cost: NDArray[np.uint8], known: NDArray[np.bool_], here: int | None
+) -> NDArray[np.bool_]:
+    """`blocking` without the stretch the robot is leaving: it may start (or be pushed) into inscribed space, and
+    the inscribed cells it drives out through do not count; lethal ones (a real obstacle) still do."""
+    if here is None or here < INSCRIBED_INFLATED_OBSTACLE:
+        return blocking
+    lethal = known & (cost == LETHAL_OBSTACLE)
+    return blocking & ~np.cumprod(blocking & ~lethal).astype(bool)
 
 
 def _costs_at(
     costs: NDArray[np.uint8], frame: GridFrame, pts: NDArray[np.float64]
 ) -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
     """Cost under each point and whether the point lies inside the costmap (outside: cost FREE, not known)."""
-    cols = np.floor((pts[:, 0] - frame.origin_x) / frame.resolution).astype(np.intp)
-    rows = np.floor((pts[:, 1] - frame.origin_y) / frame.resolution).astype(np.intp)
+    rows, cols = frame.world_to_cells(pts[:, 0], pts[:, 1])
     h, w = costs.shape
     known = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
     out = np.zeros(len(pts), dtype=np.uint8)

@@ -22,7 +22,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from robot_agent.inflation import INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
-from robot_agent.zone_geometry import Bounds
+from robot_agent.zone_geometry import Bounds, GridFrame
 
 _PYASTAR: Any = importlib.import_module("pyastar2d.astar")
 """The compiled module behind pyastar2d.astar_path."""
@@ -56,7 +56,7 @@ class PlannerParams:
     smooth: bool = True
     smooth_cost: int = 64
     """A shortcut may cross cells up to this cost, or up to the highest cost of the stretch it replaces."""
-    start_escape_m: float = 0.3
+    start_step_off_m: float = 0.3
     """If the start lies in inscribed space (robot brushing a wall), inscribed cells this near it may be
     crossed to get out; lethal cells never."""
 
@@ -71,10 +71,6 @@ class Plan:
     """(m, 2) row, col of the raw A* path."""
     length_m: float = float("nan")
     plan_ms: float = 0.0
-
-    def densify(self, step_m: float) -> NDArray[np.float64]:
-        """The path resampled every `step_m` metres or less along each segment (for a path follower)."""
-        return densify(self.path, step_m)
 
 
 WEIGHT_QUANTUM = 1.0 / 64.0
@@ -128,17 +124,18 @@ def plan_path(
     t0 = time.perf_counter()
     height, width = costs.shape
     ox, oy = float(origin[0]), float(origin[1])
-    s = _cell(start, resolution, ox, oy)
-    g = _cell(goal, resolution, ox, oy)
-    if not (0 <= s[0] < height and 0 <= s[1] < width):
+    frame = GridFrame(width, height, resolution, ox, oy)
+    s = frame.world_to_cell(*start)
+    g = frame.world_to_cell(*goal)
+    if not frame.contains_cell(*s):
         return Plan(False, "start_outside", plan_ms=_ms(t0))
-    if not (0 <= g[0] < height and 0 <= g[1] < width):
+    if not frame.contains_cell(*g):
         return Plan(False, "goal_outside", plan_ms=_ms(t0))
     w = weights if weights is not None else weights_for(costs, p)
     if not np.isfinite(w[g]):
         return Plan(False, "goal_blocked", plan_ms=_ms(t0))
     if not np.isfinite(w[s]):
-        w = _escape_start(costs, w, s, resolution, p)
+        w = _step_off_inscribed_start(costs, w, s, resolution, p)
         if w is None:
             return Plan(False, "start_blocked", plan_ms=_ms(t0))
     if s == g:
@@ -174,10 +171,10 @@ def plan_exit(
     p = params or PlannerParams()
     w = weight_lut(p)[costs]
     if not np.isfinite(w[start]):
-        escaped = _escape_start(costs, w, start, resolution, p)
-        if escaped is None:
+        stepped = _step_off_inscribed_start(costs, w, start, resolution, p)
+        if stepped is None:
             return None
-        w = escaped
+        w = stepped
     if exits[start]:
         return np.array([start], dtype=np.intp)
     height, width = costs.shape
@@ -248,10 +245,6 @@ def simplify(path: NDArray[np.float64], tolerance_m: float) -> NDArray[np.float6
     return path[keep]
 
 
-def _cell(xy: XY, resolution: float, ox: float, oy: float) -> tuple[int, int]:
-    return int(np.floor((xy[1] - oy) / resolution)), int(np.floor((xy[0] - ox) / resolution))
-
-
 def _ms(t0: float) -> float:
     return (time.perf_counter() - t0) * 1000.0
 
@@ -260,13 +253,13 @@ def _length(path: NDArray[np.float64]) -> float:
     return float(np.hypot(*np.diff(path, axis=0).T).sum()) if len(path) > 1 else 0.0
 
 
-def _escape_start(
+def _step_off_inscribed_start(
     costs: NDArray[np.uint8], w: NDArray[np.float32], s: tuple[int, int], resolution: float, p: PlannerParams
 ) -> NDArray[np.float32] | None:
     """Weights that let the robot leave inscribed space around its start; None if the start is lethal."""
-    if costs[s] != INSCRIBED_INFLATED_OBSTACLE or p.start_escape_m <= 0:
+    if costs[s] != INSCRIBED_INFLATED_OBSTACLE or p.start_step_off_m <= 0:
         return None
-    r = int(np.ceil(p.start_escape_m / resolution))
+    r = int(np.ceil(p.start_step_off_m / resolution))
     r0, r1 = max(s[0] - r, 0), min(s[0] + r + 1, costs.shape[0])
     c0, c1 = max(s[1] - r, 0), min(s[1] + r + 1, costs.shape[1])
     rows, cols = np.ogrid[r0:r1, c0:c1]

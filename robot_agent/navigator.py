@@ -7,7 +7,7 @@ Pure logic over the costmap, planner, controller and robot backend, driven by `s
   (a path that appeared may be shorter, one that vanished must be replaced); no path: stop and wait.
 - Waiting resumes by itself: every later zone change retries, and so (configurably) does a timer.
 - The robot's footprint touches a blocked zone (it was inside when the zone was reported): leave it by the
-  shortest way out over the costmap's escape view (the zone passable, walls and lidar marks not; the controller
+  shortest way out over the escape view (robot_agent.zone_escape) (the zone passable, walls and lidar marks not; the controller
   sees the same view), then on to the goal by a route that avoids the zone, or stop and wait once out if there
   is none. Once out, back on the costmap as it is: the zone is lethal again, no way back in.
 - The controller reports its path blocked (the lidar saw something): replan over the obstacle marks.
@@ -26,10 +26,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robot_agent.backend import Pose, RobotBackend, Velocity
-from robot_agent.costmap_planner import EscapePlan, GlobalPlanner, PlanningCostmap
+from robot_agent.costmap_planner import GlobalPlanner, PlanningCostmap
 from robot_agent.global_planner import Plan
-from robot_agent.layered_costmap import EscapeView
-from robot_agent.zone_geometry import GridFrame
+from robot_agent.zone_escape import EscapePlan, EscapeView, Leaving, plan_escape
+from robot_agent.zone_geometry import Bounds, GridFrame
+from robot_agent.zone_layer import BlockedArea
+from runtime.timers import Every
 
 NavState = Literal["idle", "navigating", "waiting", "arrived", "cancelled"]
 Trigger = Literal["goal", "zone", "blocked", "periodic", "retry"]
@@ -43,17 +45,31 @@ class Costmap(PlanningCostmap, Protocol):
     """What the navigator reads of robot_agent.layered_costmap.LayeredCostmap."""
 
     def in_lethal(self, x: float, y: float) -> bool: ...
-    def zones_at(self, x: float, y: float) -> list[str]:
+    def local_window(
+        self, pose: Pose, size_m: float, overlay: tuple[Bounds, NDArray[np.uint8]] | None = None
+    ) -> tuple[NDArray[np.uint8], GridFrame]: ...
+
+
+class Escape(Protocol):
+    """What the navigator needs of robot_agent.zone_escape.ZoneEscape."""
+
+    def areas_at(self, x: float, y: float) -> list[BlockedArea]:
         """Blocked zones (and operator blocks) the robot's footprint would touch at this point."""
         ...
 
-    def escape_view(self, zones: list[str]) -> EscapeView | None:
-        """Costs around `zones` with their own cost passable, for driving out of them."""
+    def view(self, areas: list[BlockedArea]) -> EscapeView | None:
+        """Costs around `areas` with their own cost passable, for driving out of them."""
         ...
 
-    def local_window(
-        self, pose: Pose, size_m: float, view: EscapeView | None = None
-    ) -> tuple[NDArray[np.uint8], GridFrame]: ...
+
+class NoEscape:
+    """A costmap without a zone layer: no blocked areas to stand in."""
+
+    def areas_at(self, x: float, y: float) -> list[BlockedArea]:
+        return []
+
+    def view(self, areas: list[BlockedArea]) -> EscapeView | None:
+        return None
 
 
 class ControlOutput(Protocol):
@@ -99,24 +115,6 @@ class NavEvent:
     pose: Pose | None = None
 
 
-class Every:
-    """A fixed-rate timer in the caller's time: `due(now)` is true once per period (0 Hz: never)."""
-
-    def __init__(self, rate_hz: float) -> None:
-        self.period = 1.0 / rate_hz if rate_hz > 0 else math.inf
-        self.next = -math.inf
-
-    def start(self, now: float) -> None:
-        self.next = now + self.period
-
-    def due(self, now: float) -> bool:
-        if now < self.next:
-            return False
-        # Late by more than a period (a stalled loop): skip the missed ticks rather than bursting them.
-        self.next = self.next + self.period if now - self.next < self.period else now + self.period
-        return True
-
-
 class Navigator:
     def __init__(
         self,
@@ -126,9 +124,12 @@ class Navigator:
         backend: RobotBackend,
         params: NavigatorParams | None = None,
         blocked_zones: Callable[[], list[str]] | None = None,
+        escape: Escape | None = None,
     ) -> None:
-        """`blocked_zones` tells which zones the zone layer holds lethal now (none without a zone layer)."""
+        """`blocked_zones` tells which zones the zone layer holds lethal now (none without a zone layer);
+        `escape` finds the blocked areas the robot stands in and the way out (none without a zone layer)."""
         self.costmap = costmap
+        self.escape: Escape = escape or NoEscape()
         self.planner = planner
         self.controller = controller
         self.backend = backend
@@ -153,10 +154,8 @@ class Navigator:
         self._periodic = Every(self.params.replan_rate_hz)
         self._retry = Every(1.0 / self.params.waiting_retry_s if self.params.waiting_retry_s > 0 else 0.0)
         self._last_blocked_replan = -math.inf
-        self.leaving: list[str] = []
-        """The blocked zones the robot is driving out of (empty when it is in none)."""
-        self._out_only = False
-        """The path is the way out alone: no route on to the goal avoids the zones."""
+        self.leaving: Leaving | None = None
+        """The blocked areas the robot is driving out of, and whether a route goes on (None: in none)."""
 
     @property
     def active(self) -> bool:
@@ -224,19 +223,21 @@ class Navigator:
     def _control_tick(self, now: float) -> None:
         pose = self.backend.pose()
         view: EscapeView | None = None
-        if self.leaving:
-            here = self.costmap.zones_at(pose[0], pose[1])
+        if self.leaving is not None:
+            here = self.escape.areas_at(pose[0], pose[1])
             if here:
-                view = self.costmap.escape_view(here)
+                view = self.escape.view(here)
             else:
+                onward = self.leaving.onward
                 self._left(now)
-                if self._out_only:
+                if not onward:
                     self._plan(now, "zone")
                     if self.state != "navigating":
                         return
-        costs, frame = self.costmap.local_window(pose, self.params.local_costmap_size_m, view)
+        overlay = view.overlay if view is not None else None
+        costs, frame = self.costmap.local_window(pose, self.params.local_costmap_size_m, overlay)
         result = self.controller.compute(pose, self.backend.velocity(), costs, frame)
-        if result.status == "arrived" and self._out_only:
+        if result.status == "arrived" and self.leaving is not None and not self.leaving.onward:
             # At the end of the way out with no route on (normally `_left` got here first): plan from here
             # over the costmap as it is, which waits.
             self._plan(now, "zone", escape=False)
@@ -258,12 +259,12 @@ class Navigator:
         assert self.goal is not None
         pose = self.backend.pose()
         costmap = self.costmap
-        here = costmap.zones_at(pose[0], pose[1]) if escape else []
-        view = costmap.escape_view(here) if here else None
+        here = self.escape.areas_at(pose[0], pose[1]) if escape else []
+        view = self.escape.view(here) if here else None
         start, goal = (pose[0], pose[1]), (self.goal[0], self.goal[1])
         out: EscapePlan | None = None
         if view is not None:
-            out = self.planner.plan_escape(costmap, view, start, goal)
+            out = plan_escape(self.planner, costmap, view, start, goal)
             plan = out.onward if out.onward is not None else out.out
         else:
             plan = self.planner.plan(costmap, start, goal)
@@ -277,15 +278,15 @@ class Navigator:
             if plan.reason == "goal_outside":
                 self._cancel(now, "the goal lies outside the map")
                 return
-            self._follow(now, trigger, out.path, out.length_m, here, out.reaches_goal)
+            self._follow(now, trigger, out.path, out.length_m, Leaving(tuple(here), out.reaches_goal))
             if not out.reaches_goal:
                 self.reason = f"{self.reason}; then waiting: {self._no_path_reason(plan)}"[:200]
             return
-        if out is None and self.leaving:
+        if out is None and self.leaving is not None:
             self._left(now)  # planned from outside the zones: it is out
-        self.leaving = []
+        self.leaving = None
         if plan.reachable:
-            self._follow(now, trigger, plan.path, plan.length_m, [], True)
+            self._follow(now, trigger, plan.path, plan.length_m, None)
             return
         if plan.reason == "goal_outside":
             self._cancel(now, "the goal lies outside the map")
@@ -301,32 +302,31 @@ class Navigator:
         trigger: Trigger,
         path: NDArray[np.float64],
         length_m: float,
-        leaving: list[str],
-        to_goal: bool,
+        leaving: Leaving | None,
     ) -> None:
-        """Drive `path`: the route to the goal, or (`to_goal` false) only the way out of `leaving`."""
+        """Drive `path`: the route to the goal, or only the way out of blocked areas (`leaving`, not onward)."""
         assert self.goal is not None
         self.path = path
         self.plan_length_m = length_m
+        to_goal = leaving is None or leaving.onward
         self.controller.set_path(path, self.goal[2] if to_goal else None)
         resumed = self.state == "waiting"
         self.state, self.reason = "navigating", None
-        self._out_only = not to_goal
         if resumed:
             self._control.start(now)
             self._periodic.start(now)
         kind = "resumed" if resumed else ("plan" if trigger == "goal" else "replan")
         self._record(now, kind, trigger, f"{length_m:.2f} m")
-        if leaving:
-            self.reason = f"leaving blocked zone {', '.join(leaving)}"
-            if leaving != self.leaving:
-                self._record(now, "leaving", trigger, ", ".join(leaving))
+        if leaving is not None:
+            self.reason = f"leaving blocked zone {leaving.names}"
+            if self.leaving is None or leaving.areas != self.leaving.areas:
+                self._record(now, "leaving", trigger, leaving.names)
         self.leaving = leaving
 
     def _left(self, now: float) -> None:
         """The footprint is clear of the zones it was leaving: back on the costmap as it is."""
-        self._record(now, "left", detail=", ".join(self.leaving))
-        self.leaving = []
+        self._record(now, "left", detail=self.leaving.names if self.leaving is not None else "")
+        self.leaving = None
         if self.state == "navigating":
             self.reason = None
 
@@ -340,9 +340,9 @@ class Navigator:
         if self.goal is not None and plan.reason == "goal_blocked" and self.costmap.in_lethal(*self.goal[:2]):
             why = "the goal is occupied by an obstacle"
         if plan.reason == "start_blocked":
-            here = self.costmap.zones_at(*self.backend.pose()[:2])
+            here = self.escape.areas_at(*self.backend.pose()[:2])
             if here:
-                why = f"the robot stands in blocked zone {', '.join(here)}"
+                why = f"the robot stands in blocked zone {', '.join(a.name for a in here)}"
         return f"{why} (blocked zones: {', '.join(blocked)})" if blocked else why
 
     def _goal_blocked_zone(self) -> str | None:
@@ -354,10 +354,10 @@ class Navigator:
             return None
         if not self.costmap.in_lethal(x, y):
             return None
-        zones = self.costmap.zones_at(x, y)
-        if not zones:
+        areas = self.escape.areas_at(x, y)
+        if not areas:
             return None
-        return f"goal {_label_text(self.goal_label)} lies in blocked zone {', '.join(zones)}"
+        return f"goal {_label_text(self.goal_label)} lies in blocked zone {', '.join(a.name for a in areas)}"
 
     def _wait(self, now: float, trigger: Trigger, reason: str) -> None:
         self._stop()
@@ -376,8 +376,7 @@ class Navigator:
         self.backend.stop()
         self.controller.clear()
         self.path = np.zeros((0, 2))
-        self._out_only = False
-        self.leaving = []
+        self.leaving = None
 
     def _record(
         self, now: float, kind: EventKind, trigger: Trigger | None = None, detail: str | None = None

@@ -1,4 +1,5 @@
-"""`wsnav robot`: the robot agent against a broker, on a simulated TurtleBot3 running in real time.
+"""`wsnav robot`: the robot agent against a broker, in real time, on a simulated TurtleBot3 (`--sim`) or on a robot
+backend another component adds to the command (`--ros`, from ros_bridge: this module never imports ROS).
 
 Kept apart from robot_agent.cli so that other wsnav commands start without loading the agent's dependencies.
 Prints one line per change of state (and of blocked zones); with `--exit-on-arrival` it exits 0 when the goal
@@ -13,13 +14,16 @@ import math
 import signal
 import sys
 import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
 
 from pydantic import ValidationError
 
-from robot_agent.agent import RobotAgent
-from robot_agent.agent_config import AgentConfigError, load_agent_config
+from robot_agent.agent import RobotAgent, SimWorldSink
+from robot_agent.agent_config import AgentConfig, AgentConfigError, load_agent_config
+from robot_agent.backend import Pose, RobotBackend
 from robot_agent.offline_plan import parse_point
 from robot_agent.sim_turtlebot3 import SimTurtleBot3
 from robot_agent.sim_world_grid import SimWorldGrid
@@ -34,9 +38,33 @@ SIM_DT_S = 0.02
 """The simulated robot is advanced at 50 Hz of real time."""
 
 
+@dataclass
+class RobotSession:
+    """A robot the real-time loop drives: the backend, and what the loop must do for it besides the agent."""
+
+    robot: RobotBackend
+    tick: Callable[[float], float]
+    """Called every loop turn with the clock's time; returns when it wants to run next (a simulator steps here)."""
+    describe: str
+    """What drives the robot, for the banner line."""
+    sim_world: SimWorldSink | None = None
+    """Where `sim/world` goes (the simulator's lidar and bumper); None for a real robot."""
+    close: Callable[[], None] = field(default=lambda: None)
+    """Stop the robot and let go of what the session holds; called once, also after an error."""
+
+
+BackendFactory = Callable[[argparse.Namespace, Site, str, "Pose | None"], RobotSession]
+"""(args, site, robot id, --start pose or None) -> a started session; CliError for what the user must fix."""
+
+
 def robot_command(args: argparse.Namespace) -> int:
-    if not args.sim:
-        raise CliError("only the simulated TurtleBot3 backend exists so far: pass --sim")
+    factory: BackendFactory | None = getattr(args, "backend", None)
+    if factory is not None and args.sim:
+        raise CliError("--sim and --ros are two different robots: pass one of them")
+    if factory is None and not args.sim:
+        raise CliError(
+            "pass --sim (a simulated TurtleBot3) or --ros (a robot on ROS: /scan, /odom, tf, /cmd_vel)"
+        )
     try:
         site = load_site(args.site)
     except SiteError as exc:
@@ -46,40 +74,76 @@ def robot_command(args: argparse.Namespace) -> int:
     except AgentConfigError as exc:
         raise CliError(str(exc)) from None
     creds = read_credentials(args.credentials, site)
-    start = parse_point(site, args.start, "--start")
+    if args.sim and args.start is None:
+        raise CliError("--sim needs --start: where the simulated robot stands")
+    start = parse_point(site, args.start, "--start") if args.start is not None else None
     goal = parse_point(site, args.goal, "--goal") if args.goal is not None else None
     if args.exit_on_arrival and goal is None:
         raise CliError("--exit-on-arrival needs --goal")
     if not (math.isfinite(args.connect_timeout) and args.connect_timeout > 0):
         raise CliError(f"--connect-timeout {args.connect_timeout:g}: expected a positive number of seconds")
 
+    session = (
+        factory(args, site, creds.username, start) if factory is not None else sim_session(site, creds, start)
+    )
+    try:
+        return _drive(args, site, config, creds, session, goal)
+    finally:
+        session.close()
+
+
+def sim_session(site: Site, creds: Credentials, start: Pose | None) -> RobotSession:
+    """The simulated TurtleBot3, stepped by the loop in real time; the zone simulator's obstacles reach it."""
+    assert start is not None
+    world = SimWorldGrid(site.grid)
+    robot = SimTurtleBot3(creds.username, world, start)
+    clock = WallClock()
+    last = [clock.now()]
+
+    def tick(now: float) -> float:
+        robot.step(min(now - last[0], 0.1), now)
+        last[0] = now
+        return now + SIM_DT_S
+
+    return RobotSession(robot, tick, "a simulated TurtleBot3", sim_world=world, close=robot.stop)
+
+
+def _drive(
+    args: argparse.Namespace,
+    site: Site,
+    config: AgentConfig,
+    creds: Credentials,
+    session: RobotSession,
+    goal: Pose | None,
+) -> int:
+    """Connect to the broker and run the agent on `session`'s robot until stopped (or arrived)."""
     clock = WallClock()
     host, port = args.broker
     try:
         bus = connect_with_credentials(host, port, creds, clock=clock, timeout_s=args.connect_timeout)
     except BusError as exc:
         raise CliError(str(exc)) from None
-    world = SimWorldGrid(site.grid)
-    robot = SimTurtleBot3(creds.username, world, start)
+    robot = session.robot
     printer = StatusPrinter(origin=clock.now())
-    agent = RobotAgent(site, config, robot, bus, clock, creds.username, sim_world=world, on_status=printer)
+    agent = RobotAgent(
+        site, config, robot, bus, clock, creds.username, sim_world=session.sim_world, on_status=printer
+    )
     stop = threading.Event()
-    last = [clock.now()]
 
     def world_tick(now: float) -> float:
-        robot.step(min(now - last[0], 0.1), now)
-        last[0] = now
+        next_due = session.tick(now)
         if args.exit_on_arrival and agent.navigator.state in ("arrived", "cancelled"):
             stop.set()
-        return now + SIM_DT_S
+        return next_due
 
     def on_signal(_sig: int, _frame: FrameType | None) -> None:
         stop.set()
 
     previous = signal.signal(signal.SIGTERM, on_signal)
     print(
-        f"robot {creds.username} on {site.name} (config {config.name}) at {host}:{port}, "
-        f"start {args.start}" + (f", goal {args.goal}" if goal is not None else ""),
+        f"robot {creds.username} on {site.name} (config {config.name}) at {host}:{port}, {session.describe}"
+        + (f", start {args.start}" if args.start is not None else "")
+        + (f", goal {args.goal}" if goal is not None else ""),
         flush=True,
     )
     try:

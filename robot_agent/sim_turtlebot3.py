@@ -11,19 +11,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robot_agent.backend import LaserScan, Pose, Velocity
+from robot_agent.backend import DriveLimits, LaserScan, Pose, Velocity
 from robot_agent.lidar import LidarParams, cast_scan
 from robot_agent.sim_world_grid import SimWorldGrid
+
+_BURGER = DriveLimits()
+"""The controller's default limits are the Burger's: one place for the numbers."""
 
 
 @dataclass(frozen=True)
 class TurtleBot3Params:
     """TurtleBot3 Burger limits (ROBOTIS e-Manual; accelerations as in its Nav2 configuration)."""
 
-    max_linear: float = 0.22
-    max_angular: float = 2.84
-    linear_accel: float = 2.5
-    angular_accel: float = 3.2
+    max_linear: float = _BURGER.max_linear
+    max_angular: float = _BURGER.max_angular
+    linear_accel: float = _BURGER.linear_accel
+    angular_accel: float = _BURGER.angular_accel
     radius: float = 0.105
     max_substep: float = 0.02
     """Physics substep (s): a long `step` is integrated in pieces no longer than this."""

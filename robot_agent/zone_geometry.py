@@ -14,6 +14,8 @@ import numpy as np
 from matplotlib.path import Path as MplPath
 from numpy.typing import NDArray
 
+from schemas.ros_map import OccupancyGrid
+
 Polygon = Sequence[tuple[float, float]] | Sequence[Sequence[float]]
 
 
@@ -27,11 +29,23 @@ class GridFrame:
     origin_x: float
     origin_y: float
 
+    @staticmethod
+    def of_grid(grid: OccupancyGrid) -> GridFrame:
+        return GridFrame(grid.width, grid.height, grid.resolution, grid.origin[0], grid.origin[1])
+
     def world_to_cell(self, x: float, y: float) -> tuple[int, int]:
         """(row, col) of the cell containing a world point; may lie outside the grid."""
         col = int(np.floor((x - self.origin_x) / self.resolution))
         row = int(np.floor((y - self.origin_y) / self.resolution))
         return row, col
+
+    def world_to_cells(
+        self, xs: NDArray[np.float64], ys: NDArray[np.float64]
+    ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+        """`world_to_cell` for arrays of points: (rows, cols), which may lie outside the grid."""
+        cols = np.floor((xs - self.origin_x) / self.resolution).astype(np.intp)
+        rows = np.floor((ys - self.origin_y) / self.resolution).astype(np.intp)
+        return rows, cols
 
     def cell_to_world(self, row: int, col: int) -> tuple[float, float]:
         """Centre of a cell in metres."""
@@ -108,14 +122,6 @@ class Bounds:
             max(self.col1, other.col1),
         )
 
-    def intersects(self, other: Bounds) -> bool:
-        return (
-            self.row0 < other.row1
-            and other.row0 < self.row1
-            and self.col0 < other.col1
-            and other.col0 < self.col1
-        )
-
     def intersection(self, other: Bounds) -> Bounds:
         """The common cells (empty bounds if none)."""
         return Bounds(
@@ -161,15 +167,6 @@ def polygon_window(polygon: Polygon, frame: GridFrame) -> CellWindow:
     inside = MplPath(np.column_stack([cc, rr])).contains_points(centres).reshape(shape)
     inside |= _outline(cc, rr, r0, c0, shape)
     return CellWindow(row0=r0, col0=c0, mask=inside)
-
-
-def polygon_mask(polygon: Polygon, frame: GridFrame) -> NDArray[np.bool_]:
-    """Full-grid boolean mask (row 0 = map bottom) of the polygon's cells."""
-    mask = np.zeros((frame.height, frame.width), dtype=bool)
-    window = polygon_window(polygon, frame)
-    if window.mask.size:
-        mask[window.rows, window.cols] = window.mask
-    return mask
 
 
 def _outline(

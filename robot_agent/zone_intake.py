@@ -2,7 +2,7 @@
 
 Malformed JSON, wrong types, unknown zones or nodes, a node writing a zone it does not watch, a payload that
 disagrees with its topic, an old `seq`, an oversized payload: each is dropped with a reason in `dropped` and a
-one-line log, never reaches the zone layer, and never raises (DESIGN.md, "MQTT contract"). The log is
+one-line log, never reaches the zone layer, and never raises (docs/architecture.md, "The message contract"). The log is
 rate-limited per reason so a flood of garbage cannot flood the log: the first drop of a reason is logged at once,
 later ones within DROP_LOG_INTERVAL only counted, then summed up in one line; `dropped` counts every one.
 

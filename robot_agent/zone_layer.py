@@ -1,8 +1,7 @@
 """The WSN zone layer: what the nodes say about their zones, turned into one costmap cost per zone.
 
 Pure state (no MQTT, no threads, no clock of its own): the intake feeds it validated messages with the time they
-arrived, the costmap asks it which areas changed and paints their costs. Rules (DESIGN.md, "Costmap and
-planning"): `blocked` -> lethal, `caution` -> `policy.caution_cost`; a node silent for
+arrived, the costmap asks it which areas changed and paints their costs. Rules: `blocked` -> lethal, `caution` -> `policy.caution_cost`; a node silent for
 `policy.stale_after_heartbeats` heartbeat periods, or `offline`, is stale and read by `policy.stale` (keep its
 last word, unknown, or lethal): freshness is judged by message age because amqtt never drops a silent client.
 Several nodes on one zone are fused by `policy.fuse`; operator blocks (a zone or a polygon) are lethal until
@@ -28,6 +27,19 @@ Word = Literal["clear", "caution", "unknown", "blocked"]
 _RANK: dict[Word, int] = {"clear": 0, "caution": 1, "unknown": 2, "blocked": 3}
 
 AreaKey = tuple[Literal["zone", "block"], str]
+
+
+@dataclass(frozen=True, order=True)
+class BlockedArea:
+    """A lethal area a robot may stand in and must be let out of: a blocked zone or an operator polygon block."""
+
+    kind: Literal["zone", "block"]
+    id: str
+
+    @property
+    def name(self) -> str:
+        """How reasons and logs name it: the zone's id, or `operator/<id>` for a polygon block."""
+        return self.id if self.kind == "zone" else f"operator/{self.id}"
 
 
 @dataclass
@@ -136,9 +148,14 @@ class ZoneLayer:
         block = self._blocks.get(block_id)
         return block.window if block is not None else None
 
-    def node_word(self, node_id: str) -> Word:
-        """What one node says now, staleness applied (for status and tests)."""
-        return self._word(self._nodes[node_id])
+    def blocked_areas(self) -> list[tuple[BlockedArea, CellWindow]]:
+        """Every lethal area with its cells: blocked zones, then operator polygon blocks in force."""
+        out = [(BlockedArea("zone", z), self._windows[z]) for z in self.blocked_zones()]
+        for block_id in self.active_blocks():
+            window = self.block_window(block_id)
+            if window is not None:
+                out.append((BlockedArea("block", block_id), window))
+        return out
 
     def take_changes(self) -> list[Bounds]:
         """The cell windows whose zone cost changed since the last call (the costmap repaints only these)."""
@@ -146,18 +163,18 @@ class ZoneLayer:
         self._pending.clear()
         return out
 
-    def paint(self, bounds: Bounds, exclude: Collection[str] = ()) -> NDArray[np.uint8]:
+    def paint(self, bounds: Bounds, exclude: Collection[BlockedArea] = ()) -> NDArray[np.uint8]:
         """The zone layer's costs inside `bounds` (numeric maximum where areas overlap; 0 outside every area).
 
-        `exclude` leaves out zones (by id) and polygon blocks (as `operator/<id>`): what the layer would paint
-        without the areas a robot stands in, so it can be let out of them.
+        `exclude` leaves out blocked areas: what the layer would paint without the areas a robot stands in, so it
+        can be let out of them.
         """
         out = np.zeros(bounds.shape, dtype=np.uint8)
         for zone_id, cost in self._costs.items():
-            if cost != FREE_SPACE and zone_id not in exclude:
+            if cost != FREE_SPACE and BlockedArea("zone", zone_id) not in exclude:
                 self._paint_window(out, bounds, self._windows[zone_id], cost)
         for block_id, window in self._polys.items():
-            if f"operator/{block_id}" not in exclude:
+            if BlockedArea("block", block_id) not in exclude:
                 self._paint_window(out, bounds, window, LETHAL_OBSTACLE)
         return out
 

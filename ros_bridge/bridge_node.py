@@ -114,9 +114,10 @@ class ZoneBridgeNode:
         self._lock = threading.Lock()
         """Held while the grid changes and an update goes out, and while a new subscriber gets the grid."""
         self._pose: tuple[float, float, float] | None = None
-        self._labels: dict[str, str | tuple[float, float, float]] = {}
-        """Goal ids sent for MQTT goals -> the named point (or pose) the operator asked for."""
         self._mqtt_goals = 0
+        self._outbox: list[tuple[Any, Any]] = []
+        """(publisher, message) of goals and cancels not yet sent: see _flush_outbox."""
+        self._told_unconnected = False
         for topic_filter in self.feed.subscriptions():
             bus.subscribe(topic_filter, qos=1)
         if options.robot:
@@ -168,6 +169,7 @@ class ZoneBridgeNode:
                         if m.topic == goal_topic:
                             self._mqtt_goal(m.payload)
                     self._act(self.supervisor.on_zones_changed(changes))
+                    self._flush_outbox()
             if self.supervisor is not None and (now >= next_status or changes):
                 self._publish_status()
                 next_status = now + STATUS_PERIOD_S
@@ -252,9 +254,7 @@ class ZoneBridgeNode:
         pose = (p.position.x, p.position.y, yaw)
         assert self.supervisor is not None
         with self._lock:
-            label = self._labels.pop(msg.goal_id.id, pose)
-            actions = self.supervisor.on_goal(Goal(msg.goal_id.id, pose, label))
-        self._act(actions)
+            self._act(self.supervisor.on_goal(Goal(msg.goal_id.id, pose, pose)))
 
     def _on_ros_status(self, msg: Any) -> None:
         assert self.supervisor is not None
@@ -278,10 +278,9 @@ class ZoneBridgeNode:
         except PayloadError as exc:
             print(f"goal dropped: {exc}", flush=True)
             return
+        print(f"MQTT goal: {payload.decode(errors='replace')[:200]}", flush=True)
         if msg.cancel:
-            if self.supervisor.goal is not None:
-                self.supervisor.reason = "cancelled by the operator"
-                self._act([Cancel(self.supervisor.goal.goal_id, "cancelled by the operator")])
+            self._act(self.supervisor.cancel("cancelled by the operator"))
             return
         if isinstance(msg.goal, str):
             if msg.goal not in self.site.spec.points:
@@ -292,15 +291,26 @@ class ZoneBridgeNode:
             assert msg.goal is not None
             pose = label = (msg.goal[0], msg.goal[1], msg.goal[2])
         self._mqtt_goals += 1
-        goal_id = f"wsnav-mqtt-{self._mqtt_goals}-{time.time():.3f}"
-        self._labels[goal_id] = label
-        self._send_goal(Goal(goal_id, pose, label))
+        goal = Goal(f"wsnav-mqtt-{self._mqtt_goals}-{time.time():.3f}", pose, label)
+        cancel = self.supervisor.sending(goal)
+        if cancel:  # the goal lies in a blocked zone: move_base never sees it
+            print(f"goal {goal.goal_id} not sent: {cancel[0].reason}", flush=True)
+            return
+        self._send_goal(goal)
 
     def _act(self, actions: list[Action]) -> None:
         for action in actions:
             if isinstance(action, Cancel):
                 print(f"cancel goal {action.goal_id}: {action.reason}", flush=True)
-                self.cancel_pub.publish(self._goal_id_type(id=action.goal_id))
+                held = [
+                    m
+                    for _p, m in self._outbox
+                    if getattr(m, "goal_id", None) and m.goal_id.id == action.goal_id
+                ]
+                if held:  # never reached move_base: forget it instead
+                    self._outbox = [(p, m) for p, m in self._outbox if m not in held]
+                else:
+                    self._outbox.append((self.cancel_pub, self._goal_id_type(id=action.goal_id)))
             elif isinstance(action, Resend):
                 print(f"replan now ({action.reason}): goal re-sent as {action.goal.goal_id}", flush=True)
                 self._send_goal(action.goal)
@@ -308,6 +318,7 @@ class ZoneBridgeNode:
     def _send_goal(self, goal: Goal) -> None:
         import rospy
 
+        print(f"goal {goal.goal_id} -> {self.options.move_base}: {goal.pose}", flush=True)
         msg = self._goal_type()
         now = rospy.Time.now()
         msg.header.stamp = now
@@ -317,7 +328,25 @@ class ZoneBridgeNode:
         x, y, yaw = goal.pose
         target.pose.position.x, target.pose.position.y = x, y
         target.pose.orientation.z, target.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
-        self.goal_pub.publish(msg)
+        self._outbox.append((self.goal_pub, msg))
+
+    def _flush_outbox(self) -> None:
+        """Send held goals and cancels, in order, once move_base listens: rospy drops what is published to a
+        topic nobody is connected to yet (move_base started later, or the connection still being made)."""
+        while self._outbox:
+            publisher, msg = self._outbox[0]
+            ours = 1 if publisher is self.goal_pub else 0  # our own subscriber that watches move_base/goal
+            if publisher.get_num_connections() <= ours:
+                if not self._told_unconnected:
+                    print(
+                        f"move_base is not listening on {publisher.resolved_name}: holding goals until it is",
+                        flush=True,
+                    )
+                    self._told_unconnected = True
+                return
+            publisher.publish(msg)
+            self._outbox.pop(0)
+        self._told_unconnected = False
 
     def _publish_status(self) -> None:
         import rospy

@@ -60,19 +60,33 @@ class MoveBaseSupervisor:
     plan_length_m: float | None = None
     _plan_cells: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     _ours: set[str] = field(default_factory=set)
-    """Goal ids this supervisor sent as re-sends: their statuses continue the same navigation."""
+    """Goal ids this supervisor sent (MQTT goals, re-sends): already current when move_base echoes them."""
     _sent: int = 0
 
     # -- what move_base shows ------------------------------------------------------------------------------
 
     def on_goal(self, goal: Goal) -> list[Action]:
-        """A goal seen on move_base/goal; cancelled at once if it lies in a blocked zone."""
-        if self.goal is None or goal.goal_id not in self._ours:
-            self._plan_cells = np.zeros((0, 2), dtype=np.int64)
-            self.plan_length_m = None
+        """A goal seen on move_base/goal (RViz, a script, or our own); cancelled at once if it lies in a blocked
+        zone. Our own goals were made current when they were sent, so their echo changes nothing."""
+        if goal.goal_id in self._ours:
+            return []
+        return self.sending(goal)
+
+    def sending(self, goal: Goal) -> list[Action]:
+        """Make `goal` current before it is sent (so the old goal's PREEMPTED status is not read as ours)."""
+        self._ours.add(goal.goal_id)
+        self._plan_cells = np.zeros((0, 2), dtype=np.int64)
+        self.plan_length_m = None
         self.goal = goal
         self.state, self.reason = "navigating", None
         return self._cancel_if_blocked()
+
+    def cancel(self, reason: str) -> list[Action]:
+        """The operator's cancel (MQTT): stop the current goal, if one is being navigated."""
+        if self.goal is None or self.state != "navigating":
+            return []
+        self.state, self.reason = "cancelled", reason
+        return [Cancel(self.goal.goal_id, reason)]
 
     def on_status(self, goal_id: str, code: int) -> None:
         """One entry of move_base/status; only the current goal's counts."""

@@ -48,17 +48,3 @@ class Bus(Protocol):
     def connected(self) -> bool: ...
 
     def close(self) -> None: ...
-
-
-def topic_matches(topic_filter: str, topic: str) -> bool:
-    """MQTT 3.1.1 filter matching (`+` one level, `#` the rest)."""
-    f_parts = topic_filter.split("/")
-    t_parts = topic.split("/")
-    for i, part in enumerate(f_parts):
-        if part == "#":
-            return True
-        if i >= len(t_parts):
-            return False
-        if part != "+" and part != t_parts[i]:
-            return False
-    return len(f_parts) == len(t_parts)

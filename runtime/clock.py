@@ -8,7 +8,11 @@ from typing import Protocol
 
 
 class Clock(Protocol):
-    """Seconds since an arbitrary origin; only differences matter."""
+    """Seconds on the site clock: Unix time in a real deployment, simulated time in simulation.
+
+    Times that cross hosts (operator block expiry, status stamps) are read on this clock, so every host of a
+    real deployment must share it: Unix time, with the hosts' clocks kept in step (NTP).
+    """
 
     def now(self) -> float: ...
 
@@ -16,10 +20,17 @@ class Clock(Protocol):
 
 
 class WallClock:
-    """Real time (monotonic): a component run alone, as a process on its own host."""
+    """Real time as Unix time, so a stamp or an expiry written on one host means the same on another.
+
+    Read once from the system clock, then advanced by the monotonic clock: a step of the system clock while the
+    process runs (NTP, an operator) cannot send it backwards or make intervals jump.
+    """
+
+    def __init__(self) -> None:
+        self._offset = time.time() - time.monotonic()
 
     def now(self) -> float:
-        return time.monotonic()
+        return self._offset + time.monotonic()
 
     def sleep(self, seconds: float) -> None:
         if seconds > 0:

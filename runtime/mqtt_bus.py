@@ -2,11 +2,14 @@
 
 paho calls back on its network thread; messages are stamped with the clock and queued for `poll`.
 Subscriptions are remembered and renewed on every reconnect (a clean session forgets them at the broker).
+What would otherwise be lost in silence is logged: a full inbound queue (the oldest messages go), a publish
+paho could not take, a subscription the broker refused (its ACL) or paho could not send.
 """
 
 from __future__ import annotations
 
 import collections
+import logging
 import threading
 
 import paho.mqtt.client as mqtt
@@ -16,6 +19,8 @@ from paho.mqtt.reasoncodes import ReasonCode
 from runtime.bus import Message, Will
 from runtime.clock import Clock, WallClock
 from schemas.credentials import Credentials
+
+log = logging.getLogger(__name__)
 
 MAX_PAYLOAD_BYTES = 16 * 1024
 """Twice the largest valid payload of the contract (8 KiB, schemas.messages) and half the brokers' packet cap."""
@@ -49,13 +54,22 @@ class MqttBus:
         self._host, self._port, self._keepalive = host, port, keepalive_s
         self._birth = birth
         self._filters: dict[str, int] = {}
+        self._filters_lock = threading.Lock()
+        """`_filters` is changed on the caller's thread and read on paho's (at every reconnect)."""
+        self._pending_subs: dict[int, str] = {}
+        """SUBSCRIBE message id -> filter, until the broker's SUBACK says whether it was granted."""
         self._queue: collections.deque[Message] = collections.deque(maxlen=max_queue)
         self._arrived = threading.Condition()
         self._connected = threading.Event()
         self._refused: str | None = None
         self.dropped_overflow = 0
+        """Inbound messages pushed out of the full queue (logged at 1, 10, 100, ... of them)."""
         self.dropped_oversize = 0
+        """Inbound payloads over `max_payload_bytes`, dropped on arrival."""
         self._max_payload = max_payload_bytes
+        self.unsent = 0
+        """Publishes paho did not take (QoS 0 while disconnected, its own queue full)."""
+        self.refused_subscriptions: list[str] = []
         self.connects = 0
         self._client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=True)
         self._client.username_pw_set(username, password)
@@ -65,6 +79,7 @@ class MqttBus:
         self._client.on_connect = self._on_connect
         self._client.on_disconnect = self._on_disconnect
         self._client.on_message = self._on_message
+        self._client.on_subscribe = self._on_subscribe
 
     def connect(self, timeout_s: float = 30.0) -> MqttBus:
         """Connect and wait for the broker's answer; afterwards the bus keeps reconnecting by itself."""
@@ -89,8 +104,10 @@ class MqttBus:
             self._refused = str(reason)
             return
         self.connects += 1
-        for topic_filter, qos in self._filters.items():
-            client.subscribe(topic_filter, qos)
+        with self._filters_lock:
+            filters = list(self._filters.items())
+        for topic_filter, qos in filters:
+            self._send_subscribe(topic_filter, qos)
         if self._birth is not None:
             client.publish(
                 self._birth.topic, self._birth.payload, qos=self._birth.qos, retain=self._birth.retain
@@ -108,17 +125,55 @@ class MqttBus:
         with self._arrived:
             if len(self._queue) == self._queue.maxlen:
                 self.dropped_overflow += 1
+                if _is_power_of_ten(self.dropped_overflow):
+                    log.warning(
+                        "inbound queue full (%d messages): %d oldest dropped so far; the reader is too slow",
+                        self._queue.maxlen,
+                        self.dropped_overflow,
+                    )
             self._queue.append(item)
             self._arrived.notify_all()
 
+    def _on_subscribe(self, _c: object, _u: object, mid: int, reasons: list[ReasonCode], _p: object) -> None:
+        with self._filters_lock:
+            topic_filter = self._pending_subs.pop(mid, None)
+        if topic_filter is not None and any(r.is_failure for r in reasons):
+            self.refused_subscriptions.append(topic_filter)
+            log.warning("the broker refused the subscription to %s (%s)", topic_filter, reasons[0])
+
+    def _send_subscribe(self, topic_filter: str, qos: int) -> None:
+        with self._filters_lock:
+            rc, mid = self._client.subscribe(topic_filter, qos)
+            if rc == mqtt.MQTT_ERR_SUCCESS and mid is not None:
+                self._pending_subs[mid] = topic_filter
+        if rc not in (mqtt.MQTT_ERR_SUCCESS, mqtt.MQTT_ERR_NO_CONN):  # NO_CONN: renewed on reconnect
+            log.warning("cannot subscribe to %s: %s", topic_filter, mqtt.error_string(rc))
+
     def publish(self, topic: str, payload: bytes, *, qos: int = 1, retain: bool = False) -> None:
-        """Queued by paho while disconnected (QoS 1 is sent after reconnecting)."""
-        self._client.publish(topic, payload, qos=qos, retain=retain)
+        """Queued by paho while disconnected (QoS 1 is sent after reconnecting); QoS 0 then is lost (counted)."""
+        rc = self._client.publish(topic, payload, qos=qos, retain=retain).rc
+        if rc == mqtt.MQTT_ERR_SUCCESS or (rc == mqtt.MQTT_ERR_NO_CONN and qos > 0):
+            return
+        self.unsent += 1
+        if rc != mqtt.MQTT_ERR_NO_CONN or _is_power_of_ten(self.unsent):
+            log.warning("publish to %s not sent (%d so far): %s", topic, self.unsent, mqtt.error_string(rc))
+
+    def publish_confirmed(
+        self, topic: str, payload: bytes, *, retain: bool = False, timeout_s: float = 10.0
+    ) -> bool:
+        """QoS 1, waiting for the broker's PUBACK: a command that exits right after can say it was delivered."""
+        info = self._client.publish(topic, payload, qos=1, retain=retain)
+        try:
+            info.wait_for_publish(timeout_s)
+        except (RuntimeError, ValueError):  # not connected, or the queue refused it
+            return False
+        return info.is_published()
 
     def subscribe(self, topic_filter: str, qos: int = 1) -> None:
-        self._filters[topic_filter] = qos
+        with self._filters_lock:
+            self._filters[topic_filter] = qos
         if self._connected.is_set():
-            self._client.subscribe(topic_filter, qos)
+            self._send_subscribe(topic_filter, qos)
 
     def poll(self, max_messages: int | None = None) -> list[Message]:
         with self._arrived:
@@ -147,6 +202,12 @@ class MqttBus:
         sock = self._client.socket()
         if sock is not None:
             sock.close()
+
+
+def _is_power_of_ten(n: int) -> bool:
+    while n >= 10 and n % 10 == 0:
+        n //= 10
+    return n == 1
 
 
 def connect_with_credentials(

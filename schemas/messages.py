@@ -1,4 +1,4 @@
-"""Pydantic models of every MQTT payload in the wsnav contract (DESIGN.md, "MQTT contract").
+"""Pydantic models of every MQTT payload in the wsnav contract (docs/architecture.md, "The message contract").
 
 Payloads are small JSON objects with a version field `v`; unknown fields are refused so that a typo on a node
 is noticed instead of silently ignored.
@@ -19,6 +19,9 @@ MAX_PAYLOAD_BYTES = 1024
 """Anything larger is dropped unread: an ESP8266 never sends more than ~120 bytes."""
 MAX_OPERATOR_PAYLOAD_BYTES = 8192
 """Operator blocks and the simulated world carry polygons, so they get a larger allowance."""
+
+ROBOT_PATH_POINTS = 24
+"""A robot status carries its path ahead thinned to this many points: it stays well under MAX_PAYLOAD_BYTES."""
 
 ZoneStateValue = Literal["blocked", "clear", "caution"]
 NodeStatusValue = Literal["online", "offline"]
@@ -71,8 +74,12 @@ class RobotStatus(_Message):
     reason: Annotated[str, Field(max_length=200)] | None = None
     """Why the robot is `waiting` or `cancelled`, in words an operator can act on; while `navigating`, set only
     when it is driving out of a zone that became blocked around it (`leaving blocked zone z1`)."""
+    path: Annotated[list[Point2], Field(max_length=ROBOT_PATH_POINTS)] | None = None
+    """The global plan still ahead while navigating, thinned to at most ROBOT_PATH_POINTS points (cm), for
+    operators' maps; the planner keeps the full-resolution plan."""
     t: float | None = None
-    """The agent's clock when the status was made (simulated time in simulation)."""
+    """When the status was made, on the site clock: Unix time in a real deployment (so another host can tell
+    how old it is), simulated time in simulation."""
 
 
 class RobotGoal(_Message):
@@ -94,7 +101,8 @@ class OperatorBlock(_Message):
     zone: Id | None = None
     polygon: Annotated[list[Point2], Field(min_length=3, max_length=64)] | None = None
     expires_at: float | None = None
-    """Absolute time (seconds on the site clock) after which the block no longer applies; None: until removed."""
+    """When the block stops applying, on the site clock: Unix time in a real deployment (written on one host,
+    read on another), simulated time in simulation; None: until removed."""
     reason: Annotated[str, Field(max_length=200)] | None = None
 
     @model_validator(mode="after")

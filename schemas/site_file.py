@@ -88,7 +88,7 @@ class Route(_Strict):
 
 
 class ZonePolicy(_Strict):
-    """How the robot's zone layer reads zone states (DESIGN.md, "Costmap and planning")."""
+    """How the robot's zone layer reads zone states (docs/architecture.md, "The costmap's layers")."""
 
     caution_cost: Annotated[int, Field(ge=1, le=252)] = 200
     stale_after_heartbeats: Annotated[float, Field(gt=1)] = 3.0

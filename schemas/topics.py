@@ -107,3 +107,18 @@ def parse(topic: str) -> Topic | None:
             return Topic("sim_world", site)
         case _:
             return None
+
+
+def topic_matches(topic_filter: str, topic: str) -> bool:
+    """MQTT 3.1.1 filter matching of a concrete topic name (`+` one level, `#` the rest, incl. the parent level).
+
+    The one matcher of the project: buses deliver by it and the broker's ACL allows by it.
+    """
+    f_levels = topic_filter.split("/")
+    t_levels = topic.split("/")
+    for i, level in enumerate(f_levels):
+        if level == "#":
+            return True
+        if i >= len(t_levels) or level not in ("+", t_levels[i]):
+            return False
+    return len(f_levels) == len(t_levels)

@@ -1,4 +1,4 @@
-"""The layering DESIGN.md asks for, read from the source: no component imports the wsnav CLI, and robot_agent and
+"""The layering docs/architecture.md describes, read from the source: no component imports the wsnav CLI, and robot_agent and
 zone_sim never import each other (a violation would tie a robot's install to the CLI or to the simulator)."""
 
 from __future__ import annotations
@@ -10,11 +10,22 @@ import pytest
 
 from tests.conftest import REPO
 
-COMPONENTS = ["broker", "firmware", "robot_agent", "zone_sim", "schemas", "runtime", "experiments", "ros_bridge"]
+COMPONENTS = [
+    "broker",
+    "firmware",
+    "robot_agent",
+    "zone_sim",
+    "schemas",
+    "runtime",
+    "experiments",
+    "ros_bridge",
+    "console",
+]
 FORBIDDEN = {
     "robot_agent": {"zone_sim", "ros_bridge"},  # the agent runs where no ROS is installed
     "zone_sim": {"robot_agent", "ros_bridge"},
     "ros_bridge": {"zone_sim"},
+    "console": {"robot_agent", "zone_sim", "ros_bridge", "experiments"},  # only the MQTT contract
 }
 
 

@@ -306,6 +306,7 @@ def stack(image: str, tmp_path_factory: pytest.TempPathFactory, progress: Progre
         WSNAV_SITE=str(site),
         WSNAV_MQTT_HOST="127.0.0.1",
         WSNAV_MQTT_PORT=str(port),
+        WSNAV_CONSOLE_PORT=str(free_port()),  # the console service: a free host port, never a fixed 8080
         WSNAV_ZONES="--block upper",
         WSNAV_START="P1",
         WSNAV_ROBOT_ARGS="--config full",  # no --goal: the test sends it over MQTT

@@ -9,7 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from robot_agent.global_planner import PlannerParams, _astar, dyadic, plan_path, simplify, weight_lut
+from robot_agent.global_planner import (
+    PlannerParams,
+    _astar,
+    densify,
+    dyadic,
+    plan_path,
+    simplify,
+    weight_lut,
+)
 from robot_agent.inflation import (
     INSCRIBED_INFLATED_OBSTACLE,
     LETHAL_OBSTACLE,
@@ -18,7 +26,7 @@ from robot_agent.inflation import (
     inflate,
     static_layer,
 )
-from robot_agent.zone_geometry import GridFrame, polygon_mask, polygon_window
+from robot_agent.zone_geometry import GridFrame, Polygon, polygon_window
 from schemas.site import load_site
 from tests.conftest import SITES
 
@@ -58,6 +66,14 @@ def test_static_layer_of_a_real_map() -> None:
     assert set(np.unique(costs).tolist()) == {0, LETHAL_OBSTACLE, NO_INFORMATION}
     assert np.array_equal(costs == LETHAL_OBSTACLE, site.grid.data == 100)
     assert np.array_equal(costs == NO_INFORMATION, site.grid.data == -1)
+
+
+def polygon_mask(polygon: Polygon, frame: GridFrame) -> np.ndarray:
+    """The polygon's cells on the whole grid (row 0 = map bottom)."""
+    mask = np.zeros((frame.height, frame.width), dtype=bool)
+    window = polygon_window(polygon, frame)
+    mask[window.rows, window.cols] = window.mask
+    return mask
 
 
 def test_polygon_mask_respects_origin_and_resolution() -> None:
@@ -110,7 +126,7 @@ def test_plan_goes_through_the_gap_smoothly() -> None:
     assert len(plan.path) <= 8, "line-of-sight smoothing leaves only corners"
     gap_y = 0.5 * (80 + 110) * RES
     assert plan.length_m == pytest.approx(2 * math.hypot(3.0, gap_y - 1.0), rel=0.08)
-    dense = plan.densify(RES / 2)
+    dense = densify(plan.path, RES / 2)
     rows = np.floor(dense[:, 1] / RES).astype(int)
     cols = np.floor(dense[:, 0] / RES).astype(int)
     raw_max = int(costs[plan.cells[:, 0], plan.cells[:, 1]].max())
@@ -132,13 +148,13 @@ def test_plan_failures_have_reasons() -> None:
     assert plan_path(costs, RES, (0.0, 0.0), (2.0, 1.0), (2.0, 99.0)).reason == "goal_outside"
 
 
-def test_start_brushing_a_wall_can_escape() -> None:
+def test_start_brushing_a_wall_can_step_off() -> None:
     costs = walled_room()
     start = (100 * RES + 0.5 * RES + 0.1, 1.0)  # 0.1 m east of the wall: inscribed space
     assert costs[int(1.0 / RES), int(start[0] / RES)] == INSCRIBED_INFLATED_OBSTACLE
     plan = plan_path(costs, RES, (0.0, 0.0, 0.0), start, (8.0, 1.0))
     assert plan.reachable
-    assert plan_path(costs, RES, (0.0, 0.0), start, (8.0, 1.0), PlannerParams(start_escape_m=0)).reason == (
+    assert plan_path(costs, RES, (0.0, 0.0), start, (8.0, 1.0), PlannerParams(start_step_off_m=0)).reason == (
         "start_blocked"
     )
 

@@ -69,7 +69,7 @@ def free_port() -> int:
         ({"--goal": "0,0"}, "--goal [0, 0] lies inside"),
         ({"--config": "missing.yaml"}, "missing.yaml: no such agent config"),
         ({"--credentials": "missing.json"}, "missing.json: no such credentials file"),
-        ({"--sim": None}, "only the simulated TurtleBot3 backend exists so far: pass --sim"),
+        ({"--sim": None}, "pass --sim (a simulated TurtleBot3) or --ros"),
         ({"--broker": "nohost"}, "argument --broker: expected HOST:PORT"),
         ({"--broker": "UNREACHABLE"}, "cannot connect to MQTT broker 127.0.0.1:"),
     ],

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from robot_agent.backend import LaserScan
+from robot_agent.costmap_planner import PlannerWeights
 from robot_agent.global_planner import PlannerParams, plan_path, weights_for
 from robot_agent.inflation import (
     FREE_SPACE,
@@ -21,8 +22,9 @@ from robot_agent.inflation import (
     inflate,
     static_layer,
 )
-from robot_agent.layered_costmap import Bounds, LayeredCostmap
+from robot_agent.layered_costmap import CHANGE_LOG, Bounds, LayeredCostmap
 from robot_agent.offline_plan import frame_of, zone_lethal
+from robot_agent.zone_escape import ZoneEscape
 from robot_agent.zone_layer import ZoneLayer
 from schemas.messages import NodeStatus, OperatorBlock, ZoneState
 from schemas.site import Site, load_site
@@ -48,6 +50,15 @@ def school_costmap(site: Site, policy: ZonePolicy | None = None) -> tuple[Layere
     return LayeredCostmap(site.grid, INFLATION, zone_layer=layer), layer
 
 
+def zone_costs(costmap: LayeredCostmap) -> np.ndarray:
+    assert costmap.zones is not None
+    return costmap.zones.costs
+
+
+def names_at(costmap: LayeredCostmap, x: float, y: float) -> list[str]:
+    return [area.name for area in ZoneEscape(costmap).areas_at(x, y)]
+
+
 def test_a_blocked_zone_gives_the_static_map_with_the_zone_lethal_inflated(school: Site) -> None:
     costmap, layer = school_costmap(school)
     empty = costmap.master.copy()
@@ -59,13 +70,15 @@ def test_a_blocked_zone_gives_the_static_map_with_the_zone_lethal_inflated(schoo
     reference[zone_lethal(school, ["z1"])] = LETHAL_OBSTACLE
     reference = inflate(reference, school.grid.resolution, INFLATION)
     assert np.array_equal(costmap.master, reference)
-    # The update stayed inside the bounds it reported, and those are the zone grown by the inflation radius.
+    # The update stayed inside the bounds it reported, and those are the cells the zone made lethal (not the
+    # walls it covers) grown by the inflation radius.
     outside = np.ones(empty.shape, dtype=bool)
     outside[bounds.rows, bounds.cols] = False
     assert np.array_equal(costmap.master[outside], empty[outside])
-    zone = Bounds.of_window(layer.zone_window("z1"))
+    rows, cols = np.nonzero(zone_lethal(school, ["z1"]) & (static_layer(school.grid) == FREE_SPACE))
+    made_lethal = Bounds(int(rows.min()), int(cols.min()), int(rows.max()) + 1, int(cols.max()) + 1)
     reach = math.ceil(INFLATION.inflation_radius / school.grid.resolution) + 1
-    assert bounds == zone.grow(reach, costmap.frame)
+    assert bounds == made_lethal.grow(reach, costmap.frame)
     assert costmap.update_zones(10.5) is None, "nothing changed, nothing to do"
 
 
@@ -115,30 +128,30 @@ def test_zone_costs_are_painted_by_policy(school: Site) -> None:
     layer.on_zone_state(ZoneState(zone="z4", node="n5", state="caution", seq=1), 1.0)
     costmap.update_zones(1.0)
     window = layer.zone_window("z4")
-    zone_cells = costmap.zones[window.rows, window.cols][window.mask]
+    zone_cells = zone_costs(costmap)[window.rows, window.cols][window.mask]
     assert set(np.unique(zone_cells).tolist()) == {150}
     x, y = 25.0, 15.0  # the middle of z4, the middle corridor
     assert costmap.cost_at(x, y) == 150
     assert not costmap.in_lethal(x, y)
-    assert costmap.zones_at(x, y) == []
+    assert names_at(costmap, x, y) == []
     layer.on_zone_state(ZoneState(zone="z4", node="n5", state="blocked", seq=2), 2.0)
     costmap.update_zones(2.0)
     assert costmap.cost_at(x, y) == LETHAL_OBSTACLE
     assert costmap.in_lethal(x, y)
-    assert costmap.zones_at(x, y) == ["z4"]
+    assert names_at(costmap, x, y) == ["z4"]
     assert costmap.cost_at(-100.0, -100.0) == NO_INFORMATION
 
 
-def test_zones_at_names_a_zone_the_robot_would_touch_and_operator_polygons(school: Site) -> None:
+def test_areas_at_names_a_zone_the_robot_would_touch_and_operator_polygons(school: Site) -> None:
     costmap, layer = school_costmap(school)
     layer.on_operator_block("spill", OperatorBlock(polygon=[(30, 22), (31, 22), (31, 23.5), (30, 23.5)]), 0.0)
     layer.on_zone_state(ZoneState(zone="z1", node="n2", state="blocked", seq=7), 0.0)
     costmap.update_zones(0.0)
-    assert costmap.zones_at(30.5, 22.8) == ["operator/spill"]
+    assert names_at(costmap, 30.5, 22.8) == ["operator/spill"]
     # just outside z1's west edge (x 17.0), within the robot's radius: the goal is lethal because of z1
     assert costmap.in_lethal(16.95, 7.2)
-    assert costmap.zones_at(16.95, 7.2) == ["z1"]
-    assert costmap.zones_at(12.0, 7.2) == []
+    assert names_at(costmap, 16.95, 7.2) == ["z1"]
+    assert names_at(costmap, 12.0, 7.2) == []
 
 
 def test_local_window_is_master_around_the_robot_and_unknown_beyond_the_map(school: Site) -> None:
@@ -159,18 +172,66 @@ def test_planner_weights_follow_the_updates_and_plans_avoid_a_blocked_zone(schoo
     params = PlannerParams()
     grid = school.grid
     start, goal = school.point("A")[:2], school.point("B")[:2]
-    free = plan_path(
-        costmap.master, grid.resolution, grid.origin, start, goal, params, costmap.planner_weights()
-    )
+    cache = PlannerWeights(params)
+    free = plan_path(costmap.master, grid.resolution, grid.origin, start, goal, params, cache.of(costmap))
     layer.on_zone_state(ZoneState(zone="z1", node="n1", state="blocked", seq=1), 1.0)
     costmap.update_zones(1.0)
-    weights = costmap.planner_weights(params)
+    weights = cache.of(costmap)
     assert np.array_equal(weights, weights_for(costmap.master, params))
     around = plan_path(costmap.master, grid.resolution, grid.origin, start, goal, params, weights)
     assert free.reachable and around.reachable
     assert around.length_m > free.length_m + 5.0
-    crossed = [costmap.zones[r, c] for r, c in around.cells]
+    crossed = [zone_costs(costmap)[r, c] for r, c in around.cells]
     assert LETHAL_OBSTACLE not in crossed
+
+
+def test_planner_weights_of_a_planner_left_far_behind_are_recomputed_whole(school: Site) -> None:
+    costmap, layer = school_costmap(school, ZonePolicy(caution_cost=150))
+    params = PlannerParams()
+    cache = PlannerWeights(params)
+    cache.of(costmap)
+    for i in range(CHANGE_LOG + 2):  # more updates than the costmap remembers
+        state = "caution" if i % 2 == 0 else "clear"
+        layer.on_zone_state(ZoneState(zone="z4", node="n5", state=state, seq=i + 1), float(i))
+        assert costmap.update_zones(float(i)) is not None
+    assert costmap.changes_since(0) is None
+    assert np.array_equal(cache.of(costmap), weights_for(costmap.master, params))
+
+
+class Puddle:
+    """A layer written against the Layer protocol alone: a square the robot should avoid but may cross."""
+
+    def __init__(self, bounds: Bounds, cost: int) -> None:
+        self.bounds, self.cost, self._pending = bounds, cost, [bounds]
+
+    def take_bounds(self) -> list[Bounds]:
+        out, self._pending = self._pending, []
+        return out
+
+    def update_costs(self, master: np.ndarray, bounds: Bounds) -> None:
+        common = self.bounds.intersection(bounds)
+        if not common.empty:
+            window = master[common.within(bounds)]
+            np.maximum(window, np.uint8(self.cost), out=window)
+
+
+def test_a_new_layer_is_one_class_in_the_stack_and_updates_only_its_bounds(school: Site) -> None:
+    costmap, _ = school_costmap(school)
+    before = costmap.master.copy()
+    puddle = Puddle(Bounds(100, 300, 110, 320), 120)
+    costmap.layers.append(puddle)
+    changed = costmap.update()
+    assert changed is not None
+    assert (costmap.master[puddle.bounds.rows, puddle.bounds.cols] >= 120).all()
+    outside = np.ones(before.shape, dtype=bool)
+    outside[changed.rows, changed.cols] = False
+    assert np.array_equal(costmap.master[outside], before[outside]), (
+        "nothing beyond the reported bounds moved"
+    )
+    bounded = costmap.master.copy()
+    costmap.rebuild()
+    assert np.array_equal(bounded, costmap.master), "the bounded update equals the whole-map recomputation"
+    assert costmap.update() is None, "a layer with nothing new costs nothing"
 
 
 def scan_from(pose: tuple[float, float, float], ranges: dict[int, float], beams: int = 360) -> LaserScan:

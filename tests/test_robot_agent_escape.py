@@ -15,11 +15,12 @@ from robot_agent.backend import LaserScan
 from robot_agent.costmap_planner import GlobalPlanner
 from robot_agent.global_planner import PlannerParams
 from robot_agent.inflation import INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, InflationParams
-from robot_agent.layered_costmap import ESCAPE_COST, LayeredCostmap
+from robot_agent.layered_costmap import LayeredCostmap
 from robot_agent.offline_plan import frame_of
-from robot_agent.zone_layer import ZoneLayer
+from robot_agent.zone_escape import ESCAPE_COST, ZoneEscape, plan_escape
+from robot_agent.zone_layer import BlockedArea, ZoneLayer
 from schemas import topics
-from schemas.messages import SimObstacle, SimWorld, ZoneState
+from schemas.messages import OperatorBlock, SimObstacle, SimWorld, ZoneState
 from schemas.site import Site, load_site
 from tests.robot_agent_rig import SCHOOL, Rig, distance_to_polygon
 
@@ -54,17 +55,19 @@ def test_the_escape_view_lets_the_robot_out_of_its_zone_and_never_into_walls_or_
     x, y = INSIDE_Z1
     costmap.update_scan(scan_from((x, y, 0.0), {0: 1.0}))  # the lidar sees something 1 m east, in z1
     master = costmap.master.copy()
-    assert costmap.in_lethal(x, y) and costmap.zones_at(x, y) == ["z1"]
+    escape = ZoneEscape(costmap)
+    z1 = BlockedArea("zone", "z1")
+    assert costmap.in_lethal(x, y) and escape.areas_at(x, y) == [z1]
 
-    view = costmap.escape_view(costmap.zones_at(x, y))
-    assert view is not None and view.zones == ("z1",)
+    view = escape.view(escape.areas_at(x, y))
+    assert view is not None and view.areas == (z1,)
     assert np.array_equal(costmap.master, master), "the costmap itself is untouched"
     b = view.bounds
     local = master[b.rows, b.cols]
     row, col = costmap.frame.world_to_cell(x, y)
     assert view.costs[row - b.row0, col - b.col0] < INSCRIBED_INFLATED_OBSTACLE  # the robot may move
     # Walls and the lidar's mark keep their cost (and the mark its inscribed ring); only the zone relaxes.
-    walls = costmap.static[b.rows, b.cols] == LETHAL_OBSTACLE
+    walls = costmap.static.costs[b.rows, b.cols] == LETHAL_OBSTACLE
     assert walls.any() and (view.costs[walls] == LETHAL_OBSTACLE).all()
     mr, mc = costmap.frame.world_to_cell(x + 1.0, y)
     assert view.costs[mr - b.row0, mc - b.col0] == LETHAL_OBSTACLE
@@ -77,19 +80,40 @@ def test_the_escape_view_lets_the_robot_out_of_its_zone_and_never_into_walls_or_
     ).all()
     # Every exit is a place where the robot's footprint is clear of the zone.
     for r, c in np.argwhere(view.exits)[::7]:
-        assert costmap.zones_at(*costmap.frame.cell_to_world(int(r) + b.row0, int(c) + b.col0)) == []
+        assert escape.areas_at(*costmap.frame.cell_to_world(int(r) + b.row0, int(c) + b.col0)) == []
 
     planner = GlobalPlanner(PlannerParams(), 3)
-    plan = planner.plan_escape(costmap, view, INSIDE_Z1, school.point("B")[:2])
+    plan = plan_escape(planner, costmap, view, INSIDE_Z1, school.point("B")[:2])
     assert plan.reaches_goal and plan.onward is not None
     ex, ey = plan.out.path[-1]
     assert ex < 17.0 - RADIUS, "out by the near (west) end"
-    assert costmap.zones_at(ex, ey) == []
+    assert escape.areas_at(ex, ey) == []
     zone = layer.zone_window("z1")
     onward = [(int(r) - zone.row0, int(c) - zone.col0) for r, c in plan.onward.cells]
     assert not any(
         0 <= r < zone.mask.shape[0] and 0 <= c < zone.mask.shape[1] and zone.mask[r, c] for r, c in onward
     ), "the route on never goes back into the zone"
+
+
+def test_an_operator_polygon_block_is_left_like_a_zone(school: Site) -> None:
+    layer = ZoneLayer(school.spec, frame_of(school))
+    costmap = LayeredCostmap(school.grid, InflationParams(inscribed_radius=RADIUS), zone_layer=layer)
+    spill = [(30.0, 22.0), (31.0, 22.0), (31.0, 23.5), (30.0, 23.5)]
+    layer.on_operator_block("spill", OperatorBlock(polygon=spill), 0.0)
+    costmap.update_zones(0.0)
+    escape = ZoneEscape(costmap)
+    here = (30.5, 22.8)
+    assert costmap.in_lethal(*here) and escape.areas_at(*here) == [BlockedArea("block", "spill")]
+    view = escape.view(escape.areas_at(*here))
+    assert view is not None
+    row, col = costmap.frame.world_to_cell(*here)
+    assert view.costs[row - view.bounds.row0, col - view.bounds.col0] < INSCRIBED_INFLATED_OBSTACLE
+    plan = plan_escape(GlobalPlanner(PlannerParams(), 3), costmap, view, here, school.point("B")[:2])
+    assert plan.out.reachable and escape.areas_at(*plan.out.path[-1]) == []
+    # Once the block is removed, there is nothing to leave.
+    layer.on_operator_block("spill", None, 1.0)
+    costmap.update_zones(1.0)
+    assert escape.areas_at(*here) == [] and escape.view([BlockedArea("block", "spill")]) is None
 
 
 def set_world(rig: Rig, obstacles: dict[str, list[tuple[float, float]]]) -> None:
@@ -124,7 +148,7 @@ def test_a_robot_in_a_zone_that_becomes_blocked_leaves_it_by_the_near_end_and_go
         set_world(rig, {"ob-z1": Z1_EAST_END})
         rig.set_zone("z1", "blocked")
         nav = rig.agent.navigator
-        assert nav.state == "navigating" and nav.leaving == ["z1"]
+        assert nav.state == "navigating" and nav.leaving is not None and nav.leaving.names == "z1"
         assert nav.reason == "leaving blocked zone z1"
         rig.drive(rig.finished, max_sim_s=700.0)
         statuses = rig.collect_statuses()

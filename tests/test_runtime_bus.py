@@ -10,11 +10,12 @@ import pytest
 
 from broker.credentials import write_credentials
 from broker.embedded import BrokerThread
-from runtime.bus import Message, Will, topic_matches
+from runtime.bus import Message, Will
 from runtime.clock import Clock, SimClock
 from runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
 from schemas import topics
 from schemas.site import load_site
+from schemas.topics import topic_matches
 from tests.site_fixtures import tiny_site
 
 SITE = "tiny"
@@ -93,10 +94,51 @@ def test_a_wrong_password_is_one_line(tmp_path: Path) -> None:
         ("wsn/s/zones/+/state/+", "wsn/s/zones/z1/state", False),
         ("wsn/s/#", "wsn/s/zones/z1/state/n1", True),
         ("wsn/s/nodes/n1/status", "wsn/s/nodes/n2/status", False),
+        ("wsn/s/#", "wsn/s", True),
+        ("wsn/+/#", "wsn/s/robots/r1/goal", True),
+        ("wsn/s/+", "wsn/s/robots/r1", False),
     ],
 )
 def test_topic_filters_match_as_in_mqtt(flt: str, topic: str, expected: bool) -> None:
     assert topic_matches(flt, topic) is expected
+
+
+def test_a_full_queue_and_a_refused_subscription_are_logged_not_silent(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    with BrokerThread(tiny_site(tmp_path / "site")) as broker:
+        creds = broker.credentials("robot1")
+        robot = MqttBus(
+            broker.host,
+            broker.port,
+            client_id="robot1",
+            username=creds.username,
+            password=creds.password,
+            max_queue=3,
+        ).connect(timeout_s=30.0)
+        node = bus_for(broker, "n1")
+        with caplog.at_level("WARNING", logger="runtime.mqtt_bus"):
+            node.subscribe(topics.all_zone_states(SITE))  # a node may not read other nodes' zones
+            robot.subscribe(topics.all_zone_states(SITE))
+            time.sleep(0.3)  # the SUBACKs
+            for i in range(5):
+                node.publish(topics.zone_state(SITE, "z1", "n1"), str(i).encode())
+            deadline = time.monotonic() + 30.0
+            while robot.dropped_overflow < 2 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert [m.payload for m in robot.poll()] == [b"2", b"3", b"4"], (
+                "the newest kept, the oldest dropped"
+            )
+            assert robot.dropped_overflow == 2
+            while not node.refused_subscriptions and time.monotonic() < deadline:
+                time.sleep(0.05)
+        assert node.refused_subscriptions == [topics.all_zone_states(SITE)]
+        assert robot.refused_subscriptions == []
+        text = caplog.text
+        assert "inbound queue full (3 messages): 1 oldest dropped" in text
+        assert f"the broker refused the subscription to {topics.all_zone_states(SITE)}" in text
+        node.close()
+        robot.close()
 
 
 def test_oversized_payloads_are_dropped_on_arrival_and_counted(tmp_path: Path) -> None:

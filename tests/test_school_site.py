@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import distance_transform_edt
 
-from robot_agent.global_planner import Plan, PlannerParams, plan_path
+from robot_agent.global_planner import Plan, PlannerParams, densify, plan_path
 from robot_agent.inflation import InflationParams
 from robot_agent.lidar import LidarParams
 from robot_agent.offline_plan import site_costmap, zone_lethal
@@ -107,7 +107,7 @@ def test_every_raffled_zone_matters_and_leaves_a_longer_way(
         blocked = plan(school, start, goal, [zone])
         assert blocked.reachable, f"{start}->{goal} with {zone} blocked: {blocked.reason}"
         assert not mask[blocked.cells[:, 0], blocked.cells[:, 1]].any()
-        dense = blocked.densify(school.grid.resolution / 4)
+        dense = densify(blocked.path, school.grid.resolution / 4)
         for x, y in dense:
             row, col = school.grid.world_to_cell(x, y)
             assert not mask[row, col], f"smoothed path enters {zone} at ({x:.2f}, {y:.2f})"

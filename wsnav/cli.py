@@ -8,9 +8,11 @@ import sys
 from collections.abc import Callable, Sequence
 
 from broker import cli as broker_cli
+from console import cli as console_cli
 from firmware import cli as firmware_cli
 from robot_agent import cli as robot_agent_cli
 from ros_bridge import cli as ros_bridge_cli
+from ros_bridge import robot_cli as ros_bridge_robot_cli
 from runtime.cli_support import CliError, Parser
 from wsnav import experiment_cli, plan_command, site_commands
 from zone_sim import cli as zone_sim_cli
@@ -26,6 +28,8 @@ REGISTRARS: list[Registrar] = [
     zone_sim_cli.register,
     experiment_cli.register,
     ros_bridge_cli.register,
+    ros_bridge_robot_cli.register,
+    console_cli.register,
 ]
 
 

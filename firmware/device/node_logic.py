@@ -4,7 +4,7 @@ Pure logic shared by the board (`main.py`) and the zone simulator (CPython, up t
 the simulator exercises the very decisions the ESP8266 makes. A publication is a tuple
 `(topic, payload_bytes, retain, qos)`; the caller sends it with whatever transport it has.
 
-Rules (DESIGN.md, "MQTT contract"):
+Rules (docs/architecture.md, "The message contract"):
 - the zone state is published (retained, QoS 1) on every debounced change and again every heartbeat period,
   so its arrival time tells the robot how fresh it is; it is `clear`, `blocked` or `caution` (a sensor that
   measures distance sees something in the zone that narrows the passage without closing it);

@@ -1,0 +1,89 @@
+"""The operator's commands: `wsnav console` (the web page) and `wsnav status|watch|block|unblock|goal|cancel`.
+
+Each takes the site, the broker and the operator's credentials file; the work lives in console.terminal and
+console.serve, imported only when a command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from runtime.cli_support import host_port
+
+if TYPE_CHECKING:
+    from runtime.cli_support import Parser
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--site", type=Path, required=True, help="site directory or site.yaml")
+    p.add_argument("--broker", type=host_port, required=True, metavar="HOST:PORT")
+    p.add_argument(
+        "--credentials", type=Path, required=True, metavar="FILE", help="the operator's operator.json"
+    )
+    p.add_argument("--connect-timeout", type=float, default=10.0, metavar="S", help="default 10")
+
+
+def register(sub: argparse._SubParsersAction[Parser]) -> None:
+    console = sub.add_parser(
+        "console", help="the operator's live web page: map, nodes, robots, blocks; steering"
+    )
+    _common(console)
+    console.add_argument(
+        "--bind",
+        type=host_port,
+        default=("127.0.0.1", 8080),
+        metavar="HOST:PORT",
+        help="default 127.0.0.1:8080",
+    )
+    console.set_defaults(func=_run("serve", "console_command"))
+
+    status = sub.add_parser("status", help="one table of the site's nodes, zones, robots and operator blocks")
+    _common(status)
+    status.add_argument("--json", action="store_true", help="the same as JSON (what GET /api/state returns)")
+    status.set_defaults(func=_run("terminal", "status_command"))
+
+    watch = sub.add_parser("watch", help="the status table, redrawn live")
+    _common(watch)
+    watch.add_argument("--every", type=float, default=1.0, metavar="S", help="redraw period, default 1")
+    watch.set_defaults(func=_run("terminal", "watch_command"))
+
+    block = sub.add_parser("block", help="block a zone or a polygon for a while (an operator block)")
+    _common(block)
+    block.add_argument("zone", nargs="?", metavar="ZONE")
+    block.add_argument("--polygon", nargs="+", metavar="X,Y", help="at least 3 corners in metres (map frame)")
+    block.add_argument(
+        "--for", dest="duration", metavar="TIME", help="90s, 10m, 2h (default: until unblocked)"
+    )
+    block.add_argument("--reason", help="shown to operators and in the robots' status")
+    block.add_argument("--id", dest="block_id", help="the block's id (default: a new one)")
+    block.set_defaults(func=_run("terminal", "block_command"))
+    block._negative_number_matcher = re.compile(r"^-\.?\d")
+
+    unblock = sub.add_parser("unblock", help="lift an operator block")
+    _common(unblock)
+    unblock.add_argument("block_id", metavar="ID")
+    unblock.set_defaults(func=_run("terminal", "unblock_command"))
+
+    goal = sub.add_parser("goal", help="send a robot to a named point or a pose")
+    _common(goal)
+    goal.add_argument("robot", metavar="ROBOT")
+    goal.add_argument("point", metavar="POINT", help="a named point of the site, or x,y[,yaw]")
+    goal.set_defaults(func=_run("terminal", "goal_command"))
+    goal._negative_number_matcher = re.compile(r"^-\.?\d")
+
+    cancel = sub.add_parser("cancel", help="cancel a robot's goal: it stops")
+    _common(cancel)
+    cancel.add_argument("robot", metavar="ROBOT")
+    cancel.set_defaults(func=_run("terminal", "cancel_command"))
+
+
+def _run(module: str, name: str):
+    def run(args: argparse.Namespace) -> int:
+        import importlib
+
+        return int(getattr(importlib.import_module(f"console.{module}"), name)(args) or 0)
+
+    return run

@@ -1,0 +1,178 @@
+"""The console's link to the site: one operator MQTT connection feeding a SiteView, changes pushed to pages.
+
+A thread owns the bus and the view (the view is only touched under `lock`). Changes are gathered for
+`BATCH_S` and sent to every open page as one event of the changed entries, so a thousand nodes reporting at
+once cost one event, not a thousand; once a second the clock alone is checked (a silent node goes stale, a
+block expires).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from console.site_view import Key, SiteView
+from runtime.bus import Bus
+from runtime.clock import Clock
+from schemas import topics
+
+BATCH_S = 0.05
+TICK_S = 1.0
+MAX_PAGE_QUEUE = 200
+"""A page that falls this far behind is sent a fresh snapshot instead of the backlog."""
+
+
+def subscriptions(site: str) -> list[str]:
+    return [
+        topics.all_zone_states(site),
+        topics.all_node_statuses(site),
+        f"{topics.ROOT}/{site}/nodes/+/info",
+        topics.all_robot_statuses(site),
+        topics.all_operator_blocks(site),
+    ]
+
+
+class PageFeed:
+    """One open page's queue of events (JSON text), filled from the bus thread."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self.loop = loop
+        self.queue: asyncio.Queue[str] = asyncio.Queue()
+        self.resync = False
+
+    def push(self, text: str) -> None:
+        """Called on the event loop."""
+        if self.queue.qsize() >= MAX_PAGE_QUEUE:
+            self.resync = True
+            return
+        self.queue.put_nowait(text)
+
+
+class LiveState:
+    def __init__(self, view: SiteView, bus: Bus, clock: Clock) -> None:
+        self.view = view
+        self.bus = bus
+        self.clock = clock
+        self.lock = threading.Lock()
+        self._feeds: set[PageFeed] = set()
+        self._feeds_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="console-mqtt", daemon=True)
+        self.connected = bus.connected
+        self.messages = 0
+        for flt in subscriptions(view.site.name):
+            bus.subscribe(flt)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+
+    # -- pages ---------------------------------------------------------------------------------------------
+
+    def snapshot(self) -> dict[str, Any]:
+        with self.lock:
+            snap = self.view.snapshot(self.clock.now())
+        snap["broker_connected"] = self.connected
+        return snap
+
+    def open_feed(self, loop: asyncio.AbstractEventLoop) -> PageFeed:
+        feed = PageFeed(loop)
+        with self._feeds_lock:
+            self._feeds.add(feed)
+        return feed
+
+    def close_feed(self, feed: PageFeed) -> None:
+        with self._feeds_lock:
+            self._feeds.discard(feed)
+
+    def _broadcast(self, event: dict[str, Any]) -> None:
+        text = json.dumps(event, separators=(",", ":"))
+        with self._feeds_lock:
+            feeds = list(self._feeds)
+        for feed in feeds:
+            try:
+                feed.loop.call_soon_threadsafe(feed.push, text)
+            except RuntimeError:  # the page's loop is closed: the server is stopping
+                self.close_feed(feed)
+
+    # -- the bus thread ------------------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        dirty: set[Key] = set()
+        zone_states: dict[str, str] = {}
+        fresh: dict[str, bool] = {}
+        next_tick = 0.0
+        flush_at: float | None = None
+        while not self._stop.is_set():
+            self.bus.wait(BATCH_S)
+            messages = self.bus.poll()
+            with self.lock:
+                for msg in messages:
+                    dirty |= self.view.apply(msg.topic, msg.payload, msg.received_at)
+            self.messages += len(messages)
+            mono = time.monotonic()
+            if messages and flush_at is None:
+                flush_at = mono + BATCH_S
+            if self.bus.connected != self.connected:
+                self.connected = self.bus.connected
+                self._broadcast({"type": "link", "broker_connected": self.connected})
+            if mono >= next_tick:
+                next_tick = mono + TICK_S
+                with self.lock:
+                    now = self.clock.now()
+                    expired = self.view.expire(now)
+                dirty |= expired
+                self._forget_expired(expired)
+                with self.lock:
+                    states = self.view.zone_states(now)
+                    now_fresh = {n: self.view.node_fresh(v, now) for n, v in self.view.nodes.items()}
+                dirty |= {("zone", z) for z, s in states.items() if zone_states.get(z) != s}
+                dirty |= {("node", n) for n, f in now_fresh.items() if fresh.get(n) != f}
+                zone_states, fresh = states, now_fresh
+                flush_at = mono
+            if dirty and flush_at is not None and mono >= flush_at:
+                self._flush(dirty)
+                dirty = set()
+                flush_at = None
+
+    def _forget_expired(self, expired: set[Key]) -> None:
+        """An expired block is cleared from the broker's retained store too, so it is not replayed forever."""
+        for kind, ident in expired:
+            if kind == "block" and self.bus.connected:
+                self.bus.publish(topics.operator_block(self.view.site.name, ident), b"", qos=1, retain=True)
+
+    def _flush(self, dirty: set[Key]) -> None:
+        event: dict[str, Any] = {
+            "type": "update",
+            "zones": [],
+            "nodes": [],
+            "robots": [],
+            "blocks": [],
+            "gone": [],
+        }
+        with self.lock:
+            now = self.clock.now()
+            event["now"] = now
+            for kind, ident in sorted(dirty):
+                entry = self.view.entry((kind, ident), now)
+                if entry is None:
+                    event["gone"].append(ident)
+                else:
+                    event[f"{kind}s"].append(entry)
+        self._broadcast(event)
+
+
+def resync_event(live: LiveState) -> Callable[[], str]:
+    """A full snapshot as an event, for a page that connects or fell behind."""
+
+    def make() -> str:
+        return json.dumps({"type": "snapshot", **live.snapshot()}, separators=(",", ":"))
+
+    return make

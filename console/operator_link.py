@@ -1,0 +1,64 @@
+"""The operator's connection to the site: site, credentials and broker checked, each problem one line."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import secrets
+from dataclasses import dataclass
+
+from broker.credentials import CredentialsError, load_credentials
+from runtime.cli_support import CliError
+from runtime.clock import WallClock
+from runtime.mqtt_bus import BusError, MqttBus
+from schemas.credentials import Credentials
+from schemas.site import Site, SiteError, load_site
+
+
+@dataclass
+class OperatorLink:
+    site: Site
+    credentials: Credentials
+    bus: MqttBus
+    clock: WallClock
+
+
+def load_operator(args: argparse.Namespace) -> tuple[Site, Credentials]:
+    try:
+        site = load_site(args.site)
+    except SiteError as exc:
+        raise CliError(str(exc)) from None
+    try:
+        creds = load_credentials(args.credentials)
+    except CredentialsError as exc:
+        raise CliError(str(exc)) from None
+    if creds.role != "operator":
+        raise CliError(
+            f"{args.credentials}: these are the credentials of a {creds.role}, not of the operator"
+        )
+    if creds.site != site.name:
+        raise CliError(f"{args.credentials}: credentials for site {creds.site!r}, not {site.name!r}")
+    return site, creds
+
+
+def connect(args: argparse.Namespace, purpose: str) -> OperatorLink:
+    """Connected, with a client id of its own (`operator-<purpose>-<random>`): several consoles may run."""
+    site, creds = load_operator(args)
+    if not (math.isfinite(args.connect_timeout) and args.connect_timeout > 0):
+        raise CliError(f"--connect-timeout {args.connect_timeout:g}: expected a positive number of seconds")
+    clock = WallClock()
+    host, port = args.broker
+    bus = MqttBus(
+        host,
+        port,
+        client_id=f"{creds.username}-{purpose}-{os.getpid()}-{secrets.token_hex(3)}",
+        username=creds.username,
+        password=creds.password,
+        clock=clock,
+    )
+    try:
+        bus.connect(timeout_s=args.connect_timeout)
+    except BusError as exc:
+        raise CliError(str(exc)) from None
+    return OperatorLink(site, creds, bus, clock)

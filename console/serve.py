@@ -1,0 +1,56 @@
+"""`wsnav console`: the web app on uvicorn, fed by one operator MQTT connection that reconnects by itself."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import uvicorn
+
+from console.auth import Authenticator
+from console.live_state import LiveState
+from console.operator_link import connect
+from console.site_view import SiteView
+from console.web_app import ConsoleApp
+from runtime.cli_support import CliError
+
+
+def console_command(args: argparse.Namespace) -> int:
+    host, port = args.bind
+    link = connect(args, "console")
+    live = LiveState(SiteView(link.site), link.bus, link.clock)
+    app = ConsoleApp(
+        link.site,
+        live,
+        link.bus,
+        link.clock,
+        Authenticator(link.credentials.username, link.credentials.password),
+    )
+    live.start()
+    config = uvicorn.Config(
+        app.app,
+        host=host,
+        port=port,
+        log_level="warning",
+        access_log=False,
+        lifespan="off",
+        timeout_graceful_shutdown=2,  # open pages' event streams never end by themselves
+    )
+    server = uvicorn.Server(config)
+    shown = f"[{host}]" if ":" in host else host
+    print(
+        f"console: http://{shown}:{port}/ (site {link.site.name}; log in as {link.credentials.username})",
+        flush=True,
+    )
+    if host not in ("127.0.0.1", "::1", "localhost"):
+        print(
+            f"console: listening on {host}, not only loopback: put it behind TLS", file=sys.stderr, flush=True
+        )
+    try:
+        server.run()
+        if not server.started:
+            raise CliError(f"cannot listen on {shown}:{port} (in use, or not an address of this host)")
+    finally:
+        live.stop()
+        link.bus.close()
+    return 0

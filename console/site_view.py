@@ -1,0 +1,277 @@
+"""What the operator sees of a site, kept from MQTT messages: zones, nodes, robots and operator blocks.
+
+Pure state (no bus, no threads): `apply` takes one message with the time it arrived and says which entries
+changed; `entry` and `snapshot` render entries as JSON-able dicts, with ages computed at the time asked. Times
+are the site clock (Unix time in a real deployment), so a robot status's `t` gives its age directly.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from schemas import topics
+from schemas.messages import (
+    MAX_OPERATOR_PAYLOAD_BYTES,
+    NodeStatus,
+    OperatorBlock,
+    PayloadError,
+    RobotStatus,
+    ZoneState,
+    parse_payload,
+)
+from schemas.site import Site
+
+Kind = Literal["zone", "node", "robot", "block"]
+Key = tuple[Kind, str]
+
+TRAIL_S = 300.0
+"""How much of each robot's way the console keeps (and the page draws)."""
+TRAIL_STEP_M = 0.05
+MAX_INFO_BYTES = 2048
+MAX_INFO_FIELDS = 32
+NODE_INFO_SUFFIX = "/info"
+"""`nodes/<node>/info`: optional diagnostics a node may send (retained JSON object); shown field by field."""
+
+
+@dataclass
+class NodeView:
+    zone: str
+    heartbeat_s: float
+    state: str | None = None
+    seq: int | None = None
+    heard_at: float | None = None
+    online: bool | None = None
+    status_at: float | None = None
+    info: dict[str, Any] | None = None
+    info_at: float | None = None
+
+
+@dataclass
+class RobotView:
+    status: RobotStatus | None = None
+    heard_at: float | None = None
+    trail: collections.deque[tuple[float, float, float]] = field(default_factory=collections.deque)
+
+
+@dataclass
+class BlockView:
+    block: OperatorBlock
+    set_at: float
+
+
+class SiteView:
+    def __init__(self, site: Site) -> None:
+        self.site = site
+        spec = site.spec
+        self.stale_after = spec.policy.stale_after_heartbeats
+        self.zones = {z.id: z for z in spec.zones}
+        self.nodes: dict[str, NodeView] = {n.id: NodeView(n.zone, spec.heartbeat_of(n)) for n in spec.nodes}
+        self.zone_nodes: dict[str, list[str]] = {z: [] for z in self.zones}
+        for n in spec.nodes:
+            self.zone_nodes[n.zone].append(n.id)
+        self.robots: dict[str, RobotView] = {r.id: RobotView() for r in spec.robots}
+        self.blocks: dict[str, BlockView] = {}
+        self.dropped: collections.Counter[str] = collections.Counter()
+        self.last_drop: str | None = None
+
+    # -- intake --------------------------------------------------------------------------------------------
+
+    def apply(self, topic: str, payload: bytes, received_at: float) -> set[Key]:
+        """Take one message in; the entries it changed (none for a message that is dropped, counted why)."""
+        try:
+            if topic.endswith(NODE_INFO_SUFFIX):
+                return self._node_info(topic, payload, received_at)
+            parsed = topics.parse(topic)
+            if parsed is None or parsed.site != self.site.name:
+                return self._drop(f"not a topic of site {self.site.name}: {topic}")
+            if parsed.kind == "zone_state" and parsed.node is not None:
+                return self._zone_state(parsed.node, parse_payload(ZoneState, payload), received_at)
+            if parsed.kind == "node_status" and parsed.node is not None:
+                return self._node_status(parsed.node, payload, received_at)
+            if parsed.kind == "robot_status" and parsed.robot is not None:
+                status = parse_payload(RobotStatus, payload, max_bytes=MAX_OPERATOR_PAYLOAD_BYTES)
+                return self._robot_status(parsed.robot, status, received_at)
+            if parsed.kind == "operator_block" and parsed.block_id is not None:
+                return self._block(parsed.block_id, payload, received_at)
+        except PayloadError as exc:
+            return self._drop(f"{topic}: {exc}")
+        return set()
+
+    def _drop(self, why: str) -> set[Key]:
+        self.dropped[why.split(":")[0]] += 1
+        self.last_drop = why
+        return set()
+
+    def _zone_state(self, node_id: str, msg: ZoneState, at: float) -> set[Key]:
+        node = self.nodes.get(node_id)
+        if node is None or msg.node != node_id or msg.zone != node.zone:
+            return self._drop(f"zone state of unknown node or wrong zone: {node_id}")
+        node.state, node.seq, node.heard_at = msg.state, msg.seq, at
+        if node.online is None:
+            node.online = True  # a node that speaks is connected, even before its retained birth arrives
+        return {("node", node_id), ("zone", node.zone)}
+
+    def _node_status(self, node_id: str, payload: bytes, at: float) -> set[Key]:
+        node = self.nodes.get(node_id)
+        if node is None:
+            return self._drop(f"status of unknown node: {node_id}")
+        msg = parse_payload(NodeStatus, payload)
+        node.online, node.status_at = msg.status == "online", at
+        return {("node", node_id), ("zone", node.zone)}
+
+    def _node_info(self, topic: str, payload: bytes, at: float) -> set[Key]:
+        """Diagnostics of any shape: a JSON object of scalars, shown as it came."""
+        parts = topic.split("/")
+        node = self.nodes.get(parts[3]) if len(parts) == 5 and parts[1] == self.site.name else None
+        if node is None:
+            return self._drop(f"info of unknown node: {topic}")
+        if not payload:
+            node.info, node.info_at = None, None
+            return {("node", parts[3])}
+        if len(payload) > MAX_INFO_BYTES:
+            raise PayloadError(f"payload of {len(payload)} bytes exceeds {MAX_INFO_BYTES}")
+        try:
+            raw = json.loads(payload)
+        except ValueError:
+            raise PayloadError("node info: not JSON") from None
+        if not isinstance(raw, dict):
+            raise PayloadError("node info: not a JSON object")
+        info = {
+            str(k)[:40]: (v if isinstance(v, int | float | bool) or v is None else str(v)[:120])
+            for k, v in list(raw.items())[:MAX_INFO_FIELDS]
+        }
+        node.info, node.info_at = info, at
+        return {("node", parts[3])}
+
+    def _robot_status(self, robot_id: str, msg: RobotStatus, at: float) -> set[Key]:
+        robot = self.robots.setdefault(robot_id, RobotView())
+        if msg.robot != robot_id:
+            return self._drop(f"status of {msg.robot} on {robot_id}'s topic")
+        robot.status, robot.heard_at = msg, at
+        t = msg.t if msg.t is not None else at
+        x, y, _ = msg.pose
+        trail = robot.trail
+        if not trail or math.hypot(x - trail[-1][1], y - trail[-1][2]) >= TRAIL_STEP_M:
+            trail.append((t, x, y))
+        while trail and trail[0][0] < t - TRAIL_S:
+            trail.popleft()
+        return {("robot", robot_id)}
+
+    def _block(self, block_id: str, payload: bytes, at: float) -> set[Key]:
+        before = self.blocks.pop(block_id, None)
+        keys: set[Key] = {("block", block_id)}
+        if before is not None and before.block.zone is not None:
+            keys.add(("zone", before.block.zone))
+        if payload:
+            msg = parse_payload(OperatorBlock, payload, max_bytes=MAX_OPERATOR_PAYLOAD_BYTES)
+            self.blocks[block_id] = BlockView(msg, at)
+            if msg.zone is not None:
+                keys.add(("zone", msg.zone))
+        return keys
+
+    # -- time ----------------------------------------------------------------------------------------------
+
+    def expire(self, now: float) -> set[Key]:
+        """Blocks past their expiry leave the view (the robots drop them by the same rule)."""
+        keys: set[Key] = set()
+        for block_id, view in list(self.blocks.items()):
+            if view.block.expires_at is not None and now >= view.block.expires_at:
+                del self.blocks[block_id]
+                keys.add(("block", block_id))
+                if view.block.zone is not None:
+                    keys.add(("zone", view.block.zone))
+        return keys
+
+    def node_fresh(self, node: NodeView, now: float) -> bool:
+        return node.heard_at is not None and now - node.heard_at <= self.stale_after * node.heartbeat_s
+
+    def zone_state(self, zone_id: str, now: float) -> str:
+        """blocked (by a node or the operator), caution, clear, stale (nodes silent or offline), unknown."""
+        if any(b.block.zone == zone_id for b in self.blocks.values()):
+            return "blocked"
+        nodes = [self.nodes[n] for n in self.zone_nodes.get(zone_id, [])]
+        fresh = [n.state for n in nodes if n.online is not False and self.node_fresh(n, now)]
+        if "blocked" in fresh:
+            return "blocked"
+        if "caution" in fresh:
+            return "caution"
+        if fresh:
+            return "clear"
+        return "stale" if any(n.heard_at is not None or n.online is not None for n in nodes) else "unknown"
+
+    def zone_states(self, now: float) -> dict[str, str]:
+        return {z: self.zone_state(z, now) for z in self.zones}
+
+    # -- rendering -----------------------------------------------------------------------------------------
+
+    def entry(self, key: Key, now: float) -> dict[str, Any] | None:
+        """One entry as the page and `--json` show it; None once it is gone (a lifted block)."""
+        kind, ident = key
+        if kind == "zone":
+            blocks = sorted(b for b, v in self.blocks.items() if v.block.zone == ident)
+            return {
+                "id": ident,
+                "state": self.zone_state(ident, now),
+                "nodes": self.zone_nodes[ident],
+                "operator_blocks": blocks,
+            }
+        if kind == "node":
+            n = self.nodes[ident]
+            return {
+                "id": ident,
+                "zone": n.zone,
+                "state": n.state,
+                "seq": n.seq,
+                "online": n.online,
+                "heard_at": n.heard_at,
+                "age_s": None if n.heard_at is None else round(now - n.heard_at, 1),
+                "fresh": self.node_fresh(n, now),
+                "info": n.info,
+            }
+        if kind == "robot":
+            r = self.robots.get(ident)
+            if r is None or r.status is None:
+                return {"id": ident, "state": None}
+            s = r.status
+            return {
+                "id": ident,
+                **s.model_dump(exclude={"v", "robot"}),
+                "heard_at": r.heard_at,
+                "age_s": round(now - (s.t if s.t is not None else r.heard_at or now), 1),
+            }
+        view = self.blocks.get(ident)
+        if view is None:
+            return None
+        b = view.block
+        return {
+            "id": ident,
+            "zone": b.zone,
+            "polygon": b.polygon,
+            "expires_at": b.expires_at,
+            "left_s": None if b.expires_at is None else max(0.0, round(b.expires_at - now, 1)),
+            "reason": b.reason,
+        }
+
+    def robot_trail(self, robot_id: str) -> list[tuple[float, float, float]]:
+        robot = self.robots.get(robot_id)
+        return list(robot.trail) if robot is not None else []
+
+    def snapshot(self, now: float) -> dict[str, Any]:
+        """Everything, as `GET /api/state` returns it."""
+        robots = []
+        for r in sorted(self.robots):
+            entry = self.entry(("robot", r), now) or {"id": r}
+            entry["trail"] = [[round(x, 2), round(y, 2)] for _, x, y in self.robot_trail(r)]
+            robots.append(entry)
+        return {
+            "site": self.site.name,
+            "now": now,
+            "zones": [self.entry(("zone", z), now) for z in self.zones],
+            "nodes": [self.entry(("node", n), now) for n in self.nodes],
+            "robots": robots,
+            "blocks": [self.entry(("block", b), now) for b in sorted(self.blocks)],
+        }

@@ -1,0 +1,434 @@
+"use strict";
+// The operator's page: draws the site from /api/site, keeps it live from /api/events (server-sent events),
+// and steers through the JSON API with the session's CSRF token. Map y points up; SVG y points down: every
+// world point (x, y) is drawn at (x, -y).
+
+const SVG = "http://www.w3.org/2000/svg";
+const state = { zones: {}, nodes: {}, robots: {}, blocks: {}, trails: {}, offset: 0, connected: true, streamOk: true };
+let geo = null;
+let csrf = null;
+let mode = null; // {kind: "goal", robot} | {kind: "rect", start} | {kind: "poly", points: []}
+const $ = (id) => document.getElementById(id);
+
+function el(tag, attrs, parent) {
+  const node = document.createElementNS(SVG, tag);
+  for (const [k, v] of Object.entries(attrs || {})) node.setAttribute(k, v);
+  if (parent) parent.appendChild(node);
+  return node;
+}
+const pts = (poly) => poly.map(([x, y]) => `${x},${-y}`).join(" ");
+const serverNow = () => Date.now() / 1000 + state.offset;
+const fmtAge = (s) => (s == null ? "never" : s < 60 ? `${s.toFixed(0)} s` : s < 3600 ? `${(s / 60).toFixed(0)} min` : `${(s / 3600).toFixed(1)} h`);
+
+function worldFromEvent(ev) {
+  const svg = $("map");
+  const p = svg.createSVGPoint();
+  p.x = ev.clientX;
+  p.y = ev.clientY;
+  const w = p.matrixTransform(svg.getScreenCTM().inverse());
+  return [Math.round(w.x * 100) / 100, Math.round(-w.y * 100) / 100];
+}
+// For tests and scripts: where on the screen a world point is drawn.
+window.worldToClient = function (x, y) {
+  const svg = $("map");
+  const p = svg.createSVGPoint();
+  p.x = x;
+  p.y = -y;
+  const s = p.matrixTransform(svg.getScreenCTM());
+  return [s.x, s.y];
+};
+
+async function api(method, path, body) {
+  const res = await fetch(path, {
+    method,
+    headers: { "Content-Type": "application/json", "X-CSRF-Token": csrf || "" },
+    body: body === undefined ? undefined : JSON.stringify(body),
+  });
+  const data = await res.json().catch(() => ({}));
+  $("action-error").textContent = res.ok ? "" : data.error || `${method} ${path}: ${res.status}`;
+  if (res.status === 401) window.location.assign("/login");
+  return res.ok ? data : null;
+}
+
+// -- drawing --------------------------------------------------------------------------------------------
+
+function drawSite() {
+  const [x0, y0, x1, y1] = geo.bounds;
+  const w = x1 - x0, h = y1 - y0;
+  const svg = $("map");
+  svg.setAttribute("viewBox", `${x0} ${-y1} ${w} ${h}`);
+  const img = $("map-image");
+  Object.entries({ x: x0, y: -y1, width: w, height: h, preserveAspectRatio: "none" }).forEach(([k, v]) => img.setAttribute(k, v));
+  const fs = Math.max(w, h) / 70;
+  svg.style.setProperty("--fs", fs);
+  $("site-name").textContent = geo.site;
+  const zl = $("layer-zones");
+  const select = $("block-zone");
+  for (const z of geo.zones) {
+    el("polygon", { points: pts(z.polygon), class: "zone unknown", id: `zone-${z.id}`, "data-state": "unknown" }, zl);
+    const cx = z.polygon.reduce((a, p) => a + p[0], 0) / z.polygon.length;
+    const cy = z.polygon.reduce((a, p) => a + p[1], 0) / z.polygon.length;
+    el("text", { x: cx, y: -cy, class: "zone-label", "font-size": fs, "text-anchor": "middle" }, zl).textContent = z.id;
+    const opt = document.createElement("option");
+    opt.value = opt.textContent = z.id;
+    select.appendChild(opt);
+  }
+  const pl = $("layer-points");
+  for (const [name, [x, y]] of Object.entries(geo.points)) {
+    el("circle", { cx: x, cy: -y, r: fs / 3, class: "point" }, pl);
+    el("text", { x: x + fs / 2, y: -y, class: "point-label", "font-size": fs }, pl).textContent = name;
+  }
+  const nl = $("layer-nodes");
+  for (const n of geo.nodes) {
+    el("circle", { cx: n.position[0], cy: -n.position[1], r: fs / 4, class: "node silent", id: `node-${n.id}` }, nl);
+  }
+}
+
+function renderZone(z) {
+  state.zones[z.id] = z;
+  dirty.zones.add(z.id);
+  const poly = $(`zone-${z.id}`);
+  if (poly) {
+    poly.setAttribute("class", `zone ${z.state}`);
+    poly.setAttribute("data-state", z.state);
+  }
+}
+
+function nodeClass(n) {
+  if (n.online === false) return "offline";
+  if (n.heard_at == null) return "silent";
+  return n.fresh ? "online" : "stale";
+}
+
+function renderNode(n) {
+  state.nodes[n.id] = n;
+  dirty.nodes.add(n.id);
+  const dot = $(`node-${n.id}`);
+  if (dot) {
+    dot.setAttribute("class", `node ${nodeClass(n)}`);
+    dot.setAttribute("data-online", String(n.online));
+  }
+}
+
+function renderRobot(r) {
+  state.robots[r.id] = r;
+  dirty.robots.add(r.id);
+  if (!r.pose) return;
+  const trail = (state.trails[r.id] = state.trails[r.id] || []);
+  if (r.trail) trail.splice(0, trail.length, ...r.trail.map(([x, y]) => [x, y, r.t || 0]));
+  else trail.push([r.pose[0], r.pose[1], r.t || serverNow()]);
+  const horizon = (r.t || serverNow()) - 300;
+  while (trail.length && trail[0][2] && trail[0][2] < horizon) trail.shift();
+  const layer = $("layer-robots");
+  let g = $(`robot-${r.id}`);
+  if (!g) {
+    g = el("g", { id: `robot-${r.id}`, class: "robot-group" }, layer);
+    el("polyline", { class: "trail" }, g);
+    el("polyline", { class: "path" }, g);
+    el("circle", { class: "goal", r: 0.3 }, g);
+    el("polygon", { class: "robot" }, g);
+    el("text", { class: "robot-label", "font-size": Math.max(...geo.bounds.map(Math.abs)) / 70 }, g);
+  }
+  const [x, y, yaw] = r.pose;
+  const s = 0.35;
+  const nose = [x + s * Math.cos(yaw), y + s * Math.sin(yaw)];
+  const left = [x + s * 0.6 * Math.cos(yaw + 2.5), y + s * 0.6 * Math.sin(yaw + 2.5)];
+  const right = [x + s * 0.6 * Math.cos(yaw - 2.5), y + s * 0.6 * Math.sin(yaw - 2.5)];
+  g.querySelector(".robot").setAttribute("points", pts([nose, left, right]));
+  g.querySelector(".trail").setAttribute("points", pts(trail));
+  g.querySelector(".path").setAttribute("points", r.path ? pts([r.pose, ...r.path]) : "");
+  const goal = g.querySelector(".goal");
+  const gp = typeof r.goal === "string" ? geo.points[r.goal] : r.goal;
+  if (gp && r.state !== "arrived" && r.state !== "cancelled") {
+    goal.setAttribute("cx", gp[0]);
+    goal.setAttribute("cy", -gp[1]);
+    goal.removeAttribute("display");
+  } else goal.setAttribute("display", "none");
+  const label = g.querySelector(".robot-label");
+  label.setAttribute("x", x + 0.4);
+  label.setAttribute("y", -y - 0.4);
+  label.textContent = r.id;
+}
+
+function renderBlock(b) {
+  state.blocks[b.id] = b;
+  dirty.blocks.add(b.id);
+  const layer = $("layer-blocks");
+  let shape = $(`block-${b.id}`);
+  if (!shape) shape = el("polygon", { id: `block-${b.id}`, class: "opblock" }, layer);
+  const poly = b.polygon || (geo.zones.find((z) => z.id === b.zone) || {}).polygon;
+  shape.setAttribute("points", poly ? pts(poly) : "");
+}
+
+function dropBlock(id) {
+  delete state.blocks[id];
+  dirty.blocks.add(id);
+  const shape = $(`block-${id}`);
+  if (shape) shape.remove();
+}
+
+// -- tables: rows are made once per entry and updated in place (a thousand nodes cost no rebuild) ----------
+
+const dirty = { robots: new Set(), blocks: new Set(), zones: new Set(), nodes: new Set() };
+
+function setText(td, text, cls) {
+  const value = String(text);
+  if (td.textContent !== value) td.textContent = value;
+  if (cls !== undefined && td.className !== cls) td.className = cls;
+}
+function button(parent, label, cls, onClick) {
+  const b = document.createElement("button");
+  b.type = "button";
+  b.textContent = label;
+  b.className = cls;
+  b.addEventListener("click", onClick);
+  parent.appendChild(b);
+  return b;
+}
+function row(table, id, cells) {
+  let tr = document.getElementById(id);
+  if (!tr) {
+    tr = table.tBodies[0].insertRow();
+    tr.id = id;
+    for (let i = 0; i < cells; i++) tr.insertCell();
+  }
+  return tr;
+}
+
+function robotRow(r) {
+  const isNew = !document.getElementById(`robot-row-${r.id}`);
+  const tr = row($("robots"), `robot-row-${r.id}`, 7);
+  if (isNew) {
+    const actions = tr.cells[6];
+    const pick = document.createElement("select");
+    pick.setAttribute("aria-label", `goal for ${r.id}`);
+    pick.add(new Option("go to...", ""));
+    for (const name of Object.keys(geo.points)) pick.add(new Option(name, name));
+    pick.addEventListener("change", () => {
+      if (pick.value) api("POST", `/api/robots/${r.id}/goal`, { point: pick.value });
+      pick.value = "";
+    });
+    actions.appendChild(pick);
+    button(actions, "Click goal", "click-goal", () => setMode({ kind: "goal", robot: r.id }));
+    button(actions, "Cancel", "cancel", () => api("POST", `/api/robots/${r.id}/cancel`));
+  }
+  const c = tr.cells;
+  setText(c[0], r.id);
+  setText(c[1], r.state ? r.state + (r.reason ? `: ${r.reason}` : "") : "no status", "robot-state");
+  setText(c[2], r.goal == null ? "" : typeof r.goal === "string" ? r.goal : r.goal.slice(0, 2).map((v) => v.toFixed(1)).join(", "));
+  setText(c[3], r.replans ?? "", "robot-replans");
+  setText(c[4], (r.blocked_zones || []).join(" "));
+}
+
+function blockRow(b) {
+  const isNew = !document.getElementById(`block-row-${b.id}`);
+  const tr = row($("blocks"), `block-row-${b.id}`, 5);
+  if (isNew) button(tr.cells[4], "Lift", "lift", () => api("DELETE", `/api/blocks/${b.id}`));
+  setText(tr.cells[0], b.id);
+  setText(tr.cells[1], b.zone || `polygon of ${b.polygon.length}`);
+  setText(tr.cells[3], b.reason || "");
+}
+
+function zoneRow(z) {
+  const tr = row($("zones"), `zone-row-${z.id}`, 3);
+  setText(tr.cells[0], z.id);
+  setText(tr.cells[1], z.state + (z.operator_blocks.length ? " (operator)" : ""), `state-${z.state}`);
+  setText(tr.cells[2], z.nodes.join(" "));
+}
+
+function nodeRow(n) {
+  const tr = row($("nodes"), `node-row-${n.id}`, 6);
+  const link = n.online === false ? "offline" : n.online ? (n.fresh ? "online" : "silent") : "unknown";
+  setText(tr.cells[0], n.id);
+  setText(tr.cells[1], n.zone);
+  setText(tr.cells[2], n.state || "");
+  setText(tr.cells[3], link, n.online === false ? "offline link" : "link");
+  setText(tr.cells[5], n.info ? Object.entries(n.info).map(([k, v]) => `${k}=${v}`).join(" ") : "", "info");
+}
+
+function renderTables() {
+  for (const id of dirty.robots) if (state.robots[id]) robotRow(state.robots[id]);
+  for (const id of dirty.blocks) {
+    if (state.blocks[id]) blockRow(state.blocks[id]);
+    else document.getElementById(`block-row-${id}`)?.remove();
+  }
+  for (const id of dirty.zones) if (state.zones[id]) zoneRow(state.zones[id]);
+  for (const id of dirty.nodes) if (state.nodes[id]) nodeRow(state.nodes[id]);
+  for (const set of Object.values(dirty)) set.clear();
+}
+
+function renderClock() {
+  // Once a second: the ages and times left, which change without any message.
+  const now = serverNow();
+  for (const r of Object.values(state.robots)) {
+    const tr = document.getElementById(`robot-row-${r.id}`);
+    if (tr) setText(tr.cells[5], r.t ? fmtAge(Math.max(0, now - r.t)) : "");
+  }
+  for (const b of Object.values(state.blocks)) {
+    const tr = document.getElementById(`block-row-${b.id}`);
+    if (tr) setText(tr.cells[2], b.expires_at == null ? "until lifted" : fmtAge(Math.max(0, b.expires_at - now)), "left");
+  }
+  for (const n of Object.values(state.nodes)) {
+    const tr = document.getElementById(`node-row-${n.id}`);
+    if (tr) setText(tr.cells[4], n.heard_at == null ? "never" : `${fmtAge(Math.max(0, now - n.heard_at))} ago`);
+  }
+  const counts = Object.values(state.zones).reduce((a, z) => ((a[z.state] = (a[z.state] || 0) + 1), a), {});
+  $("counts").textContent = Object.entries(counts).map(([k, v]) => `${v} ${k}`).join(", ");
+  $("clock").textContent = new Date(now * 1000).toLocaleTimeString();
+}
+
+function applyFilter() {
+  const filter = $("filter").value.trim().toLowerCase();
+  for (const tr of $("zones").tBodies[0].rows) tr.hidden = !!filter && !tr.id.slice(9).toLowerCase().includes(filter);
+  for (const tr of $("nodes").tBodies[0].rows) {
+    const n = state.nodes[tr.id.slice(9)];
+    tr.hidden = !!filter && !(n && (n.id.toLowerCase().includes(filter) || n.zone.toLowerCase().includes(filter)));
+  }
+}
+
+let tablesDue = false;
+function scheduleTables() {
+  if (tablesDue) return;
+  tablesDue = true;
+  setTimeout(() => {
+    tablesDue = false;
+    renderTables();
+    if ($("filter").value) applyFilter();
+  }, 300);
+}
+
+function renderBanner() {
+  const banner = $("banner");
+  const why = !state.streamOk ? "Lost the console server: reconnecting..." : !state.connected ? "The MQTT broker is not reachable: the console reconnects by itself; what you see may be out of date." : "";
+  banner.hidden = !why;
+  banner.textContent = why;
+}
+
+// -- the feed -------------------------------------------------------------------------------------------
+
+function apply(ev) {
+  if (ev.now) state.offset = ev.now - Date.now() / 1000;
+  if (ev.broker_connected !== undefined) state.connected = ev.broker_connected;
+  if (ev.type === "snapshot") {
+    for (const id of Object.keys(state.blocks)) dropBlock(id);
+    state.trails = {};
+  }
+  (ev.zones || []).forEach(renderZone);
+  (ev.nodes || []).forEach(renderNode);
+  (ev.robots || []).forEach(renderRobot);
+  (ev.blocks || []).forEach(renderBlock);
+  (ev.gone || []).forEach(dropBlock);
+  renderBanner();
+  scheduleTables();
+}
+
+function connect() {
+  const source = new EventSource("/api/events");
+  source.onmessage = (msg) => {
+    state.streamOk = true;
+    apply(JSON.parse(msg.data));
+  };
+  source.onerror = async () => {
+    state.streamOk = false;
+    renderBanner();
+    // EventSource retries by itself; a console restarted meanwhile has forgotten the session: log in again.
+    const res = await fetch("/api/session").catch(() => null);
+    if (res && res.status === 401) window.location.assign("/login");
+  };
+}
+
+// -- steering -------------------------------------------------------------------------------------------
+
+function setMode(m) {
+  mode = m;
+  $("layer-draft").replaceChildren();
+  $("mode-line").textContent = !m ? "" : m.kind === "goal" ? `Click the map: goal for ${m.robot} (Esc cancels)` : m.kind === "rect" ? "Drag a rectangle on the map (Esc cancels)" : "Click the corners; double-click closes the polygon (Esc cancels)";
+}
+
+function blockBody(extra) {
+  const body = { ...extra, reason: $("block-reason").value || undefined };
+  const text = $("block-for").value.trim();
+  const m = /^(\d+(?:\.\d+)?)\s*([smhd]?)$/.exec(text);
+  if (!m) {
+    $("action-error").textContent = `not a duration: ${text} (e.g. 90s, 10m, 2h)`;
+    return null;
+  }
+  body.for_s = parseFloat(m[1]) * { "": 1, s: 1, m: 60, h: 3600, d: 86400 }[m[2]];
+  return body;
+}
+
+function setupSteering() {
+  const svg = $("map");
+  $("block-form").addEventListener("submit", (ev) => {
+    ev.preventDefault();
+    const body = blockBody({ zone: $("block-zone").value });
+    if (body) api("POST", "/api/blocks", body);
+  });
+  $("draw-rect").addEventListener("click", () => setMode({ kind: "rect" }));
+  $("draw-poly").addEventListener("click", () => setMode({ kind: "poly", points: [] }));
+  document.addEventListener("keydown", (ev) => ev.key === "Escape" && setMode(null));
+  svg.addEventListener("mousedown", (ev) => {
+    if (mode && mode.kind === "rect") mode.start = worldFromEvent(ev);
+  });
+  svg.addEventListener("mousemove", (ev) => {
+    if (!mode) return;
+    const p = worldFromEvent(ev);
+    const draft = $("layer-draft");
+    if (mode.kind === "rect" && mode.start) {
+      const [a, b] = [mode.start, p];
+      draft.replaceChildren();
+      el("polygon", { class: "draft", points: pts([a, [b[0], a[1]], b, [a[0], b[1]]]) }, draft);
+    } else if (mode.kind === "poly" && mode.points.length) {
+      draft.replaceChildren();
+      el("polygon", { class: "draft", points: pts([...mode.points, p]) }, draft);
+    }
+  });
+  svg.addEventListener("mouseup", (ev) => {
+    if (!mode || mode.kind !== "rect" || !mode.start) return;
+    const [a, b] = [mode.start, worldFromEvent(ev)];
+    setMode(null);
+    if (Math.abs(a[0] - b[0]) < 0.05 || Math.abs(a[1] - b[1]) < 0.05) return;
+    const body = blockBody({ polygon: [a, [b[0], a[1]], b, [a[0], b[1]]] });
+    if (body) api("POST", "/api/blocks", body);
+  });
+  svg.addEventListener("click", (ev) => {
+    if (!mode) return;
+    const p = worldFromEvent(ev);
+    if (mode.kind === "goal") {
+      const robot = mode.robot;
+      setMode(null);
+      api("POST", `/api/robots/${robot}/goal`, { pose: [p[0], p[1], 0] });
+    } else if (mode.kind === "poly") {
+      mode.points.push(p);
+    }
+  });
+  svg.addEventListener("dblclick", () => {
+    if (!mode || mode.kind !== "poly") return;
+    // The double-click's two clicks added the last corner twice.
+    const points = mode.points.filter((p, i, a) => i === 0 || p[0] !== a[i - 1][0] || p[1] !== a[i - 1][1]);
+    setMode(null);
+    if (points.length < 3) {
+      $("action-error").textContent = "a polygon needs at least 3 corners";
+      return;
+    }
+    const body = blockBody({ polygon: points });
+    if (body) api("POST", "/api/blocks", body);
+  });
+  $("filter").addEventListener("input", applyFilter);
+  $("logout").addEventListener("click", async () => {
+    await api("POST", "/api/logout");
+    window.location.assign("/login");
+  });
+}
+
+async function main() {
+  const session = await fetch("/api/session");
+  if (session.status === 401) return window.location.assign("/login");
+  csrf = (await session.json()).csrf;
+  geo = await (await fetch("/api/site")).json();
+  drawSite();
+  setupSteering();
+  connect();
+  setInterval(renderClock, 1000);
+}
+main();

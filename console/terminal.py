@@ -1,0 +1,250 @@
+"""`wsnav status | watch | block | unblock | goal | cancel`: the console's view and steering in a terminal."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from typing import Any
+
+from console import operator_commands as commands
+from console.live_state import subscriptions
+from console.operator_commands import CommandError, Publication
+from console.operator_link import OperatorLink, connect
+from console.site_view import SiteView
+from runtime.cli_support import CliError
+
+SETTLE_QUIET_S = 0.5
+SETTLE_MAX_S = 5.0
+
+
+def _gather(link: OperatorLink, view: SiteView, quiet_s: float, max_s: float) -> None:
+    """Take in what arrives until the bus has been quiet for `quiet_s` (the retained messages come first)."""
+    deadline = time.monotonic() + max_s
+    while time.monotonic() < deadline:
+        if not link.bus.wait(min(quiet_s, max(0.0, deadline - time.monotonic()))):
+            break
+        for msg in link.bus.poll():
+            view.apply(msg.topic, msg.payload, msg.received_at)
+    for msg in link.bus.poll():
+        view.apply(msg.topic, msg.payload, msg.received_at)
+
+
+def _subscribed(args: argparse.Namespace, purpose: str) -> tuple[OperatorLink, SiteView]:
+    link = connect(args, purpose)
+    view = SiteView(link.site)
+    for flt in subscriptions(link.site.name):
+        link.bus.subscribe(flt)
+    return link, view
+
+
+def _table(headers: list[str], rows: list[list[str]]) -> list[str]:
+    widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(headers)]
+    line = lambda cells: "  ".join(c.ljust(w) for c, w in zip(cells, widths, strict=True)).rstrip()  # noqa: E731
+    return [line(headers), *(line(r) for r in rows)]
+
+
+def _age(seconds: float | None) -> str:
+    if seconds is None:
+        return "never"
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
+
+
+def render(snapshot: dict[str, Any]) -> str:
+    """The terminal's one table per kind, from the same snapshot `GET /api/state` gives."""
+    out: list[str] = [
+        f"site {snapshot['site']}   {time.strftime('%H:%M:%S', time.localtime(snapshot['now']))}"
+    ]
+    if snapshot.get("broker_connected") is False:
+        out.append("!! the MQTT broker is not reachable: what follows may be out of date")
+    nodes = snapshot["nodes"]
+    link = lambda n: "offline" if n["online"] is False else ("online" if n["fresh"] else "silent")  # noqa: E731
+    out += [
+        "",
+        f"NODES ({sum(1 for n in nodes if n['online'] is not False and n['fresh'])}/{len(nodes)} reporting)",
+    ]
+    out += _table(
+        ["node", "zone", "says", "link", "last heard", "diagnostics"],
+        [
+            [
+                n["id"],
+                n["zone"],
+                n["state"] or "-",
+                link(n),
+                _age(n["age_s"]),
+                " ".join(f"{k}={v}" for k, v in (n["info"] or {}).items()),
+            ]
+            for n in nodes
+        ],
+    )
+    out += ["", "ZONES"]
+    out += _table(
+        ["zone", "state", "nodes", "operator blocks"],
+        [
+            [z["id"], z["state"], " ".join(z["nodes"]), " ".join(z["operator_blocks"])]
+            for z in snapshot["zones"]
+        ],
+    )
+    out += ["", "ROBOTS"]
+    rows = []
+    for r in snapshot["robots"]:
+        if r.get("state") is None:
+            rows.append([r["id"], "no status", "", "", "", "", "", ""])
+            continue
+        x, y, yaw = r["pose"]
+        goal = (
+            r["goal"]
+            if isinstance(r["goal"], str) or r["goal"] is None
+            else f"{r['goal'][0]:.1f},{r['goal'][1]:.1f}"
+        )
+        rows.append(
+            [
+                r["id"],
+                r["state"],
+                f"{x:.2f},{y:.2f} {math.degrees(yaw):.0f}°",
+                goal or "-",
+                str(r["replans"]),
+                " ".join(r["blocked_zones"]),
+                _age(r["age_s"]),
+                r.get("reason") or "",
+            ]
+        )
+    out += _table(["robot", "state", "pose", "goal", "replans", "blocked zones", "age", "reason"], rows)
+    out += ["", "OPERATOR BLOCKS"]
+    out += _table(
+        ["block", "where", "left", "reason"],
+        [
+            [
+                b["id"],
+                b["zone"] or f"polygon of {len(b['polygon'])}",
+                "until lifted" if b["left_s"] is None else _age(b["left_s"]),
+                b["reason"] or "",
+            ]
+            for b in snapshot["blocks"]
+        ],
+    )
+    return "\n".join(out)
+
+
+def status_command(args: argparse.Namespace) -> int:
+    link, view = _subscribed(args, "status")
+    try:
+        _gather(link, view, SETTLE_QUIET_S, SETTLE_MAX_S)
+        view.expire(link.clock.now())
+        snapshot = view.snapshot(link.clock.now())
+    finally:
+        link.bus.close()
+    snapshot["broker_connected"] = True
+    print(json.dumps(snapshot, indent=1) if args.json else render(snapshot))
+    return 0
+
+
+def watch_command(args: argparse.Namespace) -> int:
+    if not (math.isfinite(args.every) and args.every >= 0.1):
+        raise CliError(f"--every {args.every:g}: expected at least 0.1 s")
+    link, view = _subscribed(args, "watch")
+    try:
+        while True:
+            _gather(link, view, args.every, args.every)
+            view.expire(link.clock.now())
+            snapshot = view.snapshot(link.clock.now())
+            snapshot["broker_connected"] = link.bus.connected
+            sys.stdout.write("\x1b[H\x1b[2J" + render(snapshot) + "\n")
+            sys.stdout.flush()
+    finally:
+        link.bus.close()
+
+
+def _send(link: OperatorLink, pub: Publication) -> None:
+    try:
+        ok = link.bus.publish_confirmed(pub.topic, pub.payload, retain=pub.retain)
+    finally:
+        link.bus.close()
+    if not ok:
+        raise CliError("the broker did not confirm the message in time: it may not have been delivered")
+
+
+def _parse_xy(text: str, what: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise CliError(f"{what}: expected numbers x,y, got {text!r}") from None
+    if not all(math.isfinite(v) for v in values):
+        raise CliError(f"{what}: expected finite numbers, got {text!r}")
+    return values
+
+
+def block_command(args: argparse.Namespace) -> int:
+    if (args.zone is None) == (args.polygon is None):
+        raise CliError("give a ZONE or --polygon X,Y X,Y X,Y (not both)")
+    polygon = None
+    if args.polygon is not None:
+        corners = [_parse_xy(p, "--polygon") for p in args.polygon]
+        if any(len(c) != 2 for c in corners):
+            raise CliError("--polygon: each corner is X,Y")
+        polygon = [(c[0], c[1]) for c in corners]
+    try:
+        duration = commands.parse_duration(args.duration) if args.duration is not None else None
+    except CommandError as exc:
+        raise CliError(f"--for: {exc}") from None
+    link = connect(args, "block")
+    try:
+        block_id, pub = commands.block(
+            link.site,
+            now=link.clock.now(),
+            duration_s=duration,
+            zone=args.zone,
+            polygon=polygon,
+            reason=args.reason,
+            block_id=args.block_id,
+        )
+    except CommandError as exc:
+        link.bus.close()
+        raise CliError(str(exc)) from None
+    _send(link, pub)
+    print(f"blocked: {block_id}" + (f" for {args.duration}" if args.duration else " until unblocked"))
+    return 0
+
+
+def unblock_command(args: argparse.Namespace) -> int:
+    link = connect(args, "unblock")
+    try:
+        pub = commands.unblock(link.site, args.block_id)
+    except CommandError as exc:
+        link.bus.close()
+        raise CliError(str(exc)) from None
+    _send(link, pub)
+    print(f"lifted: {args.block_id}")
+    return 0
+
+
+def goal_command(args: argparse.Namespace) -> int:
+    target: str | tuple[float, float, float] = args.point
+    if args.point[:1].isdigit() or args.point[:1] in "-.":
+        values = _parse_xy(args.point, "POINT")
+        if len(values) not in (2, 3):
+            raise CliError(f"POINT: expected a named point, x,y or x,y,yaw; got {args.point!r}")
+        target = (values[0], values[1], values[2] if len(values) == 3 else 0.0)
+    link = connect(args, "goal")
+    try:
+        pub = commands.goal(link.site, args.robot, target)
+    except CommandError as exc:
+        link.bus.close()
+        raise CliError(str(exc)) from None
+    _send(link, pub)
+    print(f"goal sent to {args.robot}: {args.point}")
+    return 0
+
+
+def cancel_command(args: argparse.Namespace) -> int:
+    link = connect(args, "cancel")
+    try:
+        pub = commands.cancel(link.site, args.robot)
+    except CommandError as exc:
+        link.bus.close()
+        raise CliError(str(exc)) from None
+    _send(link, pub)
+    print(f"cancel sent to {args.robot}")
+    return 0

@@ -1,0 +1,173 @@
+"""The costmap's layers, each with its own grid and its own rule for entering master (costmap_2d's `Layer`).
+
+A layer reports the windows it changed since it was last asked (costmap_2d's `updateBounds`) and combines its
+costs into a master window (`updateCosts`). The stack (robot_agent.layered_costmap) merges static, obstacle and
+zone layers in that order, then hands the result to the inflation layer. Adding a layer means writing one class
+with these two methods and putting it in the stack's list; nothing else changes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Collection
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from robot_agent.backend import LaserScan
+from robot_agent.inflation import LETHAL_OBSTACLE, InflationParams, inflate, static_layer
+from robot_agent.zone_geometry import Bounds, GridFrame
+from robot_agent.zone_layer import BlockedArea, ZoneLayer
+from schemas.ros_map import OccupancyGrid
+
+Costs = NDArray[np.uint8]
+
+
+class Layer(Protocol):
+    """One layer of the stack: what it changed, and how its costs enter master."""
+
+    def take_bounds(self) -> list[Bounds]:
+        """The cell windows this layer changed since the last call (costmap_2d's updateBounds)."""
+        ...
+
+    def update_costs(self, master: Costs, bounds: Bounds) -> None:
+        """Combine this layer's costs into `master`, an array covering `bounds` (costmap_2d's updateCosts)."""
+        ...
+
+
+class StaticLayer:
+    """The site's map: walls lethal, unknown space unknown; never changes after start-up."""
+
+    def __init__(self, grid: OccupancyGrid) -> None:
+        self.costs: Costs = static_layer(grid)
+
+    def take_bounds(self) -> list[Bounds]:
+        return []
+
+    def update_costs(self, master: Costs, bounds: Bounds) -> None:
+        np.maximum(master, self.costs[bounds.rows, bounds.cols], out=master)
+
+
+class ObstacleLayer:
+    """What the lidar sees: each scan clears the cells along its beams and marks the cells of its hits lethal.
+
+    Beams with no return (+inf) clear up to the raytrace range (costmap_2d's `inf_is_valid`); hits are marked up
+    to the obstacle range. Only the scan's window is touched. The costmap's rate may be above the lidar's:
+    applying the sweep already applied again would change nothing (each cell it touches ends cleared or marked
+    whatever it was), so it is skipped.
+    """
+
+    def __init__(
+        self, frame: GridFrame, obstacle_range_m: float = 3.0, raytrace_range_m: float = 3.5
+    ) -> None:
+        self.frame = frame
+        self.obstacle_range_m = obstacle_range_m
+        self.raytrace_range_m = raytrace_range_m
+        self.marked: NDArray[np.bool_] = np.zeros((frame.height, frame.width), dtype=bool)
+        self._last_scan: LaserScan | None = None
+        self._pending: list[Bounds] = []
+
+    def take_bounds(self) -> list[Bounds]:
+        out, self._pending = self._pending, []
+        return out
+
+    def update_costs(self, master: Costs, bounds: Bounds) -> None:
+        marked = self.marked[bounds.rows, bounds.cols]
+        np.maximum(master, np.where(marked, np.uint8(LETHAL_OBSTACLE), np.uint8(0)), out=master)
+
+    def add_scan(self, scan: LaserScan) -> bool:
+        """Clear and mark along the scan's beams; True if a cell changed (its window is then pending)."""
+        if scan is self._last_scan:
+            return False
+        self._last_scan = scan
+        frame = self.frame
+        res = frame.resolution
+        x, y, yaw = scan.pose
+        ranges = np.asarray(scan.ranges, dtype=np.float64)
+        angles = yaw + scan.angle_min + scan.angle_increment * np.arange(len(ranges))
+        usable = ~np.isnan(ranges) & (ranges >= scan.range_min)
+        hit = usable & np.isfinite(ranges) & (ranges < scan.range_max) & (ranges <= self.obstacle_range_m)
+        clear_len = np.minimum(np.where(np.isfinite(ranges), ranges, np.inf), self.raytrace_range_m)
+        clear_len = np.where(usable, clear_len, 0.0)
+        reach = math.ceil(max(self.raytrace_range_m, self.obstacle_range_m) / res) + 2
+        row, col = frame.world_to_cell(x, y)
+        window = Bounds(row - reach, col - reach, row + reach + 1, col + reach + 1).grow(0, frame)
+        if window.empty:
+            return False
+        before = self.marked[window.rows, window.cols].copy()
+        # Clearing: sample each beam every half cell, stopping a cell short of its end.
+        step = res / 2.0
+        n = math.ceil(self.raytrace_range_m / step) + 1
+        s = np.arange(n, dtype=np.float64) * step
+        cos, sin = np.cos(angles), np.sin(angles)
+        along = s[None, :] < (clear_len[:, None] - res)
+        px = x + cos[:, None] * s[None, :]
+        py = y + sin[:, None] * s[None, :]
+        self._set_cells(px[along], py[along], False)
+        # Marking: the cell of each hit within the obstacle range.
+        self._set_cells(x + cos[hit] * ranges[hit], y + sin[hit] * ranges[hit], True)
+        if np.array_equal(before, self.marked[window.rows, window.cols]):
+            return False
+        self._pending.append(window)
+        return True
+
+    def _set_cells(self, xs: NDArray[np.float64], ys: NDArray[np.float64], value: bool) -> None:
+        rows, cols = self.frame.world_to_cells(xs, ys)
+        inside = (rows >= 0) & (rows < self.frame.height) & (cols >= 0) & (cols < self.frame.width)
+        self.marked[rows[inside], cols[inside]] = value
+
+
+class ZoneCostLayer:
+    """The WSN zone layer's costs on the costmap's grid, repainted in the windows the zone layer changed."""
+
+    def __init__(self, zone_layer: ZoneLayer) -> None:
+        self.zone_layer = zone_layer
+        frame = zone_layer.frame
+        self.costs: Costs = np.zeros((frame.height, frame.width), dtype=np.uint8)
+
+    def repaint(self, bounds: Bounds) -> None:
+        """Forget what the zone layer changed and paint it afresh in `bounds` (start-up, rebuild)."""
+        self.zone_layer.take_changes()
+        self.costs[bounds.rows, bounds.cols] = self.zone_layer.paint(bounds)
+
+    def take_bounds(self) -> list[Bounds]:
+        """The zone layer's changed windows whose cells really changed cost."""
+        out = []
+        for w in self.zone_layer.take_changes():
+            new = self.zone_layer.paint(w)
+            if not np.array_equal(new, self.costs[w.rows, w.cols]):
+                self.costs[w.rows, w.cols] = new
+                out.append(w)
+        return out
+
+    def update_costs(self, master: Costs, bounds: Bounds) -> None:
+        np.maximum(master, self.costs[bounds.rows, bounds.cols], out=master)
+
+    def update_costs_without(self, master: Costs, bounds: Bounds, exclude: Collection[BlockedArea]) -> None:
+        """As `update_costs`, with some blocked areas left out (for letting a robot out of them)."""
+        np.maximum(master, self.zone_layer.paint(bounds, exclude=exclude), out=master)
+
+
+class InflationLayer:
+    """costmap_2d's inflation: master's lethal cells spread their cost over the robot's inflation radius.
+
+    It holds no grid of its own; `grow` says how far a change in the merged layers reaches (its updateBounds),
+    and `update_costs` inflates a master window whose cells within `reach` of its edge are not exact (the stack
+    passes a window grown once more than the cells it keeps).
+    """
+
+    def __init__(self, params: InflationParams, resolution: float) -> None:
+        self.params = params
+        self.resolution = resolution
+        self.reach = math.ceil(params.inflation_radius / resolution) + 1
+        """Cells beyond which a lethal cell cannot change a cell's inflated cost."""
+
+    def take_bounds(self) -> list[Bounds]:
+        return []
+
+    def grow(self, bounds: Bounds, frame: GridFrame) -> Bounds:
+        return bounds.grow(self.reach, frame)
+
+    def update_costs(self, master: Costs, bounds: Bounds) -> None:
+        master[...] = inflate(master, self.resolution, self.params)

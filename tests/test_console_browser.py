@@ -1,0 +1,323 @@
+"""The operator's console in a real browser (Debian's Chromium via Playwright) against the real stack as
+processes: `wsnav broker run`, `wsnav zones` (node s2), `wsnav robot --sim`, `wsnav console`, and node s1 played
+over MQTT with its own credentials so the test decides when it says `blocked`.
+
+The tests share one stack and run in order: the broker outage comes last.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from schemas import topics
+from schemas.messages import RobotStatus, parse_payload
+from tests.conftest import require_tool
+from tests.console_fixtures import ConsoleStack, NodeS1, chromium, observer, start_console, until
+from tests.test_compose_stack import P2, SITE
+from tests.test_stack_processes import WSNAV, make_site, stack_on
+
+pytestmark = pytest.mark.timeout(300)
+
+
+@pytest.fixture(scope="module")
+def site_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ConsoleStack]:
+    require_tool("chromium")
+    work = tmp_path_factory.mktemp("console")
+    with stack_on(make_site(work / "site"), work) as stack:
+        stack.broker()
+        node = NodeS1(stack)
+        node.say("clear")
+        quiet = work / "quiet.yaml"
+        quiet.write_text("duration_s: 3600\n")  # node s2 reports `clear` until it is killed
+        zones = stack.zones("--scenario", str(quiet), "--nodes", "s2")
+        robot = stack.robot()
+        console, url = start_console(stack)
+        password = json.loads((stack.creds / "operator.json").read_text())["password"]
+        cs = ConsoleStack(stack, console, url, password, node, zones, robot)
+        until("both nodes and the robot seen by the console", lambda: _ready(cs), 60)
+        yield cs
+        node.close()
+
+
+def _ready(cs: ConsoleStack) -> bool:
+    state = cs.state()
+    return all(n["fresh"] for n in state["nodes"]) and state["robots"][0].get("state") == "idle"
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    with chromium() as b:
+        yield b
+
+
+@pytest.fixture
+def page(browser: Any, site_stack: ConsoleStack) -> Iterator[Any]:
+    context = browser.new_context(
+        viewport={"width": 1400, "height": 800}, bypass_csp=True
+    )  # waits evaluate strings
+    page = context.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(site_stack.url + "/")
+    page.fill("input[name=password]", site_stack.password)
+    page.click("button[type=submit]")
+    page.wait_for_url(site_stack.url + "/")
+    page.wait_for_function("document.querySelector('#zone-upper')?.dataset.state === 'clear'")
+    yield page
+    context.close()
+    assert not errors, errors
+
+
+def click_world(page: Any, x: float, y: float) -> None:
+    sx, sy = page.evaluate(f"window.worldToClient({x}, {y})")
+    page.mouse.click(sx, sy)
+
+
+def test_a_wrong_password_is_refused(browser: Any, site_stack: ConsoleStack) -> None:
+    context = browser.new_context(bypass_csp=True)
+    page = context.new_page()
+    page.goto(site_stack.url + "/")
+    assert page.url.endswith("/login"), "the page is shown without logging in"
+    page.fill("input[name=password]", "not-the-password-at-all")
+    page.click("button[type=submit]")
+    page.wait_for_function("document.querySelector('#login-error').textContent.length > 0")
+    assert "wrong username or password" in page.inner_text("#login-error")
+    assert page.url.endswith("/login")
+    assert page.request.get(site_stack.url + "/api/state").status == 401
+    context.close()
+    code, body = site_stack.request("GET", "/api/state", basic=("operator", "wrong-password-0000"))
+    assert code == 401 and "wrong" in body["error"]
+    code, _ = site_stack.request("GET", "/api/state")
+    assert code == 401
+
+
+def test_api_state_for_scripts_and_no_secret_reaches_the_page(page: Any, site_stack: ConsoleStack) -> None:
+    state = site_stack.state()
+    assert {z["id"] for z in state["zones"]} == {"upper", "lower"}
+    assert {n["id"]: n["online"] for n in state["nodes"]} == {"s1": True, "s2": True}
+    assert state["robots"][0]["pose"][:2] == pytest.approx([-2.0, 0.0], abs=0.05)
+    seen = page.content() + json.dumps(page.evaluate("performance.getEntries().map(e => e.name)"))
+    for path in ("/api/session", "/api/site", "/api/state"):
+        seen += page.request.get(site_stack.url + path).text()
+    assert site_stack.password not in seen
+    cookies = page.context.cookies()
+    assert all(c["httpOnly"] and c["sameSite"] == "Strict" for c in cookies), cookies
+
+
+def test_malformed_requests_get_a_clear_4xx_and_change_nothing(page: Any, site_stack: ConsoleStack) -> None:
+    auth = ("operator", site_stack.password)
+    bus = observer(site_stack.stack, topics.all_operator_blocks(SITE), f"{topics.ROOT}/{SITE}/robots/+/goal")
+    before = site_stack.state()["blocks"]
+    bus.poll()
+    cases: list[tuple[str, str, bytes | dict[str, Any] | None, int, str]] = [
+        ("POST", "/api/blocks", b"{not json", 400, "not valid JSON"),
+        ("POST", "/api/blocks", b"[1, 2]", 400, "JSON object"),
+        ("POST", "/api/blocks", {"zone": "nowhere", "for_s": 60}, 400, "unknown zone 'nowhere'"),
+        ("POST", "/api/blocks", {"zone": "upper", "polygon": [[0, 0], [1, 0], [1, 1]]}, 400, "not both"),
+        ("POST", "/api/blocks", {"polygon": [[0, 0], [1, 0]], "for_s": 60}, 400, "3 to 64"),
+        ("POST", "/api/blocks", {"polygon": [[0, 0], [99, 0], [1, 1]], "for_s": 60}, 400, "outside the map"),
+        ("POST", "/api/blocks", {"zone": "upper", "for_s": -5}, 400, "more than 0 s"),
+        ("POST", "/api/blocks", {"zone": "upper", "for_s": "ten"}, 400, "finite number"),
+        ("POST", "/api/blocks", {"zone": "upper", "id": "a/b#"}, 400, "not a valid block id"),
+        ("POST", "/api/blocks", {"zone": "upper", "colour": "red"}, 400, "unknown field(s): colour"),
+        ("POST", "/api/blocks", {"zone": "upper", "reason": "x" * 20000}, 413, "exceeds"),
+        ("DELETE", "/api/blocks/op-none", None, 404, "no active block"),
+        ("POST", "/api/robots/robot9/goal", {"point": "P2"}, 400, "unknown robot 'robot9'"),
+        ("POST", "/api/robots/robot1/goal", {"point": "Q7"}, 400, "unknown point 'Q7'"),
+        ("POST", "/api/robots/robot1/goal", {"pose": [50, 50]}, 400, "outside the map"),
+        ("POST", "/api/robots/robot1/goal", {"pose": [0.0, 0.0]}, 400, "in a wall"),
+        ("POST", "/api/robots/robot1/goal", {"pose": [1, "a"]}, 400, "finite number"),
+        ("POST", "/api/robots/robot1/goal", {}, 400, "give 'point'"),
+    ]
+    for method, path, body, code, words in cases:
+        headers = {"Content-Type": "application/json"} if isinstance(body, bytes) else None
+        got, answer = site_stack.request(method, path, body, basic=auth, headers=headers)
+        assert got == code and words in answer.get("error", ""), (method, path, body, got, answer)
+    # From the browser: a write without the session's CSRF token, or from another origin, is refused.
+    no_csrf = page.request.post(site_stack.url + "/api/robots/robot1/cancel", data={})
+    assert no_csrf.status == 403 and "CSRF" in no_csrf.json()["error"]
+    csrf = page.evaluate("fetch('/api/session').then(r => r.json()).then(j => j.csrf)")
+    other = page.request.post(
+        site_stack.url + "/api/robots/robot1/cancel",
+        data={},
+        headers={"X-CSRF-Token": csrf, "Origin": "http://evil.example"},
+    )
+    assert other.status == 403 and "another origin" in other.json()["error"]
+    form = page.request.post(
+        site_stack.url + "/api/blocks",
+        data="zone=upper",
+        headers={"X-CSRF-Token": csrf, "Content-Type": "text/plain"},
+    )
+    assert form.status == 415
+    bogus = page.request.post(
+        site_stack.url + "/api/robots/robot1/cancel",
+        data={},
+        headers={"Authorization": "Basic b3BlcmF0b3I6eA=="},
+    )
+    assert bogus.status == 401, "a wrong Basic password next to a session cookie must not stand in for CSRF"
+    time.sleep(1.0)
+    assert bus.poll() == [], "a refused request published something"
+    assert site_stack.state()["blocks"] == before
+    bus.close()
+
+
+def test_a_node_saying_blocked_turns_its_zone_blocked_on_the_page_within_1s(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    sent = time.monotonic()
+    site_stack.node.say("blocked")
+    page.wait_for_function("document.querySelector('#zone-upper').dataset.state === 'blocked'", timeout=5000)
+    delay = time.monotonic() - sent
+    assert delay < 1.0, f"the page showed the zone blocked {delay:.2f} s after the node's message"
+    site_stack.node.say("clear")
+    page.wait_for_function("document.querySelector('#zone-upper').dataset.state === 'clear'", timeout=5000)
+
+
+def test_terminal_block_expires_on_time_and_status_age_is_right_in_another_process(
+    site_stack: ConsoleStack,
+) -> None:
+    """`wsnav block lower --for 4s`: the robot (another process) applies it, then drops it when the Unix-time
+    expiry passes; the statuses' `t`, read here, is the robot's Unix time (seconds old, not hours)."""
+    stack = site_stack.stack
+    args = [
+        "--site",
+        str(stack.site),
+        "--broker",
+        stack.broker_addr,
+        "--credentials",
+        str(stack.creds / "operator.json"),
+    ]
+    bus = observer(stack, topics.robot_status(SITE, "robot1"))
+    out = subprocess.run(
+        [*WSNAV, "block", "lower", "--for", "4s", *args], capture_output=True, text=True, timeout=60
+    )
+    assert out.returncode == 0, out.stderr
+    block_id = out.stdout.split()[1]
+    expires = next(b for b in site_stack.state()["blocks"] if b["id"] == block_id)["expires_at"]
+    assert abs(expires - (time.time() + 4)) < 2.0
+    applied = lifted = None
+    ages: list[float] = []
+    deadline = time.monotonic() + 20
+    while lifted is None and time.monotonic() < deadline:
+        bus.wait(0.2)
+        for msg in bus.poll():
+            status = parse_payload(RobotStatus, msg.payload)
+            if status.t is not None and not msg.retain:
+                ages.append(time.time() - status.t)
+            if "lower" in status.blocked_zones and applied is None:
+                applied = time.time()
+            if applied is not None and "lower" not in status.blocked_zones and lifted is None:
+                lifted = time.time()
+    bus.close()
+    assert applied is not None, "the robot never applied the block"
+    assert lifted is not None, "the block never expired at the robot"
+    assert expires - 0.2 <= lifted <= expires + 1.5, f"lifted {lifted - expires:+.2f} s from its expiry"
+    assert ages and all(-0.5 < a < 1.5 for a in ages), f"status ages read here: {ages[:5]}"
+    status = subprocess.run([*WSNAV, "status", "--json", *args], capture_output=True, text=True, timeout=60)
+    assert status.returncode == 0, status.stderr
+    snap = json.loads(status.stdout)
+    assert snap["blocks"] == [] and {z["id"]: z["state"] for z in snap["zones"]} == {
+        "upper": "clear",
+        "lower": "clear",
+    }
+    assert 0 <= next(r for r in snap["robots"] if r["id"] == "robot1")["age_s"] < 2
+
+
+def test_a_goal_clicked_is_reached_and_a_drawn_block_makes_the_robot_replan_then_expires(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    replans0 = site_stack.robot_status().get("replans", 0)
+    page.click("#robot-row-robot1 .click-goal")
+    click_world(page, P2[0], P2[1])
+    until(
+        "the robot under way to the clicked goal",
+        lambda: (s := site_stack.robot_status())["state"] == "navigating" and s["pose"][0] > -1.6,
+        30,
+    )
+    # Draw a rectangle over the upper lane, the direct way, for 8 s.
+    page.fill("#block-for", "8s")
+    page.click("#draw-rect")
+    a = page.evaluate("window.worldToClient(-0.35, 1.0)")
+    b = page.evaluate("window.worldToClient(0.35, 0.15)")
+    page.mouse.move(*a)
+    page.mouse.down()
+    page.mouse.move(*b, steps=5)
+    page.mouse.up()
+    page.wait_for_selector("#layer-blocks polygon", timeout=3000)
+    blocks = site_stack.state()["blocks"]
+    assert len(blocks) == 1 and len(blocks[0]["polygon"]) == 4
+    until(
+        "the robot replanned around the drawn block",
+        lambda: site_stack.robot_status()["replans"] > replans0,
+        10,
+    )
+    page.wait_for_selector("#layer-blocks polygon", state="detached", timeout=15000)
+    assert site_stack.state()["blocks"] == []
+    arrived = until(
+        "the robot at the clicked goal",
+        lambda: (s := site_stack.robot_status())["state"] == "arrived" and s,
+        120,
+        0.5,
+    )
+    assert abs(arrived["pose"][0] - P2[0]) < 0.3 and abs(arrived["pose"][1] - P2[1]) < 0.3
+    page.wait_for_function(
+        "document.querySelector('#robot-row-robot1 .robot-state').textContent.startsWith('arrived')"
+    )
+
+
+def test_a_zone_block_and_a_drawn_polygon_from_the_page_are_lifted_from_the_page(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    page.select_option("#block-zone", "lower")
+    page.fill("#block-for", "1h")
+    page.fill("#block-reason", "spill")
+    page.click("#block-zone-btn")
+    page.wait_for_function("document.querySelector('#zone-lower').dataset.state === 'blocked'", timeout=5000)
+    page.click("#draw-poly")
+    for x, y in [(1.0, -1.0), (1.5, -1.0), (1.25, -0.5)]:
+        click_world(page, x, y)
+    page.mouse.dblclick(*page.evaluate("window.worldToClient(1.25, -0.5)"))
+    until("two blocks", lambda: len(site_stack.state()["blocks"]) == 2, 5)
+    blocks = {b["zone"] or "polygon": b for b in site_stack.state()["blocks"]}
+    assert blocks["lower"]["reason"] == "spill" and 3590 < blocks["lower"]["left_s"] <= 3600
+    corners = [c for p in blocks["polygon"]["polygon"] for c in p]
+    assert corners == pytest.approx([1.0, -1.0, 1.5, -1.0, 1.25, -0.5], abs=0.06), (
+        "the polygon as clicked (to a pixel)"
+    )
+    for block in blocks.values():
+        page.click(f"#block-row-{block['id']} .lift")
+    until("both blocks lifted", lambda: site_stack.state()["blocks"] == [], 5)
+    page.wait_for_function("document.querySelector('#zone-lower').dataset.state === 'clear'", timeout=5000)
+    assert page.locator("#layer-blocks polygon").count() == 0
+
+
+def test_a_killed_node_shows_offline_after_its_will(page: Any, site_stack: ConsoleStack) -> None:
+    site_stack.zones.popen.send_signal(signal.SIGKILL)
+    site_stack.zones.popen.wait(10)
+    page.wait_for_function("document.querySelector('#node-s2').dataset.online === 'false'", timeout=15000)
+    assert "offline" in page.inner_text("#node-row-s2")
+
+
+def test_a_broker_outage_shows_a_banner_and_the_console_reconnects(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    stack = site_stack.stack
+    broker = next(p for p in stack.procs if p.name == "broker")
+    assert page.is_hidden("#banner")
+    broker.kill9()
+    stack.procs.remove(broker)
+    page.wait_for_selector("#banner", state="visible", timeout=15000)
+    assert "broker" in page.inner_text("#banner")
+    stack.broker()
+    page.wait_for_selector("#banner", state="hidden", timeout=30000)
+    # Live again: node s1 (its bus reconnected too) says blocked and the page shows it.
+    until("node s1 back on the broker", lambda: site_stack.node.bus.connected, 30)
+    site_stack.node.say("blocked")
+    page.wait_for_function("document.querySelector('#zone-upper').dataset.state === 'blocked'", timeout=10000)

@@ -1,0 +1,147 @@
+"""The console's view of a site, from messages alone (no broker): what each zone shows and why, what is
+dropped, and what the operator's requests turn into."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from console import operator_commands as commands
+from console.operator_commands import CommandError
+from console.site_view import SiteView
+from schemas import topics
+from schemas.messages import (
+    MAX_PAYLOAD_BYTES,
+    ROBOT_PATH_POINTS,
+    NodeStatus,
+    OperatorBlock,
+    RobotStatus,
+    ZoneState,
+    ZoneStateValue,
+    parse_payload,
+)
+from schemas.site import Site, load_site
+from tests.site_fixtures import tiny_site
+
+HB = 5.0  # tiny_site's heartbeat; stale after 3 heartbeats
+
+
+@pytest.fixture
+def site(tmp_path: Path) -> Site:
+    return load_site(tiny_site(tmp_path / "tiny"))
+
+
+def zone_msg(node: str, zone: str, state: ZoneStateValue, seq: int = 1) -> tuple[str, bytes]:
+    return topics.zone_state("tiny", zone, node), ZoneState(
+        zone=zone, node=node, state=state, seq=seq
+    ).to_payload()
+
+
+def test_zone_states_follow_nodes_silence_wills_and_operator_blocks(site: Site) -> None:
+    view = SiteView(site)
+    assert view.zone_states(0.0) == {"z1": "unknown", "z2": "unknown"}
+    view.apply(*zone_msg("n1", "z1", "blocked"), 100.0)
+    view.apply(*zone_msg("n2", "z2", "caution"), 100.0)
+    assert view.zone_states(101.0) == {"z1": "blocked", "z2": "caution"}
+    assert view.zone_states(100.0 + 3 * HB + 0.1) == {"z1": "stale", "z2": "stale"}
+    view.apply(topics.node_status("tiny", "n1"), NodeStatus(node="n1", status="offline").to_payload(), 102.0)
+    assert view.zone_state("z1", 102.0) == "stale", "an offline node's last word does not hold its zone"
+    block = OperatorBlock(zone="z2", expires_at=110.0, reason="spill").to_payload()
+    assert view.apply(topics.operator_block("tiny", "b1"), block, 103.0) == {("block", "b1"), ("zone", "z2")}
+    assert view.zone_state("z2", 104.0) == "blocked"
+    assert view.entry(("block", "b1"), 104.0) == {
+        "id": "b1", "zone": "z2", "polygon": None, "expires_at": 110.0, "left_s": 6.0, "reason": "spill",
+    }  # fmt: skip
+    assert view.expire(110.0) == {("block", "b1"), ("zone", "z2")}
+    assert view.zone_state("z2", 110.0) == "caution"
+
+
+def test_bad_messages_are_dropped_counted_and_change_nothing(site: Site) -> None:
+    view = SiteView(site)
+    view.apply(*zone_msg("n1", "z1", "clear"), 1.0)
+    before = view.snapshot(2.0)
+    bad = [
+        (topics.zone_state("tiny", "z1", "n1"), b"{not json"),
+        (topics.zone_state("tiny", "z1", "n1"), b"x" * 5000),
+        (
+            topics.zone_state("tiny", "z2", "n1"),
+            ZoneState(zone="z2", node="n1", state="blocked", seq=2).to_payload(),
+        ),
+        (
+            topics.zone_state("tiny", "z1", "ghost"),
+            ZoneState(zone="z1", node="ghost", state="blocked", seq=2).to_payload(),
+        ),
+        (
+            topics.robot_status("tiny", "robot1"),
+            b'{"v": 1, "robot": "robot2", "state": "idle", "pose": [0, 0, 0]}',
+        ),
+        ("wsn/other/zones/z1/state/n1", b"{}"),
+        ("wsn/tiny/nodes/n1/info", b"[1, 2]"),
+        ("wsn/tiny/nodes/n1/info", b"x" * 4000),
+    ]
+    for topic, payload in bad:
+        assert view.apply(topic, payload, 2.0) == set(), topic
+    assert view.snapshot(2.0) == before
+    assert sum(view.dropped.values()) == len(bad)
+
+
+def test_node_diagnostics_of_any_shape_are_shown_field_by_field(site: Site) -> None:
+    view = SiteView(site)
+    info = b'{"v": 1, "firmware": "1.4.2", "reset_cause": "watchdog", "uptime_s": 3600, "rssi_dbm": -71, "nested": {"a": 1}}'
+    assert view.apply("wsn/tiny/nodes/n2/info", info, 5.0) == {("node", "n2")}
+    shown = view.entry(("node", "n2"), 6.0)
+    assert shown is not None and shown["info"] == {
+        "v": 1, "firmware": "1.4.2", "reset_cause": "watchdog", "uptime_s": 3600, "rssi_dbm": -71, "nested": "{'a': 1}",
+    }  # fmt: skip
+    view.apply("wsn/tiny/nodes/n2/info", b"", 7.0)
+    assert (view.entry(("node", "n2"), 7.0) or {})["info"] is None
+
+
+def test_robot_trail_keeps_the_last_minutes(site: Site) -> None:
+    view = SiteView(site)
+    for i in range(0, 700, 2):
+        status = RobotStatus(robot="robot1", state="navigating", pose=(i * 0.01, 1.0, 0.0), t=1000.0 + i)
+        view.apply(topics.robot_status("tiny", "robot1"), status.to_payload(), 1000.0 + i)
+    trail = view.robot_trail("robot1")
+    assert trail[0][0] >= 1000.0 + 698 - 300 and trail[-1][1] == pytest.approx(6.98, abs=0.05)
+    assert view.entry(("robot", "robot1"), 1000.0 + 699)["age_s"] == 1.0  # type: ignore[index]
+
+
+def test_a_full_robot_status_with_its_path_fits_the_payload_limit() -> None:
+    status = RobotStatus(
+        robot="robot-with-a-long-name",
+        state="navigating",
+        pose=(-123.456, -123.456, -3.142),
+        goal=(-123.456, -123.456, -3.142),
+        blocked_zones=[f"zone-{i:03d}" for i in range(12)],
+        replans=123456,
+        plan_length_m=12345.678,
+        reason="r" * 200,
+        path=[(-123.45, -123.45)] * ROBOT_PATH_POINTS,
+        t=1795473361.287,
+    )
+    assert len(status.to_payload()) <= MAX_PAYLOAD_BYTES
+    assert parse_payload(RobotStatus, status.to_payload()) == status
+
+
+def test_operator_requests_are_checked_against_the_site(site: Site) -> None:
+    block_id, pub = commands.block(site, now=1000.0, duration_s=600, zone="z1", reason="wet floor")
+    assert pub.retain and pub.topic == f"wsn/tiny/operator/blocks/{block_id}"
+    assert parse_payload(OperatorBlock, pub.payload).expires_at == 1600.0
+    assert commands.parse_duration("10m") == 600 and commands.parse_duration("2h") == 7200
+    refused = {
+        "unknown zone 'z9'": lambda: commands.block(site, now=0, duration_s=60, zone="z9"),
+        "outside the map": lambda: commands.block(
+            site, now=0, duration_s=60, polygon=[(0, 0), (50, 0), (1, 1)]
+        ),
+        "at most 7 days": lambda: commands.block(site, now=0, duration_s=1e9, zone="z1"),
+        "unknown point 'C'": lambda: commands.goal(site, "robot1", "C"),
+        "in a wall": lambda: commands.goal(site, "robot1", (0.01, 0.01, 0.0)),
+        "unknown robot 'r2'": lambda: commands.cancel(site, "r2"),
+        "not a duration": lambda: commands.parse_duration("soon"),
+    }
+    for words, call in refused.items():
+        with pytest.raises(CommandError, match=words):
+            call()
+    assert commands.unblock(site, "b1").payload == b""

@@ -1,0 +1,49 @@
+"""The repository explains itself: nothing refers to a design document outside it, and every test that
+docs/architecture.md names as pinning a fact exists (a renamed test must take the page with it)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+
+from tests.conftest import REPO
+
+OUTSIDE_DOC = "DESIGN" + ".md"  # spelled apart so this file does not match itself
+
+
+def tracked_files() -> list[str]:
+    out = subprocess.run(["git", "ls-files", "-z"], cwd=REPO, capture_output=True, check=True).stdout
+    return [name for name in out.decode().split("\0") if name]
+
+
+def test_no_tracked_file_refers_to_a_design_document_outside_the_repository() -> None:
+    files = tracked_files()
+    assert "README.md" in files, "git ls-files lists the repository"
+    citing = []
+    for name in files:
+        path = REPO / name
+        if not path.is_file():
+            continue
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError:
+            continue  # images, maps
+        if OUTSIDE_DOC in text:
+            citing.append(name)
+    assert citing == [], f"these files cite a document the repository does not hold: {citing}"
+
+
+def test_every_test_the_architecture_page_names_exists() -> None:
+    page = (REPO / "docs" / "architecture.md").read_text(encoding="utf-8")
+    paths = set(re.findall(r"tests/test_\w+\.py", page))
+    assert len(paths) >= 8, "the page names the tests that pin its facts"
+    missing_files = sorted(p for p in paths if not (REPO / p).is_file())
+    assert missing_files == []
+    defined = {
+        m for p in (REPO / "tests").glob("test_*.py") for m in re.findall(r"def (test_\w+)", p.read_text())
+    }
+    named = set(re.findall(r"\b(test_\w+)\b", page)) - {
+        p.removeprefix("tests/").removesuffix(".py") for p in paths
+    }
+    assert len(named) >= 10
+    assert sorted(named - defined) == [], "renamed or removed tests are still cited by docs/architecture.md"

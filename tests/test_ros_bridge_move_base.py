@@ -1,0 +1,232 @@
+# pyright: reportMissingImports=false
+"""Algorithm 3 on move_base: `wsnav ros bridge --robot` against a real roscore and broker.
+
+move_base is not packaged for Debian, so a minimal actionlib server (the real actionlib, MoveBaseAction) stands in
+for it here and only here: it accepts goals, publishes an L-shaped global plan along the school's south and middle
+corridors, and never arrives. The robot's pose comes from a real tf2 static transform.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from broker.embedded import BrokerThread
+from runtime.mqtt_bus import MqttBus, connect_with_credentials
+from schemas import topics
+from schemas.messages import RobotStatus, ZoneState
+from tests.ros_fixtures import RosMaster, wait_until
+from tests.test_ros_bridge_grid import Bridge, bridge_args, slow_heartbeat_school
+
+PLAN = [(12.0, 7.2), (25.0, 7.2), (25.0, 22.8), (29.0, 22.8)]
+"""A -> B by the south corridor (through z1) and the middle one (through z4)."""
+
+
+@dataclass
+class FakeMoveBase:
+    """The boundary fake: records goals and cancels, publishes a plan for each goal, never arrives."""
+
+    goals: list[tuple[str, float, float]] = field(default_factory=list)
+    preempted: list[str] = field(default_factory=list)
+    errors: list[str] = field(default_factory=list)
+
+    def start(self) -> FakeMoveBase:
+        import actionlib
+        import rospy
+        from move_base_msgs.msg import MoveBaseAction
+        from nav_msgs.msg import Path as RosPath
+
+        self._plan_pub = rospy.Publisher("/move_base/NavfnROS/plan", RosPath, queue_size=2, latch=True)
+        self._path_type = RosPath
+        self.server = actionlib.SimpleActionServer(
+            "/move_base", MoveBaseAction, self._execute, auto_start=False
+        )
+        self.server.start()
+        return self
+
+    def _execute(self, goal: Any) -> None:
+        try:
+            self._serve(goal)
+        except Exception as exc:
+            self.errors.append(repr(exc))
+            raise
+
+    def _serve(self, goal: Any) -> None:
+        import rospy
+        from geometry_msgs.msg import PoseStamped
+
+        p = goal.target_pose.pose.position
+        goal_id = self.server.current_goal.get_goal_id().id
+        self.goals.append((goal_id, p.x, p.y))
+        path = self._path_type()
+        path.header.frame_id = "map"
+        pts: list[tuple[float, float]] = []
+        for (x0, y0), (x1, y1) in itertools.pairwise(PLAN):
+            n = int(max(abs(x1 - x0), abs(y1 - y0)) / 0.05)
+            pts.extend((x0 + (x1 - x0) * i / n, y0 + (y1 - y0) * i / n) for i in range(n))
+        for x, y in pts:
+            pose = PoseStamped()
+            pose.pose.position.x, pose.pose.position.y = x, y
+            path.poses.append(pose)
+        self._plan_pub.publish(path)
+        while not rospy.is_shutdown():
+            if self.server.is_preempt_requested():
+                self.preempted.append(goal_id)
+                self.server.set_preempted()
+                return
+            time.sleep(0.02)
+
+
+@pytest.fixture(scope="module")
+def move_base(ros_node: RosMaster) -> FakeMoveBase:
+    import rospy
+    import tf2_ros
+    from geometry_msgs.msg import TransformStamped
+
+    fake = FakeMoveBase().start()
+    tf = TransformStamped()
+    tf.header.stamp = rospy.Time.now()
+    tf.header.frame_id, tf.child_frame_id = "map", "base_footprint"
+    tf.transform.translation.x, tf.transform.translation.y = PLAN[0]
+    tf.transform.rotation.w = 1.0
+    broadcaster = tf2_ros.StaticTransformBroadcaster()
+    broadcaster.sendTransform(tf)
+    fake.tf_broadcaster = broadcaster  # type: ignore[attr-defined]  (kept alive with the fake)
+    return fake
+
+
+@dataclass
+class Operator:
+    bus: MqttBus
+    site: str
+    statuses: list[RobotStatus] = field(default_factory=list)
+
+    def poll(self) -> None:
+        for m in self.bus.poll():
+            if m.payload:
+                self.statuses.append(RobotStatus.model_validate_json(m.payload))
+
+    def latest(self) -> RobotStatus | None:
+        self.poll()
+        return self.statuses[-1] if self.statuses else None
+
+    def wait_status(self, what: str, check: Any, timeout_s: float = 15.0) -> RobotStatus:
+        wait_until(lambda: (s := self.latest()) is not None and bool(check(s)), timeout_s, what)
+        status = self.latest()
+        assert status is not None
+        return status
+
+
+@pytest.fixture
+def rig(
+    tmp_path: Path, ros_node: RosMaster, move_base: FakeMoveBase
+) -> Iterator[tuple[Bridge, Operator, dict[str, MqttBus]]]:
+    site_dir = slow_heartbeat_school(tmp_path)
+    with BrokerThread(site_dir) as broker:
+        bus = connect_with_credentials(broker.host, broker.port, broker.credentials("operator"))
+        bus.subscribe(topics.robot_status("school", "robot1"))
+        nodes = {
+            n: connect_with_credentials(broker.host, broker.port, broker.credentials(n))
+            for n in ("n1", "n2", "n7")
+        }
+        bridge = Bridge(bridge_args(site_dir, broker, "--robot", "robot1"), ros_node.env())
+        try:
+            bridge.wait_for("supervising /move_base for robot1")
+            yield bridge, Operator(bus, "school"), nodes
+        finally:
+            bridge.stop()
+            print("bridge output:", *bridge.lines, sep="\n")  # shown when a test fails
+            bus.close()
+            for node in nodes.values():
+                node.close()
+
+
+def zone_state(bus: MqttBus, zone: str, node: str, state: str, seq: int) -> None:
+    msg = ZoneState(zone=zone, node=node, state=state, seq=seq)  # type: ignore[arg-type]
+    bus.publish(topics.zone_state("school", zone, node), msg.to_payload(), qos=1, retain=True)
+
+
+def send_goal(operator: Operator, goal: object) -> None:
+    operator.bus.publish(topics.robot_goal("school", "robot1"), json.dumps({"goal": goal}).encode(), qos=1)
+
+
+def test_a_zone_on_the_plan_makes_move_base_replan_at_once(
+    rig: tuple[Bridge, Operator, dict[str, MqttBus]], move_base: FakeMoveBase
+) -> None:
+    bridge, operator, nodes = rig
+    before = len(move_base.goals)
+    send_goal(operator, "B")
+    wait_until(
+        lambda: len(move_base.goals) > before or bool(move_base.errors), 15, "the MQTT goal at move_base"
+    )
+    assert not move_base.errors
+    first_id, gx, gy = move_base.goals[-1]
+    assert (gx, gy) == (29.0, 22.8)
+    status = operator.wait_status(
+        "navigating to B with the pose from tf", lambda s: s.state == "navigating" and s.goal == "B"
+    )
+    assert status.pose[:2] == PLAN[0]
+    time.sleep(0.5)  # the plan reaches the bridge
+    sent = time.monotonic()
+    zone_state(nodes["n1"], "z1", "n1", "blocked", 100)
+    zone_state(nodes["n2"], "z1", "n2", "blocked", 100)
+    wait_until(
+        lambda: len(move_base.goals) > before + 1, 10, "the goal re-sent after z1 on the plan was blocked"
+    )
+    resent_id, rx, ry = move_base.goals[-1]
+    assert (rx, ry) == (29.0, 22.8) and resent_id != first_id
+    assert first_id in move_base.preempted  # move_base dropped the old goal for the new one: it plans now
+    assert time.monotonic() - sent < 10
+    status = operator.wait_status(
+        "the replan counted, z1 blocked", lambda s: s.replans >= 1 and "z1" in s.blocked_zones
+    )
+    assert status.state == "navigating" and status.goal == "B"
+    assert any("replan now (a zone on the plan changed)" in line for line in bridge.lines), bridge.lines
+
+
+def test_a_goal_in_a_blocked_zone_is_cancelled_whoever_sent_it(
+    rig: tuple[Bridge, Operator, dict[str, MqttBus]], move_base: FakeMoveBase
+) -> None:
+    import actionlib
+    import rospy
+    from actionlib_msgs.msg import GoalStatus
+    from move_base_msgs.msg import MoveBaseAction, MoveBaseGoal
+
+    _bridge, operator, nodes = rig
+    in_z5 = [27.8, 7.2, 0.0]
+    send_goal(operator, in_z5)
+    wait_until(
+        lambda: any((x, y) == (27.8, 7.2) for _, x, y in move_base.goals), 15, "the goal in z5 at move_base"
+    )
+    goal_id = next(i for i, x, y in reversed(move_base.goals) if (x, y) == (27.8, 7.2))
+    zone_state(nodes["n7"], "z5", "n7", "blocked", 100)
+    wait_until(lambda: goal_id in move_base.preempted, 10, "move_base to be told to cancel the goal in z5")
+    status = operator.wait_status("cancelled with the reason", lambda s: s.state == "cancelled")
+    assert status.reason is not None and "lies in blocked zone z5" in status.reason, status
+
+    # A goal straight to move_base (as RViz sends one) into the blocked zone is cancelled too.
+    client = actionlib.SimpleActionClient("/move_base", MoveBaseAction)
+    assert client.wait_for_server(rospy.Duration(10))
+    goal = MoveBaseGoal()
+    goal.target_pose.header.frame_id = "map"
+    goal.target_pose.pose.position.x, goal.target_pose.pose.position.y = 28.0, 7.5
+    goal.target_pose.pose.orientation.w = 1.0
+    client.send_goal(goal)
+    assert client.wait_for_result(rospy.Duration(15))
+    assert client.get_state() in (GoalStatus.PREEMPTED, GoalStatus.RECALLED)
+    status = operator.wait_status(
+        "the ROS goal's cancel on MQTT",
+        lambda s: (
+            s.state == "cancelled" and s.goal != "B" and s.goal is not None and abs(s.goal[0] - 28.0) < 1e-6
+        ),
+    )  # type: ignore[index]
+    assert status.reason is not None and "z5" in status.reason
+    assert np.isfinite(status.pose).all()
