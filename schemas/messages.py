@@ -27,10 +27,21 @@ ZoneStateValue = Literal["blocked", "clear", "caution"]
 NodeStatusValue = Literal["online", "offline"]
 RobotStateValue = Literal["idle", "navigating", "waiting", "arrived", "cancelled"]
 
-MAX_COORDINATE_M = 10_000.0
-"""Polygons on the wire stay within 10 km of the map origin: finite, and small enough to clip cheaply."""
+MAX_COORDINATE_M = 1e7
+"""Points on the wire are finite and within 10,000 km of the map origin (room for maps in UTM coordinates)."""
+MAX_AREA_EXTENT_M = 10_000.0
+"""An operator block or simulated obstacle spans at most 10 km in x and in y (cheap to clip and rasterise)."""
 Coordinate = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)]
 Point2 = tuple[Coordinate, Coordinate]
+
+
+def _check_extent(polygon: list[Point2] | None) -> None:
+    if polygon:
+        xs, ys = [p[0] for p in polygon], [p[1] for p in polygon]
+        if max(xs) - min(xs) > MAX_AREA_EXTENT_M or max(ys) - min(ys) > MAX_AREA_EXTENT_M:
+            raise ValueError(f"polygon spans more than {MAX_AREA_EXTENT_M:g} m")
+
+
 Pose = tuple[float, float, float]
 
 
@@ -109,6 +120,7 @@ class OperatorBlock(_Message):
     def _zone_or_polygon(self) -> OperatorBlock:
         if (self.zone is None) == (self.polygon is None):
             raise ValueError("give exactly one of 'zone' or 'polygon'")
+        _check_extent(self.polygon)
         return self
 
 
@@ -119,6 +131,11 @@ class SimObstacle(BaseModel):
     zone: Id | None = None
     """The zone the scenario placed it in, if any (the paper's obstacles fill a zone)."""
     polygon: Annotated[list[Point2], Field(min_length=3, max_length=64)]
+
+    @model_validator(mode="after")
+    def _bounded(self) -> SimObstacle:
+        _check_extent(self.polygon)
+        return self
 
 
 class SimWorld(_Message):

@@ -310,8 +310,10 @@ def test_through_the_real_broker_a_node_blocks_its_zone_and_a_spoofing_node_chan
         "[[Infinity, 1], [2, 1], [2, 2]]",
         "[[1e400, 1], [2, 1], [2, 2]]",
         "[[-1e6, -1e6], [1e6, -1e6], [1e6, 1e6], [-1e6, 1e6]]",
+        "[[1, 1], [20000, 1], [1, 2]]",
+        "[[1, 1], [2, 1], [1, 2e8]]",
     ],
-    ids=["nan", "inf", "overflow", "1e6-m"],
+    ids=["nan", "inf", "overflow", "1e6-m", "20-km-sliver", "far-point"],
 )
 def test_operator_block_geometry_out_of_bounds_is_refused_before_any_work(school: Site, polygon: str) -> None:
     """A block reaching +-1e6 m froze the agent for 13 s (6.5 GB); NaN or infinite ones were internal errors."""
