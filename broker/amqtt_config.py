@@ -1,7 +1,9 @@
 """The amqtt broker configuration generated from a site and its credentials folder.
 
-Only our own plugins are loaded (auth, ACL, retained store): amqtt's defaults would add the anonymous plugin
-(fact 5) and its ACL plugin cannot express subscribe rules per filter (fact 6).
+Only our own plugins are loaded (auth, ACL, retained store): amqtt's default AnonymousAuthPlugin admits any
+client that sends a username even with `allow_anonymous: false`, and its ACL plugin has no per-filter subscribe
+rules. The connection cap is ours too (broker.admission): amqtt's `max_connections` makes new sockets wait
+behind idle ones.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from typing import Any
 
 from broker.acl import site_rules
 from broker.credentials import PASSWORD_FILE, site_ids
+from broker.packet_gate import MAX_PACKET_BYTES
 from schemas.site_file import SiteFile
 
 
@@ -35,7 +38,11 @@ class BrokerOptions:
     ws_bind: tuple[str, int] | None = None
     tls: TlsListener | None = None
     max_connections: int = 0
-    """0: unlimited."""
+    """0: as many as the open-file limit allows (broker.admission keeps a reserve)."""
+    connect_timeout_s: float = 5.0
+    """A socket that has not sent a whole CONNECT by then is closed."""
+    max_packet_bytes: int = MAX_PACKET_BYTES
+    """Bigger packets end the connection (and are never stored or delivered)."""
 
 
 def bind_text(host: str, port: int) -> str:
@@ -49,7 +56,6 @@ def amqtt_config(spec: SiteFile, credentials_dir: Path, options: BrokerOptions) 
         "default": {
             "type": "tcp",
             "bind": bind_text(*options.bind),
-            "max_connections": options.max_connections,
         }
     }
     if options.ws_bind is not None:

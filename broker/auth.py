@@ -1,9 +1,12 @@
 """amqtt authentication: argon2 password file, no anonymous clients, no borrowed identities.
 
-Works around amqtt 0.12.1's AnonymousAuthPlugin (fact 5: it admits any client that merely sends a username).
+Replaces amqtt 0.12.1's AnonymousAuthPlugin, which admits any client that merely sends a username even with
+`allow_anonymous: false` (docs/broker-amqtt.md).
 A connect is refused when:
 - there is no username, the user is unknown or the password is wrong;
-- the client id names another site id (a robot connecting as client `n1` would take over n1's session and will);
+- the client id names another site id (client ids also live in their identity's namespace, see
+  broker.amqtt_patch.session_key, so this is a clear early refusal of a misconfigured device rather than the
+  only guard);
 - the last-will topic is not one the user may publish (else a will could bypass the ACL, which amqtt does not
   check for wills). Mosquitto 2 refuses such a will the same way.
 A successful verification is remembered as an HMAC under a per-process key, so reconnect storms do not pay the

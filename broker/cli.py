@@ -56,7 +56,18 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     run.add_argument("--certfile", type=Path, help="TLS certificate chain (PEM), with --tls-bind")
     run.add_argument("--keyfile", type=Path, help="TLS private key (PEM), with --tls-bind")
     run.add_argument("--cafile", type=Path, help="CA bundle to verify client certificates, with --tls-bind")
-    run.add_argument("--max-connections", type=int, default=0, help="per listener; 0 = unlimited")
+    run.add_argument(
+        "--max-connections",
+        type=int,
+        default=0,
+        help="all listeners together; 0 = as many as the open-file limit allows",
+    )
+    run.add_argument(
+        "--connect-timeout", type=float, default=5.0, help="seconds a new socket has to send its CONNECT"
+    )
+    run.add_argument(
+        "--max-packet-bytes", type=int, default=32768, help="bigger MQTT packets close the connection"
+    )
     run.add_argument("--log-level", choices=["debug", "info", "warning", "error"], default="warning")
     run.set_defaults(func=run_command)
 
@@ -82,6 +93,12 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     mosq.add_argument("--data", type=Path, default=Path("/var/lib/mosquitto"), help="persistence folder")
     mosq.add_argument(
         "--user", help="system user Mosquitto drops to when started as root (default: mosquitto)"
+    )
+    mosq.add_argument(
+        "--shared-client-ids",
+        action="store_true",
+        help="let one identity hold several connections (simulation stacks); then any identity can kick "
+        "another's connection by reusing its client id",
     )
     mosq.set_defaults(func=mosquitto_command)
 
@@ -110,6 +127,12 @@ def run_command(args: argparse.Namespace) -> int:
         tls = TlsListener(args.tls_bind, args.certfile, args.keyfile, args.cafile)
     if args.flush_interval < 0:
         raise CliError("--flush-interval must be >= 0")
+    if not 0 < args.connect_timeout <= 3600:
+        raise CliError("--connect-timeout must be > 0 and <= 3600 seconds")
+    if not 1024 <= args.max_packet_bytes <= 268_435_455:
+        raise CliError("--max-packet-bytes must be between 1024 and 268435455")
+    if args.max_connections < 0:
+        raise CliError("--max-connections must be >= 0")
     options = BrokerOptions(
         bind=args.bind,
         data_dir=args.data,
@@ -118,6 +141,8 @@ def run_command(args: argparse.Namespace) -> int:
         ws_bind=args.ws_bind,
         tls=tls,
         max_connections=args.max_connections,
+        connect_timeout_s=args.connect_timeout,
+        max_packet_bytes=args.max_packet_bytes,
     )
     logging.basicConfig(
         level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -178,7 +203,12 @@ def mosquitto_command(args: argparse.Namespace) -> int:
     from broker.mosquitto import MosquittoOptions, write_mosquitto_config
 
     site = _site(args.site)
-    options = MosquittoOptions(bind=args.bind, data_dir=args.data.resolve(), user=args.user)
+    options = MosquittoOptions(
+        bind=args.bind,
+        data_dir=args.data.resolve(),
+        user=args.user,
+        bind_client_ids=not args.shared_client_ids,
+    )
     try:
         files = write_mosquitto_config(site.spec, args.credentials, args.out, options)
     except CredentialsError as exc:

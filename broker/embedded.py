@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import os
 import re
+import resource
 import signal
 import subprocess
 import sys
@@ -24,6 +25,7 @@ import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from types import TracebackType
 from typing import IO
@@ -200,6 +202,10 @@ class BrokerThread:
         self.stop()
 
 
+def _limit_open_files(limit: int) -> None:
+    resource.setrlimit(resource.RLIMIT_NOFILE, (limit, limit))
+
+
 _READY = re.compile(r"^broker ready on (\[[^\]]+\]|[^:\s]+):(\d+)")
 
 
@@ -216,7 +222,10 @@ class BrokerProcess:
         data_dir: Path | None = None,
         extra_args: list[str] | None = None,
         start_timeout_s: float = 60.0,
+        open_files: int | None = None,
     ) -> None:
+        """`open_files`: the child's RLIMIT_NOFILE (soft and hard), as systemd's LimitNOFILE would set it."""
+        self.open_files = open_files
         self.args = [
             sys.executable,
             "-m",
@@ -253,6 +262,7 @@ class BrokerProcess:
             text=True,
             env=env,
             start_new_session=True,
+            preexec_fn=None if self.open_files is None else partial(_limit_open_files, self.open_files),
         )
         ready = threading.Event()
         found: list[tuple[str, int]] = []

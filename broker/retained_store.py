@@ -1,4 +1,4 @@
-"""Retained messages that survive a broker restart, clean or kill -9 (amqtt fact 7), on stdlib sqlite.
+"""Retained messages that survive a broker restart, clean or kill -9, on stdlib sqlite.
 
 amqtt keeps retained messages in a dict and forgets them on restart; its SessionDBPlugin needs SQLAlchemy and
 aiosqlite, which we do not ship. This plugin mirrors the dict into `<data>/retained.sqlite3`:
@@ -10,6 +10,16 @@ aiosqlite, which we do not ship. This plugin mirrors the dict into `<data>/retai
   file is never corrupt. `synchronous: FULL` (`--sync full`) also survives power cuts, at one fsync per flush.
 So a kill -9 loses at most the retained updates of the last flush interval (a PUBACK is sent by amqtt before
 the broker handles the message, so "acknowledged" cannot be made stronger without patching amqtt).
+
+The storage policy (docs/security.md), so that no state is ever lost silently:
+- a damaged file (not a database, malformed pages, or 0 bytes) is moved aside to
+  `retained.sqlite3.damaged-<UTC time>` with one ERROR line naming both files, and the broker starts empty
+  (nodes republish their state within one heartbeat; operator blocks must be sent again);
+- a store that cannot be opened for another reason (disk full, permissions) stops the start with one line
+  and leaves the file untouched;
+- a flush that fails (disk full) keeps the updates in memory and retries every second, with an ERROR line at
+  once and every 30 s while it lasts, and a line when the store is writable again; updates still unwritten
+  at shutdown are reported as lost, by count.
 On start the stored messages are loaded before any listener opens; on clean shutdown everything pending is
 flushed before exit.
 """
@@ -17,9 +27,12 @@ flushed before exit.
 from __future__ import annotations
 
 import asyncio
+import logging
 import sqlite3
 import threading
+import time
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 
 from amqtt.broker import BrokerContext, RetainedApplicationMessage
@@ -30,6 +43,15 @@ _SCHEMA = "CREATE TABLE IF NOT EXISTS retained (topic TEXT PRIMARY KEY, payload 
 
 Pending = dict[str, tuple[bytes, int] | None]
 """topic -> (payload, qos) to store, or None to delete."""
+RETRY_S = 1.0
+REPORT_EVERY_S = 30.0
+_DAMAGED = {"SQLITE_CORRUPT", "SQLITE_NOTADB"}
+
+log = logging.getLogger("wsnav.broker")
+
+
+class StoreError(RuntimeError):
+    """The retained store cannot be used and must not be touched; str() is one line for the user."""
 
 
 class RetainedDb:
@@ -43,6 +65,13 @@ class RetainedDb:
             self._conn.execute("PRAGMA journal_mode=WAL")
             self._conn.execute(f"PRAGMA synchronous={'FULL' if synchronous.upper() == 'FULL' else 'NORMAL'}")
             self._conn.execute(_SCHEMA)
+
+    def check(self) -> None:
+        """Raise sqlite3.DatabaseError unless every page reads back (garbage inside pages is found here)."""
+        with self._lock:
+            result = self._conn.execute("PRAGMA quick_check").fetchone()
+        if not result or result[0] != "ok":
+            raise sqlite3.DatabaseError(f"quick_check: {result[0] if result else 'no answer'}")
 
     def load(self) -> dict[str, tuple[bytes, int]]:
         with self._lock:
@@ -64,12 +93,58 @@ class RetainedDb:
                         )
                 self._conn.execute("COMMIT")
             except BaseException:
-                self._conn.execute("ROLLBACK")
+                if self._conn.in_transaction:  # SQLite rolls back by itself on a full disk
+                    self._conn.execute("ROLLBACK")
                 raise
 
     def close(self) -> None:
         with self._lock:
             self._conn.close()
+
+
+def _damaged(exc: sqlite3.DatabaseError) -> bool:
+    """Corruption (the file is not what we wrote), as opposed to a disk or permission problem."""
+    name = getattr(exc, "sqlite_errorname", None)
+    return name in _DAMAGED or type(exc) is sqlite3.DatabaseError
+
+
+def set_aside(path: Path) -> Path:
+    """Move the database (and its -wal and -shm files) to `<name>.damaged-<UTC time>`; returns the new path."""
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    aside = path.with_name(f"{path.name}.damaged-{stamp}")
+    for suffix in ("", "-wal", "-shm"):
+        source = path.with_name(path.name + suffix)
+        if source.exists():
+            source.rename(aside.with_name(aside.name + suffix))
+    return aside
+
+
+def open_store(path: Path, synchronous: str = "NORMAL") -> tuple[RetainedDb, dict[str, tuple[bytes, int]]]:
+    """The store and what it holds, under the storage policy of the module docstring; raises StoreError."""
+    try:
+        try:
+            if path.exists() and path.stat().st_size == 0:
+                raise sqlite3.DatabaseError("the file is empty (0 bytes)")
+            db = RetainedDb(path, synchronous)
+            try:
+                db.check()
+                return db, db.load()
+            except BaseException:
+                db.close()
+                raise
+        except sqlite3.DatabaseError as exc:
+            if not _damaged(exc):
+                raise
+            aside = set_aside(path)
+            log.error(
+                f"retained store {path} is damaged ({exc}): moved to {aside}; starting with NO retained "
+                "messages (nodes republish their state within one heartbeat; send operator blocks again)"
+            )
+            return RetainedDb(path, synchronous), {}
+    except (sqlite3.Error, OSError) as exc:
+        raise StoreError(
+            f"cannot open the retained store {path}: {exc} (the file is left as it is)"
+        ) from None
 
 
 def read_retained(data_dir: Path) -> dict[str, tuple[bytes, int]]:
@@ -103,14 +178,16 @@ class RetainedStorePlugin(BasePlugin[BrokerContext]):
         self._interval = max(0.0, config.flush_interval_s)
         directory = Path(config.data_dir)
         directory.mkdir(mode=0o700, parents=True, exist_ok=True)
-        self._db = RetainedDb(directory / DB_NAME, config.synchronous)
+        self._db, self._stored = open_store(directory / DB_NAME, config.synchronous)
+        self._failing_since: float | None = None
+        self._last_report = 0.0
         self._pending: Pending = {}
         self._wake = asyncio.Event()
         self._flusher: asyncio.Task[None] | None = None
         self._closed = False
 
     async def on_broker_pre_start(self) -> None:
-        stored = await asyncio.to_thread(self._db.load)
+        stored, self._stored = self._stored, {}
         retained = self.context.retained_messages
         for topic, (payload, qos) in stored.items():
             retained[topic] = RetainedApplicationMessage(None, topic, payload, qos)
@@ -146,14 +223,33 @@ class RetainedStorePlugin(BasePlugin[BrokerContext]):
 
     async def _flush_loop(self) -> None:
         while True:
-            await self._wake.wait()
-            self._wake.clear()
-            if self._interval:
-                await asyncio.sleep(self._interval)
+            if self._failing_since is None:
+                await self._wake.wait()
+                self._wake.clear()
+                if self._interval:
+                    await asyncio.sleep(self._interval)
+            else:
+                await asyncio.sleep(RETRY_S)
             try:
                 await self.flush()
             except sqlite3.Error as exc:
-                self.context.logger.error(f"cannot store retained messages in {self._db.path}: {exc}")
+                self._report_failure(exc)
+            else:
+                if self._failing_since is not None:
+                    self._failing_since = None
+                    log.warning(f"retained store {self._db.path} is writable again: pending updates written")
+
+    def _report_failure(self, exc: sqlite3.Error) -> None:
+        now = time.monotonic()
+        if self._failing_since is None:
+            self._failing_since = now
+        elif now - self._last_report < REPORT_EVERY_S:
+            return
+        self._last_report = now
+        log.error(
+            f"cannot store {len(self._pending)} retained update(s) in {self._db.path}: {exc}; kept in memory "
+            "and retried every second (lost if the broker stops first)"
+        )
 
     async def _stop(self) -> None:
         if self._closed:
@@ -164,5 +260,9 @@ class RetainedStorePlugin(BasePlugin[BrokerContext]):
             await asyncio.gather(self._flusher, return_exceptions=True)
         try:
             await self.flush()
+        except sqlite3.Error as exc:
+            log.error(
+                f"{len(self._pending)} retained update(s) could not be written to {self._db.path} and are LOST: {exc}"
+            )
         finally:
             self._db.close()

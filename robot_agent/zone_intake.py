@@ -8,9 +8,11 @@ later ones within DROP_LOG_INTERVAL only counted, then summed up in one line; `d
 
 The `seq` rule, matching the firmware (firmware/device/node_logic.py): a node's seq increases with every state
 it publishes and starts from a random base when it boots, and every (re)connect publishes the birth `online`
-before the state. So a state is accepted when its seq is above the last accepted one, or when it is the first
-state after the node's birth (a reboot restarts seq), or when it lies more than half the firmware's seq space
-below the last one (the counter wrapped past 2**30 - 1 to 0).
+before the state. So a state is accepted when it is the first state after the node's birth (a reboot restarts
+seq), or when its seq lies ahead of the last accepted one by at least 1 and at most MAX_SEQ_STEP, counting
+across the counter's wrap from 2**30 - 1 to 0. Replays cannot be cycled: going round the seq space takes more
+than a thousand captured states of one boot spread over all of it (2**30 publications, centuries of heartbeats),
+where the old rule (any drop of more than 2**29 was a wrap) let two captured states alternate forever.
 """
 
 from __future__ import annotations
@@ -30,7 +32,9 @@ from schemas.messages import (
     MAX_PAYLOAD_BYTES,
     NodeStatus,
     OperatorBlock,
+    PayloadError,
     ZoneState,
+    refuse_duplicate_keys,
 )
 from schemas.site_file import SiteFile
 
@@ -38,8 +42,16 @@ log = logging.getLogger(__name__)
 
 M = TypeVar("M", ZoneState, NodeStatus, OperatorBlock)
 
-SEQ_WRAP_GAP = 2**29
-"""A drop of seq larger than this is a wrap-around of the firmware's counter (which wraps at 2**30), not a replay."""
+SEQ_SPACE = 2**30
+"""The firmware's seq runs 0 .. 2**30 - 1 and wraps to 0 (SEQ_MAX in firmware/device/payloads.py)."""
+MAX_SEQ_STEP = 2**20
+"""How far ahead a new state's seq may be: a year of 30 s heartbeats missed by the agent, far below SEQ_SPACE."""
+
+
+def seq_is_newer(seq: int, last: int) -> bool:
+    """`seq` follows `last` on the firmware's wrapping counter (by 1 to MAX_SEQ_STEP)."""
+    return 0 < (seq - last) % SEQ_SPACE <= MAX_SEQ_STEP
+
 
 DROP_LOG_INTERVAL = 10.0
 """Seconds (of the bus's clock) between two log lines about drops of one reason."""
@@ -119,12 +131,7 @@ class ZoneIntake:
         if msg.zone != zone or msg.node != node:
             return self._drop("mismatch", message, f"payload says zone {msg.zone!r} node {msg.node!r}")
         last = self._last_seq.get(node)
-        if (
-            last is not None
-            and node not in self._reborn
-            and msg.seq <= last
-            and last - msg.seq <= SEQ_WRAP_GAP
-        ):
+        if last is not None and node not in self._reborn and not seq_is_newer(msg.seq, last):
             return self._drop("old_seq", message, f"seq {msg.seq} after {last}")
         self._last_seq[node] = msg.seq
         self._reborn.discard(node)
@@ -162,7 +169,10 @@ class ZoneIntake:
             self._drop("oversized", message, f"{len(payload)} bytes exceed {max_bytes}")
             return None
         try:
-            json.loads(payload)
+            json.loads(payload, object_pairs_hook=refuse_duplicate_keys)
+        except PayloadError as exc:  # one key twice: two parsers could read two different messages
+            self._drop("malformed", message, str(exc))
+            return None
         except (ValueError, UnicodeDecodeError):
             self._drop("malformed", message, "not JSON")
             return None

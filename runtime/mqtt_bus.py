@@ -22,6 +22,9 @@ from schemas.credentials import Credentials
 
 log = logging.getLogger(__name__)
 
+MAX_PAYLOAD_BYTES = 16 * 1024
+"""Twice the largest valid payload of the contract (8 KiB, schemas.messages) and half the brokers' packet cap."""
+
 
 class BusError(Exception):
     """The broker refused us or could not be reached in time: one line for the user."""
@@ -41,8 +44,12 @@ class MqttBus:
         birth: Will | None = None,
         keepalive_s: int = 30,
         max_queue: int = 100_000,
+        max_payload_bytes: int = MAX_PAYLOAD_BYTES,
     ) -> None:
-        """`birth` is published at every (re)connect, the counterpart of `will` (e.g. `online` / `offline`)."""
+        """`birth` is published at every (re)connect, the counterpart of `will` (e.g. `online` / `offline`).
+
+        Payloads over `max_payload_bytes` are dropped on arrival and counted (`dropped_oversize`), before they
+        are copied or queued."""
         self._clock = clock or WallClock()
         self._host, self._port, self._keepalive = host, port, keepalive_s
         self._birth = birth
@@ -57,6 +64,9 @@ class MqttBus:
         self._refused: str | None = None
         self.dropped_overflow = 0
         """Inbound messages pushed out of the full queue (logged at 1, 10, 100, ... of them)."""
+        self.dropped_oversize = 0
+        """Inbound payloads over `max_payload_bytes`, dropped on arrival."""
+        self._max_payload = max_payload_bytes
         self.unsent = 0
         """Publishes paho did not take (QoS 0 while disconnected, its own queue full)."""
         self.refused_subscriptions: list[str] = []
@@ -108,6 +118,9 @@ class MqttBus:
         self._connected.clear()
 
     def _on_message(self, _c: object, _u: object, msg: mqtt.MQTTMessage) -> None:
+        if len(msg.payload) > self._max_payload:
+            self.dropped_oversize += 1
+            return
         item = Message(msg.topic, bytes(msg.payload), bool(msg.retain), self._clock.now())
         with self._arrived:
             if len(self._queue) == self._queue.maxlen:

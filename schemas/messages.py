@@ -6,6 +6,8 @@ is noticed instead of silently ignored.
 
 from __future__ import annotations
 
+import contextlib
+import json
 from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -25,7 +27,21 @@ ZoneStateValue = Literal["blocked", "clear", "caution"]
 NodeStatusValue = Literal["online", "offline"]
 RobotStateValue = Literal["idle", "navigating", "waiting", "arrived", "cancelled"]
 
-Point2 = tuple[float, float]
+MAX_COORDINATE_M = 1e7
+"""Points on the wire are finite and within 10,000 km of the map origin (room for maps in UTM coordinates)."""
+MAX_AREA_EXTENT_M = 10_000.0
+"""An operator block or simulated obstacle spans at most 10 km in x and in y (cheap to clip and rasterise)."""
+Coordinate = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)]
+Point2 = tuple[Coordinate, Coordinate]
+
+
+def _check_extent(polygon: list[Point2] | None) -> None:
+    if polygon:
+        xs, ys = [p[0] for p in polygon], [p[1] for p in polygon]
+        if max(xs) - min(xs) > MAX_AREA_EXTENT_M or max(ys) - min(ys) > MAX_AREA_EXTENT_M:
+            raise ValueError(f"polygon spans more than {MAX_AREA_EXTENT_M:g} m")
+
+
 Pose = tuple[float, float, float]
 
 
@@ -104,6 +120,7 @@ class OperatorBlock(_Message):
     def _zone_or_polygon(self) -> OperatorBlock:
         if (self.zone is None) == (self.polygon is None):
             raise ValueError("give exactly one of 'zone' or 'polygon'")
+        _check_extent(self.polygon)
         return self
 
 
@@ -114,6 +131,11 @@ class SimObstacle(BaseModel):
     zone: Id | None = None
     """The zone the scenario placed it in, if any (the paper's obstacles fill a zone)."""
     polygon: Annotated[list[Point2], Field(min_length=3, max_length=64)]
+
+    @model_validator(mode="after")
+    def _bounded(self) -> SimObstacle:
+        _check_extent(self.polygon)
+        return self
 
 
 class SimWorld(_Message):
@@ -143,11 +165,22 @@ class PayloadError(ValueError):
     """A payload that must be dropped: the message says why, in one line."""
 
 
+def refuse_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """`{"state": "clear", "state": "blocked"}` means two things; JSON parsers keep the last, so refuse it."""
+    keys = [key for key, _ in pairs]
+    if len(set(keys)) != len(keys):
+        duplicate = next(key for key in keys if keys.count(key) > 1)
+        raise PayloadError(f"duplicate key {duplicate!r}")
+    return dict(pairs)
+
+
 def parse_payload(model: type[M], payload: bytes | str, *, max_bytes: int = MAX_PAYLOAD_BYTES) -> M:
     """Validate raw bytes against a model; raises PayloadError with a one-line reason, never anything else."""
     raw = payload.encode() if isinstance(payload, str) else payload
     if len(raw) > max_bytes:
         raise PayloadError(f"payload of {len(raw)} bytes exceeds {max_bytes}")
+    with contextlib.suppress(json.JSONDecodeError, UnicodeDecodeError):  # pydantic below says where
+        json.loads(raw, object_pairs_hook=refuse_duplicate_keys)
     try:
         return model.model_validate_json(raw)
     except ValidationError as exc:

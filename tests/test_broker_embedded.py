@@ -1,5 +1,5 @@
-"""The embeddable broker (asyncio context manager and thread), QoS of retained messages (fact 2) and the
-keepalive fix (fact 4): a node that goes silent gets its will published."""
+"""The embeddable broker (asyncio context manager and thread), the QoS of retained messages and the keepalive
+fix (docs/broker-amqtt.md): a node that goes silent gets its will published."""
 
 from __future__ import annotations
 

@@ -50,10 +50,16 @@ class Client:
     """A paho client whose connect/subscribe/publish block until the broker answered."""
 
     def __init__(
-        self, endpoint: Endpoint, client_id: str, username: str | None, password: str | None
+        self,
+        endpoint: Endpoint,
+        client_id: str,
+        username: str | None,
+        password: str | None,
+        clean_session: bool = True,
     ) -> None:
         self.endpoint = endpoint
-        self.mqtt = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=True)
+        self.mqtt = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=clean_session)
+        self.disconnects: list[ReasonCode] = []
         if username is not None:
             self.mqtt.username_pw_set(username, password)
         self.messages: queue.Queue[Received] = queue.Queue()
@@ -70,6 +76,7 @@ class Client:
         self._connack.put(reason)
 
     def _on_disconnect(self, _c: object, _u: object, _f: object, reason: ReasonCode, _p: object) -> None:
+        self.disconnects.append(reason)
         if reason.is_failure:
             self._connack.put(reason)
 
@@ -133,10 +140,16 @@ class Client:
 
 
 @contextlib.contextmanager
-def client(endpoint: Endpoint, ident: str | None, client_id: str | None = None) -> Iterator[Client]:
+def client(
+    endpoint: Endpoint, ident: str | None, client_id: str | None = None, clean_session: bool = True
+) -> Iterator[Client]:
     """A connected client for a site id (its own password), refused connects raise AssertionError."""
     c = Client(
-        endpoint, client_id or ident or "anonymous", ident, endpoint.password(ident) if ident else None
+        endpoint,
+        client_id or ident or "anonymous",
+        ident,
+        endpoint.password(ident) if ident else None,
+        clean_session,
     )
     try:
         reason = c.connect()

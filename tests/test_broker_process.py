@@ -140,6 +140,32 @@ def test_port_in_use_is_one_line_and_nonzero(setup: tuple[Path, Path]) -> None:
         (["--site", "{site}", "--credentials", "{site}", "--bind", "127.0.0.1:0"], "no password file"),
         (["--site", "{site}", "--credentials", "{creds}", "--bind", "localhost"], "expected HOST:PORT"),
         (["--site", "{site}", "--credentials", "{creds}"], "required"),
+        (
+            [
+                "--site",
+                "{site}",
+                "--credentials",
+                "{creds}",
+                "--bind",
+                "127.0.0.1:0",
+                "--connect-timeout",
+                "0",
+            ],
+            "--connect-timeout must be",
+        ),
+        (
+            [
+                "--site",
+                "{site}",
+                "--credentials",
+                "{creds}",
+                "--bind",
+                "127.0.0.1:0",
+                "--max-packet-bytes",
+                "9",
+            ],
+            "--max-packet-bytes must be",
+        ),
     ],
 )
 def test_bad_input_is_one_line(

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import socket
 import subprocess
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -22,7 +23,15 @@ from schemas import topics
 from schemas.site import load_site
 from tests.conftest import require_tool
 from tests.site_fixtures import tiny_site
-from tests.test_broker_helpers import Client, Endpoint, client, connect_reason, free_port, wait_listening
+from tests.test_broker_helpers import (
+    TIMEOUT,
+    Client,
+    Endpoint,
+    client,
+    connect_reason,
+    free_port,
+    wait_listening,
+)
 
 SITE = "tiny"
 
@@ -139,18 +148,18 @@ def test_robot_reads_zones_and_operator_gives_goals(endpoint: Endpoint) -> None:
 
 
 def test_client_that_subscribes_to_nothing_receives_nothing(endpoint: Endpoint) -> None:
-    """amqtt fact 1: a new client used to get the retained messages matching *other* clients' filters."""
+    """amqtt 0.12.1: a new client used to get the retained messages matching *other* clients' filters."""
     state = topics.zone_state(SITE, "z1", "n1")
     goal = topics.robot_goal(SITE, "robot1")
     with client(endpoint, "operator", "watcher") as watcher, client(endpoint, "n1") as node:
         assert watcher.subscribe(f"wsn/{SITE}/#") == [1]
         node.publish(state, b"retained-for-fact-1", retain=True)
         watcher.wait_for(state, b"retained-for-fact-1")
-        with client(endpoint, "robot1") as quiet, client(endpoint, "operator", "op2") as op:
+        with client(endpoint, "robot1") as quiet:
             # Only now subscribe to one topic that has no retained message, and have it used: by the time the
             # sentinel arrives, anything the broker pushed at connect time has arrived too.
             assert quiet.subscribe(goal) == [1]
-            op.publish(goal, b"sentinel")
+            watcher.publish(goal, b"sentinel")
             quiet.wait_for(goal, b"sentinel")
             assert quiet.topics() == [goal]
         node.publish(state, b"", retain=True)  # clear it for the other tests
@@ -211,7 +220,82 @@ def test_refused_client_cannot_hijack_a_connected_clients_id(endpoint: Endpoint)
         assert connect_reason(endpoint, "robot1", "wrong-password-wrong", client_id="robot1").is_failure
         node.publish(state, b"still-heard")
         robot.wait_for(state, b"still-heard")
-        if endpoint.kind == "amqtt":  # Mosquitto would let n2 take the id over (and disconnect robot1)
-            assert connect_reason(endpoint, "n2", endpoint.password("n2"), client_id="robot1").is_failure
-            node.publish(state, b"still-heard-2")
-            robot.wait_for(state, b"still-heard-2")
+        # amqtt refuses a site id as another identity's client id; Mosquitto renames it to the username.
+        reason = connect_reason(endpoint, "n2", endpoint.password("n2"), client_id="robot1")
+        assert reason.is_failure == (endpoint.kind == "amqtt")
+        node.publish(state, b"still-heard-2")
+        robot.wait_for(state, b"still-heard-2")
+        assert robot.disconnects == []
+
+
+# Client ids of the operator's tools: the zone simulator's link, a health check, an experiment link.
+OPERATOR_TOOL_IDS = ["operator-zone-sim", "health-operator-4242", "operator-experiment"]
+
+
+@pytest.mark.parametrize("tool_id", OPERATOR_TOOL_IDS)
+def test_node_cannot_resume_an_operator_tools_persistent_session(endpoint: Endpoint, tool_id: str) -> None:
+    """A node reusing an operator tool's client id with clean_session=0 used to inherit its subscriptions on
+    amqtt and receive operator blocks, robot goals and robot statuses outside its own ACL."""
+    block, goal = topics.operator_block(SITE, "b1"), topics.robot_goal(SITE, "robot1")
+    status = topics.robot_status(SITE, "robot1")
+    own = topics.node_status(SITE, "n1")
+    with client(endpoint, "operator", tool_id, clean_session=False) as tool:
+        assert tool.subscribe(f"wsn/{SITE}/#") == [1]
+    with (
+        client(endpoint, "n1", tool_id, clean_session=False) as thief,
+        client(endpoint, "operator") as op,
+        client(endpoint, "robot1") as robot,
+    ):
+        op.publish(block, b'{"v": 1, "zone": "z1"}')
+        op.publish(goal, b'"B"')
+        robot.publish(status, b'{"v": 1}')
+        assert thief.subscribe(own) == [1]
+        thief.publish(own, b"sentinel")
+        thief.wait_for(own, b"sentinel")
+        assert thief.topics() == [own]
+    with client(endpoint, "operator", tool_id, clean_session=True):
+        pass  # the operator's own session ends clean (and proves the identity still logs in)
+
+
+@pytest.mark.parametrize("tool_id", [*OPERATOR_TOOL_IDS, "robot1"])
+def test_node_using_another_identitys_client_id_kicks_no_one(endpoint: Endpoint, tool_id: str) -> None:
+    """With clean sessions a second client with the same id used to disconnect the first (and both kept
+    kicking each other as they reconnected); on Mosquitto any identity could kick the robot."""
+    ident = "robot1" if tool_id == "robot1" else "operator"
+    state = topics.zone_state(SITE, "z1", "n1")
+    with client(endpoint, ident, tool_id) as victim:
+        assert victim.subscribe(state) == [1]
+        reason = connect_reason(endpoint, "n1", endpoint.password("n1"), client_id=tool_id)
+        if endpoint.kind == "amqtt" and tool_id == "robot1":
+            assert reason.is_failure  # a site id is reserved for its owner
+        with client(endpoint, "n1") as node:
+            node.publish(state, b"victim-still-hears")
+        victim.wait_for(state, b"victim-still-hears")
+        assert victim.disconnects == []
+
+
+def test_oversized_retained_message_is_refused_never_stored_or_delivered(endpoint: Endpoint) -> None:
+    """One 100 KB retained message used to be stored (memory, SQLite) and pushed to the robot; the cap (32 KiB)
+    is 4x the largest valid payload, which still passes."""
+    state = topics.zone_state(SITE, "z1", "n1")
+    big = b'{"pad": "' + b"x" * 100_000 + b'"}'
+    largest_valid = b'{"pad": "' + b"y" * 8_000 + b'"}'
+    with client(endpoint, "operator", "watcher") as watcher:
+        assert watcher.subscribe(f"wsn/{SITE}/#") == [1]
+        with client(endpoint, "n1") as node:
+            node.publish(state, largest_valid, retain=True)
+            watcher.wait_for(state, largest_valid)
+            node.mqtt.publish(state, big, qos=1, retain=True)
+            deadline = time.monotonic() + TIMEOUT
+            while not node.disconnects and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert node.disconnects, "the broker kept the connection of an oversized publish"
+        with client(endpoint, "n1") as node:
+            node.publish(topics.node_status(SITE, "n1"), b"sentinel")
+            watcher.wait_for(topics.node_status(SITE, "n1"), b"sentinel")
+        assert all(len(m.payload) < 10_000 for m in watcher.received)
+    with client(endpoint, "robot1") as fresh:
+        assert fresh.subscribe(state) == [1]
+        assert fresh.wait_for(state).payload == largest_valid  # the retained copy is the last valid one
+    with client(endpoint, "n1") as node:
+        node.publish(state, b"", retain=True)

@@ -117,3 +117,11 @@ def test_ids_with_topic_separators_are_refused() -> None:
 
 def test_exported_json_schemas_are_up_to_date() -> None:
     assert stale_files() == [], "schemas/json is out of date: run 'make schemas'"
+
+
+def test_duplicate_keys_are_refused_not_last_wins() -> None:
+    """`"state"` twice would mean `blocked` to one parser and `clear` to another: refused in one line."""
+    payload = b'{"v": 1, "zone": "z1", "node": "n1", "state": "clear", "state": "blocked", "seq": 1}'
+    with pytest.raises(PayloadError, match="duplicate key 'state'"):
+        parse_payload(ZoneState, payload)
+    assert parse_payload(ZoneState, payload.replace(b'"state": "clear", ', b"")).state == "blocked"

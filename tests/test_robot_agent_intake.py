@@ -20,6 +20,7 @@ from broker.embedded import BrokerThread
 from robot_agent.inflation import LETHAL_OBSTACLE, InflationParams
 from robot_agent.layered_costmap import LayeredCostmap
 from robot_agent.offline_plan import frame_of
+from robot_agent.zone_geometry import polygon_window
 from robot_agent.zone_intake import ZoneIntake
 from robot_agent.zone_layer import ZoneLayer
 from runtime.bus import Message, Will
@@ -218,11 +219,24 @@ def test_seq_must_increase_but_a_reboot_after_its_birth_and_a_wrap_are_accepted(
         "only the first state after birth"
     )
     assert agent.intake.dropped["old_seq"] == 2
-    # Wrap-around at the firmware's 2**30 - 1.
+    # Wrap-around at the firmware's 2**30 - 1 (after a reboot whose random base lay near the top).
+    agent.feed(status, NodeStatus(node="n3", status="online").to_payload(), t=2.5)
     assert agent.feed(topic, state("z2", "n3", "clear", 2**30 - 1), t=3.0) is True
     assert agent.feed(topic, state("z2", "n3", "blocked", 2**30 - 1000), t=3.5) is False, "not a wrap: old"
     assert agent.feed(topic, state("z2", "n3", "blocked", 0), t=4.0) is True
     assert agent.layer.blocked_zones() == ["z2"]
+
+
+def test_two_captured_states_far_apart_cannot_be_replayed_in_turn(school: Site) -> None:
+    """The old wrap rule accepted any drop of more than 2**29 as a wrap: A, B, A, B... all accepted."""
+    agent = Agent(school)
+    topic = z_topic("z2", "n3")
+    a, b = state("z2", "n3", "blocked", 5), state("z2", "n3", "clear", 5 + 2**29 + 1)
+    assert agent.feed(topic, a, t=1.0) is True
+    accepted = [agent.feed(topic, payload, t=2.0 + i) for i, payload in enumerate([b, a, b, a, b, a])]
+    assert accepted == [False] * 6
+    assert agent.layer.blocked_zones() == ["z2"]
+    assert agent.intake.dropped["old_seq"] == 6
 
 
 def receive_into(agent: Agent, bus: MqttBus, until: object, timeout_s: float = 20.0) -> None:
@@ -287,3 +301,44 @@ def test_through_the_real_broker_a_node_blocks_its_zone_and_a_spoofing_node_chan
         assert agent.intake.accepted == accepted + 1, "only n2's birth was accepted"
         for bus in (n2_bus, n1_bus, robot):
             bus.close()
+
+
+@pytest.mark.parametrize(
+    "polygon",
+    [
+        "[[NaN, 1], [2, 1], [2, 2]]",
+        "[[Infinity, 1], [2, 1], [2, 2]]",
+        "[[1e400, 1], [2, 1], [2, 2]]",
+        "[[-1e6, -1e6], [1e6, -1e6], [1e6, 1e6], [-1e6, 1e6]]",
+        "[[1, 1], [20000, 1], [1, 2]]",
+        "[[1, 1], [2, 1], [1, 2e8]]",
+    ],
+    ids=["nan", "inf", "overflow", "1e6-m", "20-km-sliver", "far-point"],
+)
+def test_operator_block_geometry_out_of_bounds_is_refused_before_any_work(school: Site, polygon: str) -> None:
+    """A block reaching +-1e6 m froze the agent for 13 s (6.5 GB); NaN or infinite ones were internal errors."""
+    agent = Agent(school)
+    payload = f'{{"v": 1, "polygon": {polygon}}}'.encode()
+    assert agent.feed(topics.operator_block(SCHOOL, "huge"), payload) is False
+    assert agent.layer.blocked_zones() == []
+    assert agent.intake.dropped["invalid"] == 1 and not agent.intake.dropped["internal_error"]
+
+
+def test_duplicate_keys_in_a_zone_state_are_dropped(school: Site) -> None:
+    agent = Agent(school)
+    payload = b'{"v": 1, "zone": "z2", "node": "n3", "state": "clear", "state": "blocked", "seq": 1}'
+    assert agent.feed(z_topic("z2", "n3"), payload) is False
+    assert agent.intake.dropped["malformed"] == 1
+    assert agent.layer.blocked_zones() == []
+
+
+def test_a_block_edge_crossing_the_whole_map_is_clipped_not_lost(school: Site) -> None:
+    """The outline of an edge that runs far outside the map is still marked where it crosses it."""
+    frame = frame_of(school)
+    width_m, height_m = frame.width * frame.resolution, frame.height * frame.resolution
+    y = frame.origin_y + height_m / 2
+    far = [(-9_000.0, y), (9_000.0, y), (9_000.0, y + 0.001)]  # a sliver: only its long edge covers cells
+    window = polygon_window(far, frame)
+    row = int((y - frame.origin_y) / frame.resolution)
+    assert window.mask.shape[1] == frame.width
+    assert bool(window.mask[row - window.row0].all()), f"the edge across {width_m:.0f} m is not fully marked"

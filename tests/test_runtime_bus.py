@@ -139,3 +139,20 @@ def test_a_full_queue_and_a_refused_subscription_are_logged_not_silent(
         assert f"the broker refused the subscription to {topics.all_zone_states(SITE)}" in text
         node.close()
         robot.close()
+
+
+def test_oversized_payloads_are_dropped_on_arrival_and_counted(tmp_path: Path) -> None:
+    """The brokers cap packets at 32 KiB; the bus drops anything over 16 KiB before it is queued or parsed."""
+    with BrokerThread(tiny_site(tmp_path / "site")) as broker:
+        robot = bus_for(broker, "robot1")
+        node = bus_for(broker, "n1")
+        robot.subscribe(topics.all_zone_states(SITE))
+        time.sleep(0.3)  # the SUBACK; the bus subscribes asynchronously
+        state = topics.zone_state(SITE, "z1", "n1")
+        node.publish(state, b"x" * 20_000)
+        node.publish(state, b"y" * 8_000)
+        got = receive(robot, 1)
+        assert [m.payload for m in got] == [b"y" * 8_000]
+        assert robot.dropped_oversize == 1
+        node.close()
+        robot.close()

@@ -509,6 +509,7 @@ def test_same_drive_against_mosquitto(tmp_path: Path) -> None:
             stack.broker_addr,
             "--data",
             str(data),
+            "--shared-client-ids",  # the zone simulator and the watcher both log in as the operator
         ]
         if os.geteuid() == 0:
             args += ["--user", "root"]

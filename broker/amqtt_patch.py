@@ -1,0 +1,278 @@
+"""Our whole patch of amqtt 0.12.1, in one place: every override of amqtt code, why, and the test that pins it.
+
+amqtt is the Pi's broker, and some of its behaviour cannot be fixed through its plugin API. Each override below
+is pinned to amqtt==0.12.1 (pyproject.toml) and to a test; docs/broker-amqtt.md writes them up for upstream.
+
+| override | amqtt behaviour it fixes | pinned by |
+| --- | --- | --- |
+| `WsnavBroker.stream_connected`, `ws_connected` | no CONNECT timeout, no packet size cap, malformed packets accepted, sockets of failed logins left open (CLOSE-WAIT), a connection cap that queues new sockets behind idle ones | tests/test_broker_lockout.py, tests/test_broker_protocol.py |
+| `WsnavBroker._initialize_client_session` | the old session of a client id is dropped (or merged) before the password is checked; client ids are global, so one identity could resume or kick another's session | tests/test_broker_security.py |
+| `WsnavBroker._authenticate` | (follows from the above: authentication already ran) | tests/test_broker_security.py |
+| `WsnavBroker._topic_filtering` | one plugin round trip per delivered message (RECEIVE) | tests/test_broker_security.py |
+| `WsnavBroker._publish_retained_messages_for_subscription` | a new client gets retained messages matching *other* clients' filters; retained QoS 0 delivered at the subscriber's QoS | tests/test_broker_security.py, tests/test_broker_embedded.py |
+| `WsnavProtocolHandler._handle_qos1_message_flow` | PUBACK waiter registered after PUBLISH is sent: a fast PUBACK is lost and the send hangs 5 s | tests/test_broker_embedded.py |
+| `handle_read_timeout` on each handler | keepalive never enforced: a silent client is never dropped and its will never fires | tests/test_broker_embedded.py |
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+from collections.abc import Callable
+from functools import partial
+from typing import Any
+
+from amqtt.adapters import (
+    ReaderAdapter,
+    StreamReaderAdapter,
+    StreamWriterAdapter,
+    WebSocketsReader,
+    WebSocketsWriter,
+    WriterAdapter,
+)
+from amqtt.broker import Broker
+from amqtt.contexts import Action, ListenerConfig
+from amqtt.errors import AMQTTError, MQTTError, NoDataError
+from amqtt.mqtt.protocol.broker_handler import BrokerProtocolHandler
+from amqtt.mqtt.puback import PubackPacket
+from amqtt.session import OUTGOING, IncomingApplicationMessage, OutgoingApplicationMessage, Session
+from amqtt.utils import gen_client_id
+from websockets.asyncio.server import ServerConnection
+
+from broker.admission import Admission, Ticket
+from broker.packet_gate import MAX_PACKET_BYTES, GateReader
+
+log = logging.getLogger("wsnav.broker")
+
+_PREAUTHORIZED = "_wsnav_preauthorized"
+
+
+class _QuietAmqttNoise(logging.Filter):
+    """amqtt logs a traceback when a listener cannot bind (we report it in one line), and a warning plus an error
+    for every socket that ends before logging in: the gate and admission log those once, rate-limited."""
+
+    _NOISE = (
+        "Broker startup failed",
+        "Failed to initialize client session",
+        "No data from",
+        "[MQTT-3.1.0-1]",
+    )
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not record.getMessage().startswith(self._NOISE)
+
+
+logging.getLogger("amqtt.broker").addFilter(_QuietAmqttNoise())
+
+
+def session_key(username: str, client_id: str) -> str:
+    """The broker-side session name: client ids live inside their identity, so no identity can reach another's.
+
+    A client id equal to the username is the key itself (site ids hold no '/', so keys never collide).
+    """
+    return username if client_id == username else f"{username}/{client_id}"
+
+
+class WsnavProtocolHandler(BrokerProtocolHandler):
+    """amqtt's per-client handler with the QoS 1 send race fixed.
+
+    amqtt 0.12.1 sends PUBLISH and only then registers the PUBACK waiter; on a fast link the PUBACK can come
+    first ("Received PUBACK for unknown pending message"), and the send then hangs 5 s and fails. Registering
+    the waiter first removes the race.
+    """
+
+    async def _handle_qos1_message_flow(
+        self, app_message: OutgoingApplicationMessage | IncomingApplicationMessage
+    ) -> None:
+        if app_message.direction != OUTGOING or self.session is None or app_message.packet_id is None:
+            await super()._handle_qos1_message_flow(app_message)
+            return
+        if app_message.puback_packet:
+            raise AMQTTError(f"Message '{app_message.packet_id}' has already been acknowledged")
+        packet_id = app_message.packet_id
+        if packet_id not in self.session.inflight_out and isinstance(app_message, OutgoingApplicationMessage):
+            self.session.inflight_out[packet_id] = app_message
+        dup = app_message.publish_packet is not None
+        publish_packet = app_message.build_publish_packet(dup=dup)
+        waiter: asyncio.Future[PubackPacket] = asyncio.get_running_loop().create_future()
+        self._puback_waiters[packet_id] = waiter
+        try:
+            await self._send_packet(publish_packet)
+            app_message.publish_packet = publish_packet
+            app_message.puback_packet = await asyncio.wait_for(waiter, timeout=5)
+        except TimeoutError:
+            msg = f"Timeout waiting for PUBACK for packet ID {packet_id}"
+            self.logger.warning(msg)
+            raise TimeoutError(msg) from None
+        finally:
+            self._puback_waiters.pop(packet_id, None)
+            self.session.inflight_out.pop(packet_id, None)
+
+
+class WsnavBroker(Broker):
+    """amqtt's Broker with the overrides listed in the module docstring."""
+
+    def __init__(
+        self,
+        config: dict[str, Any],
+        admission: Admission,
+        *,
+        max_packet_bytes: int = MAX_PACKET_BYTES,
+        connect_timeout_s: float = 5.0,
+    ) -> None:
+        super().__init__(config)
+        self.admission = admission
+        self.max_packet_bytes = max_packet_bytes
+        self.connect_timeout_s = connect_timeout_s
+
+    async def stream_connected(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, listener_name: str
+    ) -> None:
+        """Every TCP/TLS connection: a slot (or none), the packet gate, and the socket closed whatever happens."""
+        transport = writer.transport
+        await self._gated(
+            listener_name, StreamReaderAdapter(reader), StreamWriterAdapter(writer), transport.abort
+        )
+
+    async def ws_connected(self, websocket: ServerConnection, listener_name: str) -> None:
+        await self._gated(
+            listener_name, WebSocketsReader(websocket), WebSocketsWriter(websocket), websocket.transport.abort
+        )
+
+    async def _gated(
+        self, listener_name: str, reader: ReaderAdapter, writer: WriterAdapter, abort: Callable[[], None]
+    ) -> None:
+        ticket = self.admission.admit(abort)
+        if ticket is None:
+            abort()
+            return
+        peer = writer.get_peer_info()
+
+        def reject(reason: str) -> None:
+            log.info(f"closing {peer}: {reason}")
+            abort()
+
+        gate = GateReader(
+            reader, reject, max_bytes=self.max_packet_bytes, connect_timeout_s=self.connect_timeout_s
+        )
+        setattr(gate, "ticket", ticket)  # noqa: B010  (read back in _initialize_client_session)
+        try:
+            await self._client_connected(listener_name, gate, writer)
+        finally:
+            self.admission.release(ticket)
+            abort()  # a no-op after a clean close; frees the descriptor of every other ending (CLOSE-WAIT)
+
+    async def _initialize_client_session(
+        self, reader: ReaderAdapter, writer: WriterAdapter, remote_address: str, remote_port: int
+    ) -> tuple[BrokerProtocolHandler, Session]:
+        """amqtt's version, but authenticating *before* the client id is looked up, in its identity's namespace.
+
+        amqtt 0.12.1 deletes the old session of a clean-session client id (or merges username, password and
+        will into a persistent one) before it checks the password, and client ids are global: any client could
+        cut a connected robot off, and any identity could resume another identity's persistent session with
+        its subscriptions (amqtt never re-checks the ACL on delivery). Here the session key is
+        `session_key(username, client_id)`.
+        """
+        try:
+            handler, session = await WsnavProtocolHandler.init_from_connect(
+                reader, writer, self.plugins_manager
+            )
+        except (AMQTTError, MQTTError, NoDataError) as exc:
+            raise AMQTTError(exc) from exc
+        session.parent = 0
+        if not await self._authenticate_first(session):
+            handler.attach(session, reader, writer)
+            await handler.mqtt_connack_authorize(False)
+            await writer.close()
+            raise AMQTTError(f"connection refused: not authorized (client id {session.client_id!r})")
+        username = session.username or ""
+        ticket = getattr(reader, "ticket", None)
+        if isinstance(ticket, Ticket) and not self.admission.logged_in(ticket, username):
+            handler.attach(session, reader, writer)
+            await handler.mqtt_connack_authorize(False)
+            await writer.close()
+            raise AMQTTError(f"connection refused: {username!r} holds its maximum of connections")
+        if not session.client_id:
+            session.client_id = gen_client_id()
+        session.client_id = session_key(username, session.client_id)
+        if session.clean_session:
+            await self._delete_session(session.client_id)
+        elif session.client_id in self._sessions:
+            existing, _ = self._sessions[session.client_id]
+            for name in ("will_flag", "will_message", "will_topic", "will_qos", "will_retain", "keep_alive"):
+                setattr(existing, name, getattr(session, name))
+            session = existing
+            session.parent = 1
+        if session.keep_alive > 0:
+            # amqtt's reader times out after keep_alive seconds, then calls a handler hook that does nothing:
+            # stretch the timeout to the spec's 1.5x and make the hook end the session abnormally.
+            session.keep_alive = math.ceil(session.keep_alive * 1.5)
+            setattr(handler, "handle_read_timeout", partial(_drop_silent_client, handler))  # noqa: B010
+        setattr(session, _PREAUTHORIZED, True)
+        return handler, session
+
+    async def _authenticate_first(self, session: Session) -> bool:
+        return await super()._authenticate(session, ListenerConfig())
+
+    async def _authenticate(self, session: Session, _: ListenerConfig) -> bool:
+        """Already decided in `_initialize_client_session`; answering again would cost a second argon2 run."""
+        if getattr(session, _PREAUTHORIZED, False):
+            setattr(session, _PREAUTHORIZED, False)
+            return True
+        return await super()._authenticate(session, _)
+
+    async def _topic_filtering(self, session: Session, topic: str, action: Action) -> bool:
+        """RECEIVE needs no second look: every subscription was checked against the ACL when it was made, a
+        session never changes identity (`session_key`), and skipping the plugin per message keeps fan-in cheap."""
+        if action == Action.RECEIVE:
+            return True
+        return await super()._topic_filtering(session, topic, action)
+
+    async def _publish_retained_messages_for_subscription(
+        self, subscription: tuple[str, int], session: Session
+    ) -> None:
+        topic_filter, _requested = subscription
+        granted = next(
+            (qos for s, qos in self._subscriptions.get(topic_filter, []) if s.client_id == session.client_id),
+            None,
+        )
+        if granted is None:
+            return  # amqtt calls this for every filter anyone subscribed to; only the session's own count
+        handler = self._get_handler(session)
+        if handler is None:
+            return
+        tasks = [
+            asyncio.ensure_future(
+                handler.mqtt_publish(
+                    retained.topic,
+                    retained.data,
+                    min(granted, retained.qos if retained.qos is not None else granted),
+                    retain=True,
+                )
+            )
+            for topic, retained in list(self._retained_messages.items())
+            if self._matches(topic, topic_filter)
+        ]
+        if tasks:
+            await asyncio.wait(tasks)
+
+
+def _drop_silent_client(handler: BrokerProtocolHandler) -> None:
+    client_id = handler.session.client_id if handler.session else None
+    log.info(f"{client_id}: silent for 1.5x its keepalive, disconnecting (its will is published)")
+    task = asyncio.ensure_future(handler.handle_connection_closed())
+    _background.add(task)
+    task.add_done_callback(_background.discard)
+
+
+_background: set[asyncio.Future[None]] = set()
+
+
+async def close_listeners(broker: Broker) -> None:
+    """Close the listeners that did bind and the plugins (the retained store), when start() failed."""
+    for server in broker._servers.values():
+        with contextlib.suppress(OSError):
+            await server.close_instance()
+    await broker.plugins_manager.close()
