@@ -31,7 +31,7 @@ class AclRules:
     subscribe: dict[str, list[str]]
 
     def may_publish(self, user: str | None, topic: str) -> bool:
-        return user is not None and any(matches(f, topic) for f in self.publish.get(user, ()))
+        return user is not None and any(topics.topic_matches(f, topic) for f in self.publish.get(user, ()))
 
     def may_subscribe(self, user: str | None, topic_filter: str) -> bool:
         return user is not None and any(covers(f, topic_filter) for f in self.subscribe.get(user, ()))
@@ -60,18 +60,6 @@ def site_rules(spec: SiteFile) -> AclRules:
     publish[OPERATOR] = [f"{root}/operator/#", f"{root}/robots/+/goal", f"{root}/sim/#"]
     subscribe[OPERATOR] = [f"{root}/#"]
     return AclRules(publish=publish, subscribe=subscribe)
-
-
-def matches(topic_filter: str, topic: str) -> bool:
-    """MQTT filter matching of a concrete topic name ('+' one level, '#' the rest, incl. the parent level)."""
-    f_levels = topic_filter.split("/")
-    t_levels = topic.split("/")
-    for i, level in enumerate(f_levels):
-        if level == "#":
-            return True
-        if i >= len(t_levels) or level not in ("+", t_levels[i]):
-            return False
-    return len(f_levels) == len(t_levels)
 
 
 def covers(allowed: str, requested: str) -> bool:
