@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -22,7 +21,7 @@ from pathlib import Path
 
 from bench.benchmarks_md import bench_parser, machine_note, write_section
 from broker.embedded import BrokerThread
-from ros_bridge.ros_env import master_alive
+from ros_bridge.ros_env import LocalRosCore
 
 REPO = Path(__file__).resolve().parent.parent
 SCHOOL = REPO / "sites" / "school"
@@ -96,61 +95,35 @@ def run_sim_baseline(broker: BrokerThread, seconds: float) -> Measured:
 
 
 def run_ros(broker: BrokerThread, seconds: float, log_dir: Path) -> Measured:
-    port = free_port()
-    env = dict(
-        os.environ,
-        ROS_MASTER_URI=f"http://127.0.0.1:{port}",
-        ROS_HOSTNAME="127.0.0.1",
-        ROS_LOG_DIR=str(log_dir),
-        PYTHONUNBUFFERED="1",
-    )
-    core = subprocess.Popen(
-        ["roscore", "-p", str(port)],
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,
-    )
     procs: list[subprocess.Popen[str]] = []
-    try:
-        deadline = time.monotonic() + 30
-        while not master_alive(env["ROS_MASTER_URI"], timeout_s=1.0):
-            if time.monotonic() > deadline:
-                raise RuntimeError("roscore did not start")
-            time.sleep(0.2)
-        mqtt = [
-            "--broker",
-            f"{broker.host}:{broker.port}",
-            "--credentials",
-            str(broker.credentials_dir / "robot1.json"),
-        ]
-        sim = subprocess.Popen(
-            [*WSNAV, "sim", "--ros", "--site", str(SCHOOL), "--start", "A", *mqtt],
-            env=env,
-            stdout=subprocess.PIPE,
-            text=True,
-        )
-        procs.append(sim)
-        wait_line(sim, "simulated TurtleBot3", 60)
-        robot = subprocess.Popen(
-            [*WSNAV, "robot", "--ros", "--site", str(SCHOOL), *mqtt, "--goal", "B"],
-            env=env,
-            stdout=subprocess.PIPE,
-            text=True,
-        )
-        procs.append(robot)
-        wait_line(robot, " navigating ", 60)
-        return measure({"wsnav robot --ros": robot, "wsnav sim --ros": sim}, seconds)
-    finally:
-        stop(*procs)
-        os.killpg(core.pid, 15)
-        core.wait(15)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    with LocalRosCore(log_dir) as core:
+        env = core.env()
+        try:
+            mqtt = [
+                "--broker",
+                f"{broker.host}:{broker.port}",
+                "--credentials",
+                str(broker.credentials_dir / "robot1.json"),
+            ]
+            sim = subprocess.Popen(
+                [*WSNAV, "sim", "--ros", "--site", str(SCHOOL), "--start", "A", *mqtt],
+                env=env,
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+            procs.append(sim)
+            wait_line(sim, "simulated TurtleBot3", 60)
+            robot = subprocess.Popen(
+                [*WSNAV, "robot", "--ros", "--site", str(SCHOOL), *mqtt, "--goal", "B"],
+                env=env,
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+            procs.append(robot)
+            wait_line(robot, " navigating ", 60)
+            return measure({"wsnav robot --ros": robot, "wsnav sim --ros": sim}, seconds)
+        finally:
+            stop(*procs)
 
 
 def main() -> None:

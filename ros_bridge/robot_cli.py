@@ -16,7 +16,7 @@ if TYPE_CHECKING:
     from runtime.cli_support import Parser
     from schemas.site import Site
 
-MASTER = "ROS master from ROS_MASTER_URI (default http://localhost:11311). See docs/ros-robot.md."
+MASTER = "ROS master from ROS_MASTER_URI (default http://localhost:11311). See docs/ros.md."
 
 
 def register(sub: argparse._SubParsersAction[Parser]) -> None:

@@ -9,9 +9,14 @@ from __future__ import annotations
 
 import http.client
 import os
+import signal
+import socket
+import subprocess
 import time
 import xmlrpc.client
 from collections.abc import Callable
+from pathlib import Path
+from types import TracebackType
 
 from runtime.cli_support import CliError
 
@@ -87,3 +92,75 @@ class _TimeoutTransport(xmlrpc.client.Transport):
         conn = super().make_connection(host)
         conn.timeout = self._timeout_s
         return conn
+
+
+class LocalRosCore:
+    """A `roscore` of our own on a free loopback port (tests, benchmarks): `with LocalRosCore(log_dir) as core`.
+
+    `core.env()` is the environment of a child process that is one of its nodes."""
+
+    def __init__(self, log_dir: Path, port: int | None = None, start_timeout_s: float = 30.0) -> None:
+        self.log_dir = log_dir
+        self.port = port if port is not None else free_port()
+        self.uri = f"http://127.0.0.1:{self.port}"
+        self._timeout = start_timeout_s
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def env(self, **extra: str) -> dict[str, str]:
+        return dict(
+            os.environ,
+            ROS_MASTER_URI=self.uri,
+            ROS_HOSTNAME="127.0.0.1",
+            ROS_LOG_DIR=str(self.log_dir),
+            PYTHONUNBUFFERED="1",
+            **extra,
+        )
+
+    def start(self) -> LocalRosCore:
+        out = (self.log_dir / f"roscore-{self.port}.out").open("wb")
+        self.proc = subprocess.Popen(
+            ["roscore", "-p", str(self.port)],
+            env=self.env(),
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        deadline = time.monotonic() + self._timeout
+        while not master_alive(self.uri, timeout_s=1.0):
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                self.stop()
+                raise RuntimeError(f"roscore on port {self.port} did not start (see {self.log_dir})")
+            time.sleep(0.2)
+        return self
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        if self.proc is not None:
+            stop_process_group(self.proc, timeout_s)
+
+    def __enter__(self) -> LocalRosCore:
+        return self.start()
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.stop()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def stop_process_group(
+    proc: subprocess.Popen[bytes] | subprocess.Popen[str], timeout_s: float = 10.0
+) -> None:
+    """SIGTERM a child started with start_new_session (roscore's own children included), then SIGKILL."""
+    if proc.poll() is not None:
+        return
+    os.killpg(proc.pid, signal.SIGTERM)
+    try:
+        proc.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()

@@ -8,7 +8,6 @@ environment). Without Debian's ROS packages these fixtures skip, and fail under 
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -19,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from ros_bridge.ros_env import master_alive
+from ros_bridge.ros_env import LocalRosCore, stop_process_group
 from tests.conftest import require_tool
 
 
@@ -34,74 +33,23 @@ def require_ros() -> None:
         pytest.skip("rospy not importable")
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @dataclass
 class RosMaster:
     uri: str
     log_dir: Path
+    core: LocalRosCore
 
     def env(self, **extra: str) -> dict[str, str]:
         """The environment of a child process that is a node of this master (loopback only)."""
-        return dict(
-            os.environ,
-            ROS_MASTER_URI=self.uri,
-            ROS_HOSTNAME="127.0.0.1",
-            ROS_LOG_DIR=str(self.log_dir),
-            PYTHONUNBUFFERED="1",
-            **extra,
-        )
-
-
-def start_roscore(port: int, log_dir: Path) -> subprocess.Popen[bytes]:
-    env = dict(
-        os.environ,
-        ROS_HOSTNAME="127.0.0.1",
-        ROS_LOG_DIR=str(log_dir),
-        ROS_MASTER_URI=f"http://127.0.0.1:{port}",
-    )
-    proc = subprocess.Popen(
-        ["roscore", "-p", str(port)],
-        env=env,
-        stdout=(log_dir / f"roscore-{port}.out").open("wb"),
-        stderr=subprocess.STDOUT,
-        start_new_session=True,
-    )
-    deadline = time.monotonic() + 30
-    while not master_alive(f"http://127.0.0.1:{port}", timeout_s=1.0):
-        if proc.poll() is not None or time.monotonic() > deadline:
-            raise RuntimeError(f"roscore on port {port} did not start (see {log_dir})")
-        time.sleep(0.2)
-    return proc
-
-
-def stop_process_group(
-    proc: subprocess.Popen[bytes] | subprocess.Popen[str], timeout_s: float = 10.0
-) -> None:
-    if proc.poll() is not None:
-        return
-    os.killpg(proc.pid, 15)
-    try:
-        proc.wait(timeout_s)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, 9)
-        proc.wait()
+        return self.core.env(**extra)
 
 
 @pytest.fixture(scope="session")
 def roscore(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RosMaster]:
     require_ros()
     log_dir = tmp_path_factory.mktemp("ros-logs")
-    port = free_port()
-    proc = start_roscore(port, log_dir)
-    try:
-        yield RosMaster(f"http://127.0.0.1:{port}", log_dir)
-    finally:
-        stop_process_group(proc)
+    with LocalRosCore(log_dir) as core:
+        yield RosMaster(core.uri, log_dir, core)
 
 
 @pytest.fixture(scope="session")

@@ -22,11 +22,12 @@ import pytest
 import yaml
 
 from broker.embedded import BrokerThread
+from ros_bridge.ros_env import free_port
 from schemas import topics
 from schemas.messages import SimObstacle, SimWorld, ZoneState
 from tests.conftest import SITES
 from tests.robot_agent_rig import connect, distance_to_polygon
-from tests.ros_fixtures import RosMaster, WsnavChild, free_port, require_ros, wait_until
+from tests.ros_fixtures import RosMaster, WsnavChild, require_ros, wait_until
 
 LIBRARY_ZONE = [(26.5, 21.5), (28.5, 21.5), (28.5, 24.1), (26.5, 24.1)]
 """z8, added to the school for this test: the north corridor between the library's two doors (x 22.5 and 33.5),

@@ -1,0 +1,85 @@
+# pyright: reportMissingImports=false
+"""`wsnav ros bridge` when things go wrong: a map that is not the site's, and a ROS master that goes away."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+from typing import Any
+
+from broker.embedded import BrokerThread
+from ros_bridge.ros_env import LocalRosCore, master_alive
+from schemas.site import load_site
+from tests.conftest import SITES
+from tests.ros_fixtures import RosMaster, WsnavChild, require_ros, wait_until
+from tests.test_ros_bridge_grid import bridge_args
+
+SCHOOL = SITES / "school"
+
+
+def publish_map(topic: str, width: int, height: int, resolution: float, origin: tuple[float, float]) -> Any:
+    import rospy
+    from nav_msgs.msg import OccupancyGrid
+
+    pub = rospy.Publisher(topic, OccupancyGrid, queue_size=1, latch=True)
+    msg = OccupancyGrid()
+    msg.header.frame_id = "map"
+    msg.info.width, msg.info.height, msg.info.resolution = width, height, resolution
+    msg.info.origin.position.x, msg.info.origin.position.y = origin
+    msg.info.origin.orientation.w = 1.0
+    msg.data = [0] * (width * height)
+    pub.publish(msg)
+    return pub
+
+
+def test_a_site_whose_map_is_not_the_robots_is_refused_in_one_line(ros_node: RosMaster) -> None:
+    with BrokerThread(SCHOOL) as broker:
+        grid = load_site(SCHOOL).grid
+        origin = (grid.origin[0], grid.origin[1])
+        publish_map("/wrong/map", grid.width, grid.height, 0.1, origin)
+        args = bridge_args(SCHOOL, broker)
+        args[args.index("--map-wait") + 1] = "15"
+        bridge = WsnavChild(["ros", "bridge", *args, "--map-topic", "/wrong/map"], ros_node.env())
+        assert bridge.finish(60) == 2
+        errors = [line for line in bridge.lines if line.startswith("wsnav: error:")]
+        assert len(errors) == 1 and "Traceback" not in "\n".join(bridge.lines), bridge.lines
+        assert "does not match /wrong/map: resolution 0.1 m, the site's is 0.05 m" in errors[0]
+
+        publish_map("/right/map", grid.width, grid.height, grid.resolution, origin)
+        args[args.index("--map-wait") + 1] = "15"
+        bridge = WsnavChild(["ros", "bridge", *args, "--map-topic", "/right/map"], ros_node.env())
+        try:
+            bridge.wait_for("zone bridge for site school", 60)
+        finally:
+            bridge.stop()
+
+
+def test_the_bridge_comes_back_when_the_master_is_restarted(tmp_path: Path) -> None:
+    require_ros()
+    with BrokerThread(SCHOOL) as broker:
+        core = LocalRosCore(tmp_path).start()
+        bridge = WsnavChild(["ros", "bridge", *bridge_args(SCHOOL, broker)], core.env())
+        try:
+            bridge.wait_for("zone bridge for site school", 60)
+            core.stop()
+            assert not master_alive(core.uri)
+            bridge.wait_for("lost the ROS master", 30)
+            core = LocalRosCore(tmp_path, port=core.port).start()
+            wait_until(
+                lambda: sum("zone bridge for site school" in line for line in bridge.lines) == 2,
+                60,
+                "the bridge registered again with the new master",
+            )
+            echo = subprocess.run(
+                ["rostopic", "echo", "-n", "1", "/wsn/zone_grid/info/width"],
+                env=core.env(),
+                capture_output=True,
+                text=True,
+                timeout=60,
+                check=False,
+            )
+            assert echo.stdout.startswith("1040"), (echo, bridge.lines)
+            assert bridge.proc.poll() is None
+        finally:
+            bridge.stop()
+            core.stop()
