@@ -7,6 +7,7 @@ import json
 import math
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
 
 from console import operator_commands as commands
@@ -157,6 +158,17 @@ def watch_command(args: argparse.Namespace) -> int:
         link.bus.close()
 
 
+def _publish(args: argparse.Namespace, verb: str, make: Callable[[OperatorLink], Publication]) -> None:
+    """Connect as the operator, make the message for the site, send it and wait for the broker's ack."""
+    link = connect(args, verb)
+    try:
+        pub = make(link)
+    except CommandError as exc:
+        link.bus.close()
+        raise CliError(str(exc)) from None
+    _send(link, pub)
+
+
 def _send(link: OperatorLink, pub: Publication) -> None:
     try:
         ok = link.bus.publish_confirmed(pub.topic, pub.payload, retain=pub.retain)
@@ -189,8 +201,9 @@ def block_command(args: argparse.Namespace) -> int:
         duration = commands.parse_duration(args.duration) if args.duration is not None else None
     except CommandError as exc:
         raise CliError(f"--for: {exc}") from None
-    link = connect(args, "block")
-    try:
+    made: list[str] = []
+
+    def make(link: OperatorLink) -> Publication:
         block_id, pub = commands.block(
             link.site,
             now=link.clock.now(),
@@ -200,22 +213,17 @@ def block_command(args: argparse.Namespace) -> int:
             reason=args.reason,
             block_id=args.block_id,
         )
-    except CommandError as exc:
-        link.bus.close()
-        raise CliError(str(exc)) from None
-    _send(link, pub)
+        made.append(block_id)
+        return pub
+
+    _publish(args, "block", make)
+    block_id = made[0]
     print(f"blocked: {block_id}" + (f" for {args.duration}" if args.duration else " until unblocked"))
     return 0
 
 
 def unblock_command(args: argparse.Namespace) -> int:
-    link = connect(args, "unblock")
-    try:
-        pub = commands.unblock(link.site, args.block_id)
-    except CommandError as exc:
-        link.bus.close()
-        raise CliError(str(exc)) from None
-    _send(link, pub)
+    _publish(args, "unblock", lambda link: commands.unblock(link.site, args.block_id))
     print(f"lifted: {args.block_id}")
     return 0
 
@@ -227,24 +235,12 @@ def goal_command(args: argparse.Namespace) -> int:
         if len(values) not in (2, 3):
             raise CliError(f"POINT: expected a named point, x,y or x,y,yaw; got {args.point!r}")
         target = (values[0], values[1], values[2] if len(values) == 3 else 0.0)
-    link = connect(args, "goal")
-    try:
-        pub = commands.goal(link.site, args.robot, target)
-    except CommandError as exc:
-        link.bus.close()
-        raise CliError(str(exc)) from None
-    _send(link, pub)
+    _publish(args, "goal", lambda link: commands.goal(link.site, args.robot, target))
     print(f"goal sent to {args.robot}: {args.point}")
     return 0
 
 
 def cancel_command(args: argparse.Namespace) -> int:
-    link = connect(args, "cancel")
-    try:
-        pub = commands.cancel(link.site, args.robot)
-    except CommandError as exc:
-        link.bus.close()
-        raise CliError(str(exc)) from None
-    _send(link, pub)
+    _publish(args, "cancel", lambda link: commands.cancel(link.site, args.robot))
     print(f"cancel sent to {args.robot}")
     return 0

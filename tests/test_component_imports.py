@@ -49,3 +49,16 @@ def test_a_component_imports_neither_the_cli_nor_a_sibling_it_must_not_know(comp
         f"{p.relative_to(REPO)} imports {pkg}" for p in sources for pkg in imported_packages(p) & forbidden
     }
     assert not bad, sorted(bad)
+
+
+def test_every_component_ships_in_the_wheel_and_the_image() -> None:
+    """A component missing from the package list or the image's build context installs, then fails to import."""
+    import tomllib
+
+    include = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"][
+        "include"
+    ]
+    context = (REPO / ".dockerignore").read_text().splitlines()
+    for component in [*COMPONENTS, "wsnav"]:
+        assert f"{component}*" in include, f"pyproject.toml: {component} is not in the packages"
+        assert f"!{component}/" in context, f".dockerignore: {component}/ is left out of the image"
