@@ -53,13 +53,17 @@ def roscore(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RosMaster]:
 
 
 @pytest.fixture(scope="session")
-def ros_node(roscore: RosMaster) -> RosMaster:
-    """The test process as a node of the session's master (rospy: once per process)."""
+def ros_node(roscore: RosMaster) -> Iterator[RosMaster]:
+    """The test process as a node of the session's master (rospy: once per process).
+
+    Shut down at the session's end: actionlib's server threads are not daemons and loop until rospy shuts down,
+    and rospy's own shutdown runs at exit only after Python has waited for them, so pytest would never exit."""
     import rospy  # pyright: ignore[reportMissingImports]
 
     os.environ.update(ROS_MASTER_URI=roscore.uri, ROS_HOSTNAME="127.0.0.1", ROS_LOG_DIR=str(roscore.log_dir))
     rospy.init_node("wsnav_test", anonymous=True, disable_signals=True)
-    return roscore
+    yield roscore
+    rospy.signal_shutdown("the test session is over")
 
 
 def wait_until(condition: Callable[[], bool], timeout_s: float, what: str, step_s: float = 0.02) -> None:
