@@ -295,7 +295,8 @@ def test_a_zone_block_and_a_drawn_polygon_from_the_page_are_lifted_from_the_page
         page.click(f"#block-row-{block['id']} .lift")
     until("both blocks lifted", lambda: site_stack.state()["blocks"] == [], 5)
     page.wait_for_function("document.querySelector('#zone-lower').dataset.state === 'clear'", timeout=5000)
-    assert page.locator("#layer-blocks polygon").count() == 0
+    # the polygon's removal may come in the page's next batch of updates, not the zone's
+    page.wait_for_selector("#layer-blocks polygon", state="detached", timeout=5000)
 
 
 def test_a_killed_node_shows_offline_after_its_will(page: Any, site_stack: ConsoleStack) -> None:
