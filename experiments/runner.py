@@ -1,6 +1,6 @@
-"""The whole experiment: every planned run over a pool of worker processes, each with its own embedded broker
-(runs in different workers cannot see each other's topics or clash on client ids), a progress line on stderr,
-the runs table, the path figures of run 0 and the report.
+"""The whole experiment: every planned run over a pool of worker processes (or as tasks on a Dask cluster:
+experiments/cluster.py), each run on its own embedded broker (runs cannot see each other's topics or clash on
+client ids), a progress line on stderr, the runs table, the path figures of run 0 and the report.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ _site_dir: Path | None = None
 _broker: BrokerAt | None = None
 
 
-def _quiet() -> None:
+def quiet_worker_logs() -> None:
     """Dropped retained messages of the previous run and the broker's chatter about clients that the last run
     closed are expected: neither is worth a line on the console."""
     logging.getLogger("amqtt").setLevel(logging.CRITICAL)
@@ -55,7 +55,7 @@ def _quiet() -> None:
 
 def _init_worker(site_dir: Path, broker: BrokerAt | None) -> None:
     global _site, _site_dir, _broker
-    _quiet()
+    quiet_worker_logs()
     _site = load_site(site_dir)
     _site_dir = site_dir
     _broker = broker
@@ -67,8 +67,13 @@ def _work(spec: RunSpec) -> tuple[RunSpec, RunResult]:
     assert _site is not None and _site_dir is not None
     if _broker is not None:
         return spec, run_once(_site, spec, _broker)
-    with BrokerThread(_site_dir) as own:
-        return spec, run_once(_site, spec, BrokerAt(own.host, own.port, own.credentials_dir))
+    return run_with_own_broker(_site, spec)
+
+
+def run_with_own_broker(site: Site, spec: RunSpec) -> tuple[RunSpec, RunResult]:
+    """One run on a fresh embedded broker (credentials in a temporary folder): needs the parsed site only."""
+    with BrokerThread(site) as own:
+        return spec, run_once(site, spec, BrokerAt(own.host, own.port, own.credentials_dir))
 
 
 def run_experiment(
@@ -78,11 +83,21 @@ def run_experiment(
     workers: int,
     broker: BrokerAt | None = None,
     progress: Progress | None = None,
+    scheduler: str | None = None,
 ) -> Outcome:
-    """Run `specs` (with an external `broker`: in this process, one after the other)."""
+    """Run `specs` (with an external `broker`: in this process, one after the other; with a `scheduler`
+    address: as tasks on that Dask cluster, `workers` unused)."""
     start = time.monotonic()
     done: list[tuple[RunSpec, RunResult]] = []
-    if broker is not None or workers <= 1:
+    if scheduler is not None:
+        from experiments.cluster import run_on_cluster  # dask loads only when a cluster is used
+
+        def arrived(n: int) -> None:
+            if progress is not None:
+                progress(n, len(specs))
+
+        done = list(run_on_cluster(scheduler, load_site(site_dir), specs, arrived).values())
+    elif broker is not None or workers <= 1:
         _init_worker(site_dir, broker)
         for spec in specs:
             done.append(_work(spec))

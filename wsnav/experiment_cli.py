@@ -37,6 +37,12 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     )
     exp.add_argument("--broker", type=host_port, metavar="HOST:PORT", help="use this broker (one worker)")
     exp.add_argument("--credentials", type=Path, metavar="DIR", help="the site's credentials, with --broker")
+    exp.add_argument(
+        "--scheduler",
+        type=scheduler_address,
+        metavar="tcp://HOST:PORT",
+        help="run each run as a task on this Dask cluster (docs/cluster.md) instead of the local processes",
+    )
     exp.set_defaults(func=experiment_command)
 
     demo = sub.add_parser("demo", help="one `full` run of each route of the school: a table and a picture")
@@ -48,6 +54,18 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     )
     demo.add_argument("--seed", type=int, default=1, help="base seed of the raffles (default 1)")
     demo.set_defaults(func=demo_command)
+
+
+def scheduler_address(text: str) -> str:
+    """A Dask scheduler's `tcp://HOST:PORT`; argparse turns the error into one line."""
+    scheme, sep, rest = text.partition("://")
+    if not sep or scheme != "tcp":
+        raise argparse.ArgumentTypeError(f"expected tcp://HOST:PORT, got {text!r}")
+    try:
+        host, port = host_port(rest)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected tcp://HOST:PORT, got {text!r}") from None
+    return f"tcp://[{host}]:{port}" if ":" in host else f"tcp://{host}:{port}"
 
 
 def experiment_command(args: argparse.Namespace) -> int:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.cluster import ClusterError
 from experiments.report import paths_figure
 from experiments.run_plan import RunSpec, plan_runs
 from experiments.runner import progress_line, report_header, run_experiment, write_outputs
@@ -38,6 +39,16 @@ def _specs(site: Site, configs: list[str], runs: int, seed: int) -> list[RunSpec
     return plan_runs(site.spec, configs, runs, seed)
 
 
+def _cluster_size(address: str) -> int:
+    """The cluster's worker threads; a scheduler that does not answer, or has no workers, is one line."""
+    from experiments.cluster import cluster_size
+
+    try:
+        return cluster_size(address)
+    except ClusterError as exc:
+        raise CliError(f"--scheduler {address}: {exc}") from None
+
+
 def experiment(args: argparse.Namespace) -> int:
     if args.runs < 1:
         raise CliError(f"--runs must be at least 1, got {args.runs}")
@@ -60,13 +71,32 @@ def experiment(args: argparse.Namespace) -> int:
         broker = BrokerAt(args.broker[0], args.broker[1], args.credentials)
     elif args.credentials is not None:
         raise CliError("--credentials goes with --broker")
+    if broker is not None and args.scheduler is not None:
+        raise CliError("--scheduler runs each run on its own embedded broker: it does not go with --broker")
     site = _site(args.site)
     _writable(args.out)
     specs = _specs(site, configs, args.runs, args.seed)
     workers = 1 if broker is not None else min(args.workers, len(specs))
-    print(f"{len(specs)} runs ({args.runs} per route and configuration) on {workers} worker(s)")
-    outcome = run_experiment(site.path, specs, workers=workers, broker=broker, progress=progress_line())
     where = "the embedded amqtt broker, one per worker" if broker is None else f"{broker.host}:{broker.port}"
+    if args.scheduler is not None:
+        workers = _cluster_size(args.scheduler)
+        where = f"the embedded amqtt broker, one per run, on the Dask cluster at {args.scheduler}"
+        print(
+            f"{len(specs)} runs ({args.runs} per route and configuration) on the Dask cluster at {args.scheduler}"
+        )
+    else:
+        print(f"{len(specs)} runs ({args.runs} per route and configuration) on {workers} worker(s)")
+    try:
+        outcome = run_experiment(
+            site.path,
+            specs,
+            workers=workers,
+            broker=broker,
+            progress=progress_line(),
+            scheduler=args.scheduler,
+        )
+    except ClusterError as exc:
+        raise CliError(f"--scheduler {args.scheduler}: {exc}") from None
     reproduce = (
         f"wsnav experiment --site {args.site} --runs {args.runs} --seed {args.seed} "
         f"--configs {','.join(configs)} --out {args.out}"
