@@ -142,3 +142,13 @@ def test_a_scheduler_that_does_not_answer_is_one_line(
     err = capsys.readouterr().err.strip()
     assert f"cannot reach the Dask scheduler at {address}" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "out" / "runs.csv").exists()
+
+
+def test_scheduler_and_broker_together_are_refused_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["experiment", "--runs", "1", "--scheduler", "tcp://127.0.0.1:8786", "--broker", "127.0.0.1:1883"]
+    (tmp_path / "robot1.json").write_text("{}")
+    assert main([*argv, "--credentials", str(tmp_path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--scheduler" in err and "--broker" in err and len(err.splitlines()) == 1
