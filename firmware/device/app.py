@@ -18,8 +18,10 @@ from node_logic import NodeLogic
 
 # const() with a leading underscore: inlined by the compiler, no heap at run time.
 _LOOP_MS = const(50)
-_SOCKET_TIMEOUT_MS = const(1500)
-"""Per socket operation; connect + CONNACK stays well inside the ESP8266's ~5 s watchdog."""
+_SOCKET_TIMEOUT_MS = const(1000)
+"""Per blocking socket step (connect, each send, each read until a wait's deadline): the client feeds the
+watchdog before each, so no gap between feeds exceeds 1.5 s, half the ESP8266 SDK's ~3.2 s (the budget table
+in docs/firmware-esp8266.md)."""
 _WIFI_JOIN_TIMEOUT_MS = const(20000)
 _MAX_OFFLINE_MS = const(600000)
 """Ten minutes without the broker: stop feeding the watchdog and let it reset the board."""
@@ -80,7 +82,7 @@ class Node:
             cfg["password"],
             cfg["keepalive_s"],
             _SOCKET_TIMEOUT_MS,
-            self.feed,  # a DNS lookup has no timeout: fed before it, the watchdog resets the board if it hangs
+            self.feed,  # before every blocking step, and from a timer during a DNS lookup (no timeout of its own)
         )
         self.wifi_backoff = Backoff(1000, 60000, _rand16)
         self.broker_backoff = Backoff(500, 30000, _rand16)
@@ -207,8 +209,13 @@ def main(cfg) -> None:
     import sensors
     import wifi
 
-    node = Node(
-        cfg, sensors.from_config(cfg), wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"]), machine.WDT()
-    )
+    wdt = machine.WDT()
+    node = Node(cfg, sensors.from_config(cfg), wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"]), wdt)
     gc.collect()
-    node.run()
+    try:
+        node.run()
+    except KeyboardInterrupt:
+        # Ctrl-C from mpremote: one last feed gives the host a whole watchdog period to start maintenance mode
+        # (firmware/deploy.py); after that nothing feeds, and a node left at the REPL resets by itself.
+        wdt.feed()
+        raise
