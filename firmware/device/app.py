@@ -18,10 +18,10 @@ from node_logic import NodeLogic
 
 # const() with a leading underscore: inlined by the compiler, no heap at run time.
 _LOOP_MS = const(50)
-_SOCKET_TIMEOUT_MS = const(1000)
-"""Per blocking socket step (connect, each send, each read until a wait's deadline): the client feeds the
-watchdog before each, so no gap between feeds exceeds 1.5 s, half the ESP8266 SDK's ~3.2 s (the budget table
-in docs/firmware-esp8266.md)."""
+_WAIT_MS = const(1500)
+"""Per wait for the broker (CONNACK, PUBACK, a packet). The client blocks at most 1 s per socket operation and
+feeds the watchdog before each, so no gap between feeds exceeds 1.5 s, half the ESP8266 SDK's ~3.2 s (the
+budget table in docs/firmware-esp8266.md)."""
 _WIFI_JOIN_TIMEOUT_MS = const(20000)
 _MAX_OFFLINE_MS = const(600000)
 """Ten minutes without the broker: stop feeding the watchdog and let it reset the board."""
@@ -81,7 +81,7 @@ class Node:
             cfg["username"],
             cfg["password"],
             cfg["keepalive_s"],
-            _SOCKET_TIMEOUT_MS,
+            _WAIT_MS,
             self.feed,  # before every blocking step, and from a timer during a DNS lookup (no timeout of its own)
         )
         self.wifi_backoff = Backoff(1000, 60000, _rand16)
@@ -89,21 +89,19 @@ class Node:
         self.phase = _OFFLINE
         self.next_attempt_ms = 0
         self.phase_since_ms = 0
-        self.online_since_ms = 0
         self.offline_since_ms = 0
         self.errors = 0
         self.connects = 0
-        self.loop_ms = _LOOP_MS
 
     # -- health and watchdog -----------------------------------------------------------------------------
-    def healthy(self, now_ms: int) -> bool:
-        if self.errors >= _MAX_ERRORS:
-            return False
-        return self.phase == _ONLINE or now_ms - self.offline_since_ms < _MAX_OFFLINE_MS
-
     def feed(self) -> None:
-        if self.wdt is not None and self.healthy(self.clock.now_ms()):
-            self.wdt.feed()
+        """Feed the watchdog if healthy: fewer than _MAX_ERRORS loop errors in a row, and online or offline for
+        less than _MAX_OFFLINE_MS. Called before every blocking step (the MQTT client calls it too)."""
+        wdt = self.wdt
+        if wdt is None or self.errors >= _MAX_ERRORS:
+            return
+        if self.phase == _ONLINE or self.clock.now_ms() - self.offline_since_ms < _MAX_OFFLINE_MS:
+            wdt.feed()
 
     # -- connection state machine --------------------------------------------------------------------------
     def _go_offline(self, now_ms: int, why) -> None:
@@ -129,7 +127,6 @@ class Node:
             return
         self.broker_backoff.reset()
         self.phase = _ONLINE
-        self.online_since_ms = now_ms
         self.connects += 1
         self.log("mqtt up", self.connects)
 
@@ -199,7 +196,7 @@ class Node:
                 self.errors += 1
                 self.log("loop error:", exc)
             self.feed()
-            clock.sleep_ms(self.loop_ms)
+            clock.sleep_ms(_LOOP_MS)
 
 
 def main(cfg) -> None:

@@ -3,8 +3,8 @@
 Why not umqtt.simple/robust (frozen in the ESP8266 image): they never send PINGREQ by themselves and block
 without timeouts, so a half-open TCP connection (broker rebooted, Wi-Fi access point gone) hangs the node until
 the watchdog bites. This client:
-- sets a timeout on every socket operation and bounds every wait (CONNACK, PUBACK, PINGRESP, a packet that has
-  begun) by a deadline checked before each read, so no call blocks longer than `timeout_ms` per step;
+- bounds every socket operation by 1 s (`_STEP_MS`) and every wait (CONNACK, PUBACK, a packet that has begun)
+  by `timeout_ms` overall, a deadline checked before each read (within a packet too);
 - calls `feed()` before every step that can block (the board's watchdog budget, docs/firmware-esp8266.md), and
   keeps feeding from a timer while a DNS lookup runs (getaddrinfo takes no timeout);
 - sends its own keepalive pings (`maintain`) and declares the link dead when a PINGRESP is overdue;
@@ -30,6 +30,9 @@ _PINGREQ = const(0xC0)
 _PINGRESP = const(0xD0)
 _DISCONNECT = const(0xE0)
 
+_STEP_MS = const(1000)
+"""The longest any one socket operation blocks (connect, a send, a read): the watchdog is fed between them."""
+_ETIMEDOUT = const(110)
 _MAX_UNSOLICITED = const(16)
 """Packets handled per `poll` call, so a flood of retained messages cannot starve the main loop."""
 _LOOKUP_FEED_MS = const(500)
@@ -78,8 +81,8 @@ class MQTTClient:
         timeout_ms: int = 2000,
         feed=None,
     ) -> None:
-        """`feed()`, if given, is the board's watchdog feed: called before every step that can block (each at
-        most `timeout_ms`), and every 500 ms by a timer while a DNS lookup runs."""
+        """`timeout_ms` bounds each wait for the broker; `feed()`, if given, is the board's watchdog feed: called
+        before every socket operation (each at most 1 s), and every 500 ms by a timer while a DNS lookup runs."""
         self.client_id = client_id
         self.host = host
         self.port = port
@@ -111,7 +114,7 @@ class MQTTClient:
         return sock
 
     def _send(self, data: bytes) -> None:
-        sock = self._fed(self.timeout_ms)
+        sock = self._fed(_STEP_MS)
         mv = memoryview(data)
         sent = 0
         while sent < len(data):
@@ -122,13 +125,18 @@ class MQTTClient:
         self._last_tx = ticks_ms()
 
     def _recv(self, n: int, deadline) -> bytes:
-        """Exactly n bytes, each read bounded by what is left until `deadline` (a ticks_ms value)."""
+        """Exactly n bytes by `deadline` (a ticks_ms value), in reads of at most 1 s with a feed before each."""
         data = b""
         while len(data) < n:
             left = ticks_diff(deadline, ticks_ms())
             if left <= 0:
                 raise MQTTError("timed out waiting for the broker")
-            more = self._fed(left).recv(n - len(data))
+            try:
+                more = self._fed(left if left < _STEP_MS else _STEP_MS).recv(n - len(data))
+            except OSError as exc:
+                if exc.errno == _ETIMEDOUT:
+                    continue  # one step's worth of silence: feed, then wait for what is left
+                raise
             if not more:
                 raise MQTTError("connection closed by broker")
             data += more
@@ -192,7 +200,7 @@ class MQTTClient:
         sock = socket.socket()
         self.sock = sock
         try:
-            self._fed(self.timeout_ms).connect(addr)
+            self._fed(_STEP_MS).connect(addr)
             flags = 0x02 if clean else 0
             payload = _str(self.client_id)
             if will is not None:
@@ -232,16 +240,15 @@ class MQTTClient:
         feed = self.feed
         if feed is not None:
             feed()
-            start = ticks_ms()
-
-            def fed_while_looking_up(_t) -> None:  # runs while getaddrinfo polls lwIP (mp_handle_pending)
-                if ticks_diff(ticks_ms(), start) < _LOOKUP_MAX_MS:
-                    feed()
-
             from machine import Timer  # here: a broker given by address never loads it
 
+            start = ticks_ms()
             timer = Timer(-1)
-            timer.init(period=_LOOKUP_FEED_MS, mode=Timer.PERIODIC, callback=fed_while_looking_up)
+            timer.init(  # its callback runs while getaddrinfo polls lwIP (mp_handle_pending)
+                period=_LOOKUP_FEED_MS,
+                mode=Timer.PERIODIC,
+                callback=lambda _t: ticks_diff(ticks_ms(), start) < _LOOKUP_MAX_MS and feed(),
+            )
         try:
             addr = self.addr = lookup(host, self.port)[0][-1]
         except OSError:

@@ -40,6 +40,7 @@ class PipeWDT:
 
 
 machine.WDT = PipeWDT  # pyright: ignore[reportAttributeAccessIssue]
+soft_timers.install()
 env = {"__name__": "__main__"}
 stdin = sys.stdin.buffer
 poller = select.poll()

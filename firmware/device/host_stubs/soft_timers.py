@@ -1,4 +1,5 @@
-"""Test-only: the ESP8266's `machine.Timer` (soft timers) and `machine.reset`, reached through the machine stub.
+"""Test-only: the ESP8266's `machine.Timer` (soft timers) and `machine.reset`; `install()` puts them on the
+machine stub (drivers call it when they need them).
 
 Timer callbacks run when `_run_timers()` is called: where the ESP8266 runs its soft timers, in any wait
 (mp_handle_pending while the REPL waits for input, while lwIP resolves a name...), so a driver calls it in its
@@ -47,3 +48,10 @@ def reset():
     """A hard reset: the process ends and the host starts it again."""
     sys.exit(75)
 
+
+
+def install():
+    import machine
+
+    machine.Timer = Timer  # pyright: ignore[reportAttributeAccessIssue]
+    machine.reset = reset
