@@ -59,12 +59,11 @@ class Node:
     """A running node. `sensor` has `reading()` (a debounce level or a bool), `wifi` has `start()` and
     `connected()` (or is None: wired)."""
 
-    def __init__(self, cfg, sensor, wifi=None, wdt=None, clock=None, log=print) -> None:
+    def __init__(self, cfg, sensor, wifi=None, wdt=None, clock=None) -> None:
         self.sensor = sensor
         self.wifi = wifi
         self.wdt = wdt
         self.clock = clock if clock is not None else Clock()
-        self.log = log
         self.logic = NodeLogic(
             cfg["site"],
             cfg["zone"],
@@ -88,7 +87,6 @@ class Node:
         self.broker_backoff = Backoff(500, 30000, _rand16)
         self.phase = _OFFLINE
         self.next_attempt_ms = 0
-        self.phase_since_ms = 0
         self.offline_since_ms = 0
         self.errors = 0
         self.connects = 0
@@ -112,7 +110,7 @@ class Node:
         wifi_up = self.wifi is None or self.wifi.connected()
         self.phase = _BROKER_WAIT if wifi_up else _OFFLINE
         self.next_attempt_ms = now_ms + self.broker_backoff.next_delay_ms()
-        self.log("mqtt down:", why)
+        print("mqtt down:", why)
 
     def _connect_broker(self, now_ms: int) -> None:
         client = self.client
@@ -128,7 +126,7 @@ class Node:
         self.broker_backoff.reset()
         self.phase = _ONLINE
         self.connects += 1
-        self.log("mqtt up", self.connects)
+        print("mqtt up", self.connects)
 
     def _connection_step(self, now_ms: int) -> None:
         wifi = self.wifi
@@ -141,17 +139,17 @@ class Node:
                 if wifi is not None:
                     wifi.start()
                 self.phase = _WIFI_JOINING
-                self.phase_since_ms = now_ms
+                self.next_attempt_ms = now_ms + _WIFI_JOIN_TIMEOUT_MS  # while joining: when to give up
             return
         if self.phase == _WIFI_JOINING:
             if wifi is None or wifi.connected():
                 self.wifi_backoff.reset()
                 self.phase = _BROKER_WAIT
                 self.next_attempt_ms = now_ms
-            elif now_ms - self.phase_since_ms > _WIFI_JOIN_TIMEOUT_MS:
+            elif now_ms > self.next_attempt_ms:
                 self.phase = _OFFLINE
                 self.next_attempt_ms = now_ms + self.wifi_backoff.next_delay_ms()
-                self.log("wifi join timed out")
+                print("wifi join timed out")
             return
         # _BROKER_WAIT
         if wifi is not None and not wifi.connected():
@@ -191,10 +189,10 @@ class Node:
             except MemoryError:
                 gc.collect()
                 self.errors += 1
-                self.log("MemoryError")
+                print("MemoryError")
             except Exception as exc:  # a bug must not kill the node silently: count it, let the WDT decide
                 self.errors += 1
-                self.log("loop error:", exc)
+                print("loop error:", exc)
             self.feed()
             clock.sleep_ms(_LOOP_MS)
 

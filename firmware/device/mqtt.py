@@ -12,6 +12,7 @@ the watchdog bites. This client:
   subscriptions): they are read and thrown away in small chunks, never buffered whole, and QoS 1 ones are
   acknowledged so the broker does not resend them;
 - raises OSError (MQTTError is one) for every failure, so the caller has one thing to catch.
+No DISCONNECT: a node never leaves on purpose, and its will must be published when it goes.
 It only publishes: no SUBSCRIBE, no QoS 2, no incoming message callback.
 """
 
@@ -28,7 +29,6 @@ _PUBLISH = const(0x30)
 _PUBACK = const(0x40)
 _PINGREQ = const(0xC0)
 _PINGRESP = const(0xD0)
-_DISCONNECT = const(0xE0)
 
 _STEP_MS = const(1000)
 """The longest any one socket operation blocks (connect, a send, a read): the watchdog is fed between them."""
@@ -298,14 +298,6 @@ class MQTTClient:
             self._ping_sent = ticks_ms()
             self._ping_pending = True
             self.pings += 1
-
-    def disconnect(self) -> None:
-        """Polite DISCONNECT (the will is not sent), then close; never raises."""
-        try:
-            self._send(bytes((_DISCONNECT, 0)))
-        except Exception:
-            pass
-        self.close()
 
     def close(self) -> None:
         sock = self.sock
