@@ -174,6 +174,27 @@ def test_a_node_stopped_at_the_repl_without_maintenance_is_reset_by_its_watchdog
     assert wait_until(lambda: board.wdt_fed_within(0.5))  # booted into the node again
 
 
+def test_the_first_deploy_on_a_fresh_board(
+    builds: tuple[Path, Path, Path], new_files: dict[str, Path], tmp_path: Path
+) -> None:
+    """MicroPython only, nothing on the board: no watchdog runs until maintenance mode starts one (and feeds
+    it); after the reset the node starts."""
+    fs = tmp_path / "fresh"
+    fs.mkdir()
+    (tmp_path / "pins").mkdir()
+    board = UnixBoard(fs, builds[2], tmp_path / "fresh.log", tmp_path / "pins")
+    board.power_on()
+    try:
+        assert not board.wdt_fed_within(60)
+        copied = Deployer(board).deploy(new_files)
+        assert sorted(copied) == sorted(new_files)
+        assert {name: sha(fs / name) for name in new_files} == {n: sha(p) for n, p in new_files.items()}
+        assert wait_until(lambda: board.resets == ["reset"]), board.resets
+        assert wait_until(lambda: board.wdt_fed_within(0.5))  # the node runs and feeds its watchdog
+    finally:
+        board.close()
+
+
 def test_deploy_refuses_a_board_that_left_maintenance(board: FlakyLine, new_files: dict[str, Path]) -> None:
     """A board reset between two steps is no longer in maintenance: the deploy stops with one line."""
     deployer = Deployer(board)
