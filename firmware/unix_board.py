@@ -5,6 +5,10 @@ code and the file operations are the real ones, run by MicroPython).
 - Its filesystem is a host folder; a boot runs boot.py then main.py in it (`host_stubs/board_repl.py`).
 - Ctrl-C is SIGINT; the REPL answers raw-REPL-shaped commands on stdin/stdout at 115200 baud, one Ctrl-C per
   session as mpremote sends; a file goes in 256-byte write commands, as mpremote's `fs cp` sends it.
+- `serve_pty()` also puts it on a pseudo-terminal that speaks MicroPython's raw REPL (Ctrl-C, Ctrl-A, commands
+  ended by Ctrl-D answered "OK", output, Ctrl-D, error, Ctrl-D, ">"; raw-paste mode declined; Ctrl-D alone a
+  soft reset, which stops soft timers but not the watchdog), so the real mpremote, and
+  `firmware.board.MpremoteBoard`, can talk to it.
 - Its watchdog behaves as the ESP8266's: started by the first machine.WDT(), it cannot be stopped (no deinit,
   nothing the board runs undoes it), and `WDT_TIMEOUT_S` after the last feed it resets the board (the process
   is killed and started again). machine.reset() restarts it too. `resets` records each cause.
@@ -12,11 +16,14 @@ code and the file operations are the real ones, run by MicroPython).
 
 from __future__ import annotations
 
+import contextlib
 import os
+import pty
 import signal
 import subprocess
 import threading
 import time
+import tty
 from pathlib import Path
 
 from firmware.board import BoardError
@@ -30,6 +37,14 @@ as long as it does over USB (seconds: longer than the watchdog)."""
 SESSION_S = 0.2
 """What starting an mpremote session costs before the first command (port open, Ctrl-C, raw REPL)."""
 PROMPT = b"\x05raw>\n"
+SOFT_RESET = b"""import soft_timers
+soft_timers._timers.clear()
+g = globals()
+g.clear()
+g["__name__"] = "__main__"
+"""
+"""What an ESP8266's soft reset does to a running maintenance mode: the heap is swept (the REPL's globals, the
+timer's callback) and soft timers stop, while the watchdog goes on (main.c's soft_reset; machine_wdt.c)."""
 CHUNK = 256
 """Bytes per write command, as mpremote's fs cp sends them."""
 
@@ -127,6 +142,7 @@ class UnixBoard:
         self._lock = threading.RLock()
         self._closed = threading.Event()
         self._monitor = threading.Thread(target=self._supervise, daemon=True)
+        self._pty: tuple[int, int] | None = None
 
     # -- the hardware: power, reset, watchdog ------------------------------------------------------------
     def power_on(self) -> None:
@@ -177,6 +193,9 @@ class UnixBoard:
         with self._lock:
             if self._boot is not None:
                 self._boot.stop()
+        if self._pty is not None:
+            for fd in self._pty:
+                os.close(fd)
 
     # -- the serial line: what mpremote does ------------------------------------------------------------
     def _session(self) -> _Boot:
@@ -223,3 +242,60 @@ class UnixBoard:
     def reset(self) -> None:
         boot = self._session()
         boot.send(b"import machine\nmachine.reset()\x04")
+
+    # -- the same board behind a pseudo-terminal, for mpremote --------------------------------------------
+    def serve_pty(self) -> str:
+        """The path of a pseudo-terminal where this board answers as an ESP8266's raw REPL does."""
+        master, slave = pty.openpty()
+        tty.setraw(slave)
+        self._pty = (master, slave)  # the slave stays open: the terminal outlives each mpremote session
+        threading.Thread(target=self._serve, args=(master,), daemon=True).start()
+        return os.ttyname(slave)
+
+    def _serve(self, master: int) -> None:
+        raw = False
+        code = bytearray()
+        while not self._closed.is_set():
+            try:
+                data = os.read(master, 4096)
+            except OSError:
+                return
+            for b in data:
+                if b == 0x03:  # Ctrl-C: interrupt whatever runs
+                    code.clear()
+                    with contextlib.suppress(BoardError):
+                        self._session()
+                elif b == 0x01:  # Ctrl-A: raw REPL
+                    raw = True
+                    code.clear()
+                    os.write(master, b"raw REPL; CTRL-B to exit\r\n>")
+                elif b == 0x02:  # Ctrl-B: back to the friendly REPL
+                    raw = False
+                    os.write(master, b"\r\n>>> ")
+                elif raw and b == 0x04 and not code:  # Ctrl-D on an empty command: soft reset
+                    os.write(master, b"OK\r\nMPY: soft reboot\r\n")
+                    self._serve_command(SOFT_RESET)
+                    os.write(master, b"raw REPL; CTRL-B to exit\r\n>")
+                elif raw and b == 0x04:  # Ctrl-D: run the command
+                    os.write(master, b"OK")
+                    os.write(master, self._serve_command(bytes(code)))
+                    code.clear()
+                elif raw:
+                    code.append(b)
+                    if code.endswith(b"\x05A\x01"):  # raw-paste mode: understood, not supported
+                        del code[-3:]
+                        os.write(master, b"R\x00")
+
+    def _serve_command(self, code: bytes) -> bytes:
+        boot = self._boot
+        if boot is None:
+            return b"\x04board not running\x04>"
+        mark = len(boot.out)
+        try:
+            boot.send(code + b"\x04")
+            end_out = boot.wait_for(b"\x04", mark, 600)
+            end_err = boot.wait_for(b"\x04", end_out, 60)
+            boot.wait_for(PROMPT, end_err, 30)
+        except BoardError:
+            return b""  # it reset (machine.reset(), the watchdog): mpremote has had its "OK" and left
+        return bytes(boot.out[mark:end_err]) + b">"

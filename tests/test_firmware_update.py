@@ -1,7 +1,8 @@
 """Updating a running node (`wsnav firmware deploy`'s logic, firmware/deploy.py) against a board whose watchdog
 behaves as the ESP8266's: once started it cannot be stopped, nothing feeds it once the application is stopped,
 and 3.2 s after the last feed it resets the board (firmware/unix_board.py: the MicroPython unix port running the
-real firmware, main.py and maintenance code; only the serial line between host and board is simulated).
+real firmware, main.py and maintenance code; only the serial line between host and board is simulated, and
+the real mpremote talks to it through a pseudo-terminal).
 
 The node runs with its broker away (a closed port): its loop still runs and feeds the watchdog.
 """
@@ -18,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from firmware.board import BoardError
+from firmware.board import BoardError, MpremoteBoard
 from firmware.build import build
 from firmware.deploy import Deployer, DeployError, firmware_files, module_names
 from firmware.testing import DEVICE, build_for_host
@@ -138,6 +139,18 @@ def test_deploy_over_a_running_node_completes_and_every_hash_matches(
     assert wait_until(lambda: board.wdt_fed_within(0.5))  # the new firmware runs and feeds its watchdog
     assert board.resets == ["reset"]
     assert any("verified" in line for line in log), log
+
+
+def test_mpremote_updates_a_running_node_over_a_serial_line(
+    board: FlakyLine, new_files: dict[str, Path]
+) -> None:
+    """The real transport: `wsnav firmware deploy`'s MpremoteBoard, one mpremote session per step, against the
+    board behind a pseudo-terminal speaking the raw REPL."""
+    copied = Deployer(MpremoteBoard(board.serve_pty())).deploy(new_files)
+    assert sorted(copied) == sorted(new_files)
+    assert {name: sha(board.fs / name) for name in new_files} == {n: sha(p) for n, p in new_files.items()}
+    assert wait_until(lambda: board.resets == ["reset"]), board.resets
+    assert wait_until(lambda: board.wdt_fed_within(0.5))
 
 
 def test_an_interrupted_deploy_leaves_whole_files_and_a_rerun_finishes(
