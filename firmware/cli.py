@@ -9,14 +9,18 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from firmware.board import MpremoteBoard
 from firmware.build import SIZE_TARGET, BuildError, build, compile_commands
 from firmware.deploy import (
     FLASH_BAUD,
+    Deployer,
     DeployError,
     check_config,
     check_image,
-    deploy_commands,
+    deploy_plan,
+    firmware_files,
     flash_commands,
+    format_plan,
 )
 from runtime.cli_support import CliError
 
@@ -35,7 +39,10 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     b.add_argument("--dry-run", action="store_true", help="print the mpy-cross commands, run nothing")
     b.set_defaults(func=build_command)
 
-    d = fw_sub.add_parser("deploy", help="copy the build and config.json to a board with mpremote")
+    d = fw_sub.add_parser(
+        "deploy",
+        help="update a board (running or not) with mpremote: maintenance mode, copy, verify sha256, reset",
+    )
     d.add_argument("--port", required=True, help="serial port of the board, e.g. /dev/ttyUSB0")
     d.add_argument("--config", type=Path, required=True, help="the node's credentials file (its config.json)")
     d.add_argument(
@@ -106,15 +113,19 @@ def deploy_command(args: argparse.Namespace) -> int:
         if args.build is None:
             for cmd in compile_commands(out):
                 _print(cmd)
-        for cmd in deploy_commands(args.port, out, args.config):
-            _print(cmd)
+        for line in format_plan(deploy_plan(args.port, firmware_files(out, args.config))):
+            print(line)
         return 0
     with tempfile.TemporaryDirectory(prefix="wsnav-fw-") as tmp:
         out = args.build
         if out is None:
             out = Path(tmp)
             _build(out)
-        _run(deploy_commands(args.port, out, args.config))
+        try:
+            copied = Deployer(MpremoteBoard(args.port)).deploy(firmware_files(out, args.config))
+        except DeployError as exc:
+            raise CliError(str(exc)) from None
+    print(f"deployed: {len(copied)} files changed, all verified; the board is restarting")
     return 0
 
 

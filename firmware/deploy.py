@@ -1,37 +1,41 @@
-"""`wsnav firmware deploy` and `wsnav firmware flash`: the mpremote and esptool commands, built in one place so
---dry-run prints exactly what a real run executes.
+"""`wsnav firmware deploy` and `wsnav firmware flash`.
 
-Deploy copies the built .mpy modules, main.py, boot.py and the node's config.json (its credentials file from
-`wsnav broker credentials`, with the broker address filled in) to the board's filesystem root, after deleting
-stale .py copies of the same modules: MicroPython imports `app.py` before `app.mpy`, so a forgotten source file
-would silently shadow the new build.
+Deploy updates a node safely, whether it runs or not (docs/firmware-esp8266.md, "Updating a node"):
+1. maintenance mode: the node's loop is stopped (Ctrl-C) and `device/maintenance.py` is run at its REPL, which
+   keeps feeding the ESP8266's watchdog (it cannot be stopped) for as long as the host keeps asking;
+2. stale `.py` copies of the modules are deleted (MicroPython imports `app.py` before `app.mpy`, so a forgotten
+   source file would silently shadow the new build), and leftover `.tmp` files of an interrupted deploy;
+3. each file whose sha256 on the board differs from the host's is copied under a temporary name, its hash
+   checked on the board, then renamed over the old one: a file under its real name is always whole, old or new;
+4. every file's hash is checked on the board once more, then the board is reset into the new firmware.
+An interrupted deploy (cable pulled, host killed) leaves the old or new version of each file, and the board,
+no longer kept in maintenance, resets into its application a few minutes later; running deploy again copies
+what still differs and finishes. The board is reached through `firmware.board.Board` (mpremote for real).
 Flash erases the ESP8266 and writes a MicroPython image at offset 0 (what micropython.org documents for ESP8266).
 """
 
 from __future__ import annotations
 
-import shutil
-import sys
+import hashlib
+import shlex
+from collections.abc import Callable
 from pathlib import Path
 
 from pydantic import ValidationError
 
-from firmware.build import DEVICE, SOURCE_ONLY
+from firmware.board import Board, BoardError, MpremoteBoard
+from firmware.build import DEVICE, REPL_ONLY, SOURCE_ONLY, tool_path
 from schemas.credentials import NodeConfig
 
+MAINTENANCE = DEVICE / "maintenance.py"
+HOLD_MS = 300_000
+"""How long the board stays in maintenance after the host's last command (then its watchdog resets it)."""
 FLASH_BAUD = 460800
 """Fast and reliable on CH340/CP2102 USB-serial bridges; esptool falls back to nothing, so lower it if it fails."""
 
 
 class DeployError(Exception):
     """A bad config or image file, or a missing tool; one line."""
-
-
-def _tool(name: str) -> str:
-    here = Path(sys.executable).parent / name
-    if here.exists():
-        return str(here)
-    return shutil.which(name) or name
 
 
 def check_config(path: Path) -> NodeConfig:
@@ -52,22 +56,150 @@ def check_config(path: Path) -> NodeConfig:
 
 
 def module_names(source: Path = DEVICE) -> list[str]:
-    """Module names that become .mpy files (everything in device/ but main.py and boot.py)."""
-    return sorted(p.stem for p in source.glob("*.py") if p.name not in SOURCE_ONLY)
+    """Module names that become .mpy files (everything in device/ but main.py, boot.py, maintenance.py)."""
+    return sorted(p.stem for p in source.glob("*.py") if p.name not in SOURCE_ONLY + REPL_ONLY)
 
 
-def deploy_commands(port: str, build_dir: Path, config: Path, source: Path = DEVICE) -> list[list[str]]:
-    mpremote = _tool("mpremote")
-    names = module_names(source)
-    stale = ",".join(f'"{n}.py"' for n in names)
-    remove = f"import os;[os.remove(f) for f in os.listdir() if f in ({stale},)]"
-    files = [str(build_dir / (n + ".mpy")) for n in names] + [str(build_dir / n) for n in SOURCE_ONLY]
-    return [
-        [mpremote, "connect", port, "exec", remove],
-        [mpremote, "connect", port, "fs", "cp", *files, ":"],
-        [mpremote, "connect", port, "fs", "cp", str(config), ":config.json"],
-        [mpremote, "connect", port, "reset"],
+def firmware_files(build_dir: Path, config: Path, source: Path = DEVICE) -> dict[str, Path]:
+    """What goes on the board, by its name there: the .mpy modules, main.py, boot.py and config.json."""
+    files = {n + ".mpy": build_dir / (n + ".mpy") for n in module_names(source)}
+    files.update({n: build_dir / n for n in SOURCE_ONLY})
+    files["config.json"] = config
+    return files
+
+
+def sha256_file(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def maintenance_code(hold_ms: int = HOLD_MS) -> str:
+    """device/maintenance.py with the hold time filled in, as sent to the board's REPL."""
+    text = MAINTENANCE.read_text()
+    default = f"_WSNAV_HOLD_MS = {HOLD_MS}\n"
+    if default not in text:
+        raise DeployError(f"{MAINTENANCE}: no '{default.strip()}' line to set the hold time")
+    return text.replace(default, f"_WSNAV_HOLD_MS = {int(hold_ms)}\n")
+
+
+def _names(names: list[str]) -> str:
+    return "(" + "".join(repr(n) + "," for n in names) + ")"
+
+
+def _step(code: str) -> str:
+    """A command in maintenance mode: extends the hold first, and fails with a NameError on a board that left it."""
+    return "_wsnav_keep();" + code
+
+
+def _sha_step(names: list[str]) -> str:
+    return _step(f"_wsnav_sha({_names(names)})")
+
+
+def _rm_step(names: list[str]) -> str:
+    """Stale `.py` copies of the modules (they would shadow the .mpy) and an interrupted deploy's `.tmp` files."""
+    stale = [n[: -len(".mpy")] + ".py" for n in names if n.endswith(".mpy")] + [n + ".tmp" for n in names]
+    return _step(f"_wsnav_rm({_names(stale)})")
+
+
+def _rename_step(name: str) -> str:
+    return _step(f"os.rename({name + '.tmp'!r},{name!r})")
+
+
+class Deployer:
+    """One deploy to one board: the steps of the module docstring, each a command at the board's REPL."""
+
+    def __init__(self, board: Board, log: Callable[[str], None] = print, hold_ms: int = HOLD_MS) -> None:
+        self.board = board
+        self.log = log
+        self.hold_ms = hold_ms
+
+    def _run(self, code: str) -> str:
+        """Run code in maintenance mode (which each command extends); fails if the board left it (a reset)."""
+        try:
+            return self.board.run(code)
+        except BoardError as exc:
+            if "_wsnav_keep" in str(exc):
+                raise DeployError(
+                    "the board left maintenance mode (it reset?): run the deploy again"
+                ) from None
+            raise DeployError(f"board: {exc}") from None
+
+    def hashes(self, names: list[str]) -> dict[str, str]:
+        """sha256 of each file on the board ("-" if it is missing), computed there."""
+        found: dict[str, str] = {}
+        for line in self._run(_sha_step(names)).splitlines():
+            words = line.split()
+            if len(words) == 2 and words[0] in names:
+                found[words[0]] = words[1]
+        missing = [n for n in names if n not in found]
+        if missing:
+            raise DeployError(f"board: no hash for {', '.join(missing)}")
+        return found
+
+    def enter(self) -> None:
+        try:
+            out = self.board.run(maintenance_code(self.hold_ms))
+        except BoardError as exc:
+            raise DeployError(f"board: cannot enter maintenance mode: {exc}") from None
+        if "wsnav maintenance" not in out:
+            raise DeployError(f"board: maintenance mode did not start ({out.strip()[-80:] or 'no answer'})")
+        self.log(
+            f"maintenance mode (the board's watchdog is fed for {self.hold_ms // 1000} s after each step)"
+        )
+
+    def deploy(self, files: dict[str, Path]) -> list[str]:
+        """Put `files` (board name -> host file) on the board, verified; returns the names that were copied."""
+        want = {name: sha256_file(path) for name, path in files.items()}
+        names = sorted(files)
+        self.enter()
+        self._run(_rm_step(names))
+        have = self.hashes(names)
+        copied = []
+        for name in names:
+            if have[name] == want[name]:
+                continue
+            tmp = name + ".tmp"
+            self.log(f"copying {name} ({files[name].stat().st_size} bytes)")
+            try:
+                self.board.put(files[name], tmp)
+            except BoardError as exc:
+                raise DeployError(f"board: copying {name}: {exc}") from None
+            got = self.hashes([tmp])[tmp]
+            if got != want[name]:
+                raise DeployError(f"board: {tmp} arrived damaged (sha256 {got[:12]}, sent {want[name][:12]})")
+            self._run(_rename_step(name))
+            copied.append(name)
+        final = self.hashes(names)
+        bad = [n for n in names if final[n] != want[n]]
+        if bad:
+            raise DeployError(f"board: sha256 differs after the copy: {', '.join(bad)}")
+        self.log(f"{len(names)} files verified on the board (sha256), {len(copied)} copied; resetting")
+        try:
+            self.board.reset()
+        except BoardError as exc:
+            raise DeployError(f"board: reset: {exc}") from None
+        return copied
+
+
+def deploy_plan(port: str, files: dict[str, Path]) -> list[list[str]]:
+    """The mpremote sessions of a deploy that finds every file different (what --dry-run prints)."""
+    board = MpremoteBoard(port)
+    names = sorted(files)
+    plan = [
+        board.command("exec", f"<{MAINTENANCE.relative_to(DEVICE.parent.parent)}>"),
+        board.command("exec", _rm_step(names)),
+        board.command("exec", _sha_step(names)),
     ]
+    for name in names:
+        plan.append(board.command("fs", "cp", str(files[name]), f":{name}.tmp"))
+        plan.append(board.command("exec", _sha_step([name + ".tmp"])))
+        plan.append(board.command("exec", _rename_step(name)))
+    plan.append(board.command("exec", _sha_step(names)))
+    plan.append(board.command("reset"))
+    return plan
+
+
+def format_plan(plan: list[list[str]]) -> list[str]:
+    return [shlex.join(cmd) for cmd in plan]
 
 
 def check_image(path: Path) -> None:
@@ -84,7 +216,7 @@ def check_image(path: Path) -> None:
 
 
 def flash_commands(port: str, image: Path, baud: int = FLASH_BAUD) -> list[list[str]]:
-    esptool = _tool("esptool")
+    esptool = tool_path("esptool")
     base = [esptool, "--chip", "esp8266", "--port", port]
     return [
         [*base, "erase-flash"],

@@ -101,6 +101,16 @@ def build_for_host(out: Path) -> tuple[Path, Path]:
     return device, stubs
 
 
+def parse_stats(output: str) -> dict[str, int]:
+    """The "stat KEY VALUE KEY VALUE ..." lines a test driver prints (longrun, budget), as one dict."""
+    stats: dict[str, int] = {}
+    for line in output.splitlines():
+        words = line.split()
+        if words[:1] == ["stat"]:
+            stats.update(zip(words[1::2], map(int, words[2::2]), strict=True))
+    return stats
+
+
 def micropython_cmd(module: str, *args: str) -> list[str]:
     """`micropython -X heapsize=38k -m MODULE ARGS...`: a host-stub driver module, run like the board."""
     return [micropython_exe(), "-X", f"heapsize={HEAP}", "-m", module, *args]

@@ -81,13 +81,19 @@ def test_deploy_dry_run_prints_the_mpremote_commands(tmp_path: Path) -> None:
     lines = proc.stdout.splitlines()
     assert lines[0] == "node n1 (zone z1, site school) -> broker 192.168.4.2:1883"
     cmds = [shlex.split(line) for line in lines[1:]]
-    assert all(Path(c[0]).name == "mpremote" and c[1:3] == ["connect", "/dev/ttyUSB0"] for c in cmds)
-    assert cmds[0][3] == "exec" and "os.remove" in cmds[0][4]
-    copy = cmds[1]
-    assert copy[3:5] == ["fs", "cp"] and copy[-1] == ":"
-    assert {Path(f).name for f in copy[5:-1]} == {n + ".mpy" for n in module_names()} | {"main.py", "boot.py"}
-    assert cmds[2][3:] == ["fs", "cp", str(cfg), ":config.json"]
-    assert cmds[3][3:] == ["reset"]
+    # Every session resumes: no soft reset, which would free the maintenance timer's callback.
+    assert all(
+        Path(c[0]).name == "mpremote" and c[1:4] == ["connect", "/dev/ttyUSB0", "resume"] for c in cmds
+    )
+    assert cmds[0][4:] == ["exec", "<firmware/device/maintenance.py>"]
+    assert cmds[1][4] == "exec" and "_wsnav_rm(" in cmds[1][5] and "'app.py'" in cmds[1][5]
+    copies = [c for c in cmds if c[4:6] == ["fs", "cp"]]
+    board_names = {n + ".mpy" for n in module_names()} | {"main.py", "boot.py", "config.json"}
+    assert {c[-1] for c in copies} == {f":{n}.tmp" for n in board_names}  # under temporary names
+    assert [c[-2] for c in copies if c[-1] == ":config.json.tmp"] == [str(cfg)]
+    renames = [c[5] for c in cmds if "os.rename" in c[-1]]
+    assert len(renames) == len(board_names)
+    assert "_wsnav_sha(" in cmds[-2][5] and cmds[-1][4:] == ["reset"]
     assert not build.exists()
 
 

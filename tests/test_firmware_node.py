@@ -24,6 +24,7 @@ from firmware.testing import (
     build_for_host,
     micropython_cmd,
     micropython_env,
+    parse_stats,
     write_credentials,
 )
 from schemas import topics
@@ -341,11 +342,7 @@ def test_hours_of_simulated_time_on_a_38k_heap(
     out = node.output()
     assert node.proc.returncode == 0, out
     assert "MemoryError" not in out and "Traceback" not in out, out
-    stats: dict[str, int] = {}
-    for line in out.splitlines():
-        words = line.split()
-        if words[:1] == ["stat"]:
-            stats.update(zip(words[1::2], map(int, words[2::2]), strict=True))
+    stats = parse_stats(out)
     print(out)
     assert stats["errors"] == 0 and stats["connects"] == 1, out
     # 10 s heartbeats plus two changes per 97 s pattern period: at least the heartbeats.

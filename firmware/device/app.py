@@ -18,8 +18,10 @@ from node_logic import NodeLogic
 
 # const() with a leading underscore: inlined by the compiler, no heap at run time.
 _LOOP_MS = const(50)
-_SOCKET_TIMEOUT_MS = const(1500)
-"""Per socket operation; connect + CONNACK stays well inside the ESP8266's ~5 s watchdog."""
+_WAIT_MS = const(1500)
+"""Per wait for the broker (CONNACK, PUBACK, a packet). The client blocks at most 1 s per socket operation and
+feeds the watchdog before each, so no gap between feeds exceeds 1.5 s, half the ESP8266 SDK's ~3.2 s (the
+budget table in docs/firmware-esp8266.md)."""
 _WIFI_JOIN_TIMEOUT_MS = const(20000)
 _MAX_OFFLINE_MS = const(600000)
 """Ten minutes without the broker: stop feeding the watchdog and let it reset the board."""
@@ -57,12 +59,11 @@ class Node:
     """A running node. `sensor` has `reading()` (a debounce level or a bool), `wifi` has `start()` and
     `connected()` (or is None: wired)."""
 
-    def __init__(self, cfg, sensor, wifi=None, wdt=None, clock=None, log=print) -> None:
+    def __init__(self, cfg, sensor, wifi=None, wdt=None, clock=None) -> None:
         self.sensor = sensor
         self.wifi = wifi
         self.wdt = wdt
         self.clock = clock if clock is not None else Clock()
-        self.log = log
         self.logic = NodeLogic(
             cfg["site"],
             cfg["zone"],
@@ -79,29 +80,26 @@ class Node:
             cfg["username"],
             cfg["password"],
             cfg["keepalive_s"],
-            _SOCKET_TIMEOUT_MS,
-            self.feed,  # a DNS lookup has no timeout: fed before it, the watchdog resets the board if it hangs
+            _WAIT_MS,
+            self.feed,  # before every blocking step, and from a timer during a DNS lookup (no timeout of its own)
         )
         self.wifi_backoff = Backoff(1000, 60000, _rand16)
         self.broker_backoff = Backoff(500, 30000, _rand16)
         self.phase = _OFFLINE
         self.next_attempt_ms = 0
-        self.phase_since_ms = 0
-        self.online_since_ms = 0
         self.offline_since_ms = 0
         self.errors = 0
         self.connects = 0
-        self.loop_ms = _LOOP_MS
 
     # -- health and watchdog -----------------------------------------------------------------------------
-    def healthy(self, now_ms: int) -> bool:
-        if self.errors >= _MAX_ERRORS:
-            return False
-        return self.phase == _ONLINE or now_ms - self.offline_since_ms < _MAX_OFFLINE_MS
-
     def feed(self) -> None:
-        if self.wdt is not None and self.healthy(self.clock.now_ms()):
-            self.wdt.feed()
+        """Feed the watchdog if healthy: fewer than _MAX_ERRORS loop errors in a row, and online or offline for
+        less than _MAX_OFFLINE_MS. Called before every blocking step (the MQTT client calls it too)."""
+        wdt = self.wdt
+        if wdt is None or self.errors >= _MAX_ERRORS:
+            return
+        if self.phase == _ONLINE or self.clock.now_ms() - self.offline_since_ms < _MAX_OFFLINE_MS:
+            wdt.feed()
 
     # -- connection state machine --------------------------------------------------------------------------
     def _go_offline(self, now_ms: int, why) -> None:
@@ -112,7 +110,7 @@ class Node:
         wifi_up = self.wifi is None or self.wifi.connected()
         self.phase = _BROKER_WAIT if wifi_up else _OFFLINE
         self.next_attempt_ms = now_ms + self.broker_backoff.next_delay_ms()
-        self.log("mqtt down:", why)
+        print("mqtt down:", why)
 
     def _connect_broker(self, now_ms: int) -> None:
         client = self.client
@@ -127,9 +125,8 @@ class Node:
             return
         self.broker_backoff.reset()
         self.phase = _ONLINE
-        self.online_since_ms = now_ms
         self.connects += 1
-        self.log("mqtt up", self.connects)
+        print("mqtt up", self.connects)
 
     def _connection_step(self, now_ms: int) -> None:
         wifi = self.wifi
@@ -142,17 +139,17 @@ class Node:
                 if wifi is not None:
                     wifi.start()
                 self.phase = _WIFI_JOINING
-                self.phase_since_ms = now_ms
+                self.next_attempt_ms = now_ms + _WIFI_JOIN_TIMEOUT_MS  # while joining: when to give up
             return
         if self.phase == _WIFI_JOINING:
             if wifi is None or wifi.connected():
                 self.wifi_backoff.reset()
                 self.phase = _BROKER_WAIT
                 self.next_attempt_ms = now_ms
-            elif now_ms - self.phase_since_ms > _WIFI_JOIN_TIMEOUT_MS:
+            elif now_ms > self.next_attempt_ms:
                 self.phase = _OFFLINE
                 self.next_attempt_ms = now_ms + self.wifi_backoff.next_delay_ms()
-                self.log("wifi join timed out")
+                print("wifi join timed out")
             return
         # _BROKER_WAIT
         if wifi is not None and not wifi.connected():
@@ -192,12 +189,12 @@ class Node:
             except MemoryError:
                 gc.collect()
                 self.errors += 1
-                self.log("MemoryError")
+                print("MemoryError")
             except Exception as exc:  # a bug must not kill the node silently: count it, let the WDT decide
                 self.errors += 1
-                self.log("loop error:", exc)
+                print("loop error:", exc)
             self.feed()
-            clock.sleep_ms(self.loop_ms)
+            clock.sleep_ms(_LOOP_MS)
 
 
 def main(cfg) -> None:
@@ -207,8 +204,13 @@ def main(cfg) -> None:
     import sensors
     import wifi
 
-    node = Node(
-        cfg, sensors.from_config(cfg), wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"]), machine.WDT()
-    )
+    wdt = machine.WDT()
+    node = Node(cfg, sensors.from_config(cfg), wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"]), wdt)
     gc.collect()
-    node.run()
+    try:
+        node.run()
+    except KeyboardInterrupt:
+        # Ctrl-C from mpremote: one last feed gives the host a whole watchdog period to start maintenance mode
+        # (firmware/deploy.py); after that nothing feeds, and a node left at the REPL resets by itself.
+        wdt.feed()
+        raise

@@ -3,12 +3,16 @@
 Why not umqtt.simple/robust (frozen in the ESP8266 image): they never send PINGREQ by themselves and block
 without timeouts, so a half-open TCP connection (broker rebooted, Wi-Fi access point gone) hangs the node until
 the watchdog bites. This client:
-- sets a timeout on every socket operation and bounds every wait (CONNACK, PUBACK, PINGRESP) by a deadline;
+- bounds every socket operation by 1 s (`_STEP_MS`) and every wait (CONNACK, PUBACK, a packet that has begun)
+  by `timeout_ms` overall, a deadline checked before each read (within a packet too);
+- calls `feed()` before every step that can block (the board's watchdog budget, docs/firmware-esp8266.md), and
+  keeps feeding from a timer while a DNS lookup runs (getaddrinfo takes no timeout);
 - sends its own keepalive pings (`maintain`) and declares the link dead when a PINGRESP is overdue;
 - tolerates PUBLISH packets it never asked for (amqtt 0.12 sends retained messages matching *other* clients'
   subscriptions): they are read and thrown away in small chunks, never buffered whole, and QoS 1 ones are
   acknowledged so the broker does not resend them;
 - raises OSError (MQTTError is one) for every failure, so the caller has one thing to catch.
+No DISCONNECT: a node never leaves on purpose, and its will must be published when it goes.
 It only publishes: no SUBSCRIBE, no QoS 2, no incoming message callback.
 """
 
@@ -16,7 +20,7 @@ import select
 import socket
 
 from micropython import const
-from time import ticks_diff, ticks_ms
+from time import ticks_add, ticks_diff, ticks_ms
 
 # const() names with a leading underscore are inlined by the compiler and cost no heap at run time.
 _CONNECT = const(0x10)
@@ -25,10 +29,16 @@ _PUBLISH = const(0x30)
 _PUBACK = const(0x40)
 _PINGREQ = const(0xC0)
 _PINGRESP = const(0xD0)
-_DISCONNECT = const(0xE0)
 
+_STEP_MS = const(1000)
+"""The longest any one socket operation blocks (connect, a send, a read): the watchdog is fed between them."""
+_ETIMEDOUT = const(110)
 _MAX_UNSOLICITED = const(16)
 """Packets handled per `poll` call, so a flood of retained messages cannot starve the main loop."""
+_LOOKUP_FEED_MS = const(500)
+_LOOKUP_MAX_MS = const(20000)
+"""How long a DNS lookup is fed: lwIP gives up by itself after its retries (about 7 s); one that outlives this
+is a wedged radio stack, left to the watchdog."""
 
 
 class MQTTError(OSError):
@@ -71,8 +81,8 @@ class MQTTClient:
         timeout_ms: int = 2000,
         feed=None,
     ) -> None:
-        """`feed()`, if given, is called just before and just after each DNS lookup: the board's watchdog feed,
-        the only bound a MicroPython lookup has (getaddrinfo takes no timeout)."""
+        """`timeout_ms` bounds each wait for the broker; `feed()`, if given, is the board's watchdog feed: called
+        before every socket operation (each at most 1 s), and every 500 ms by a timer while a DNS lookup runs."""
         self.client_id = client_id
         self.host = host
         self.port = port
@@ -87,15 +97,24 @@ class MQTTClient:
         self._ping_sent = 0
         self._ping_pending = False
         self.pings = 0
-        self.ignored = 0
         self.feed = feed
         self.addr = None  # the broker's address: built once for an IPv4 literal, else the last one DNS gave
 
-    # -- socket helpers: every call is bounded by the socket timeout -------------------------------------
-    def _send(self, data: bytes) -> None:
+    # -- socket helpers: every call is bounded by the socket timeout, every wait by a deadline --------------
+    def _fed(self, ms: int):
+        """The socket, after feeding the watchdog, its next operation bounded by `ms`: called before each
+        operation that can block."""
+        feed = self.feed
+        if feed is not None:
+            feed()
         sock = self.sock
         if sock is None:
             raise MQTTError("not connected")
+        sock.settimeout(ms / 1000)
+        return sock
+
+    def _send(self, data: bytes) -> None:
+        sock = self._fed(_STEP_MS)
         mv = memoryview(data)
         sent = 0
         while sent < len(data):
@@ -105,32 +124,36 @@ class MQTTClient:
             sent += n
         self._last_tx = ticks_ms()
 
-    def _recv(self, n: int) -> bytes:
-        sock = self.sock
-        if sock is None:
-            raise MQTTError("not connected")
-        data = sock.recv(n)
-        if not data:
-            raise MQTTError("connection closed by broker")
+    def _recv(self, n: int, deadline) -> bytes:
+        """Exactly n bytes by `deadline` (a ticks_ms value), in reads of at most 1 s with a feed before each."""
+        data = b""
         while len(data) < n:
-            more = sock.recv(n - len(data))
+            left = ticks_diff(deadline, ticks_ms())
+            if left <= 0:
+                raise MQTTError("timed out waiting for the broker")
+            try:
+                more = self._fed(left if left < _STEP_MS else _STEP_MS).recv(n - len(data))
+            except OSError as exc:
+                if exc.errno == _ETIMEDOUT:
+                    continue  # one step's worth of silence: feed, then wait for what is left
+                raise
             if not more:
                 raise MQTTError("connection closed by broker")
             data += more
         return data
 
-    def _skip(self, n: int) -> None:
+    def _skip(self, n: int, deadline) -> None:
         """Discard n bytes in small chunks: an unsolicited message must not cost its size in heap."""
         while n > 0:
-            n -= len(self._recv(n if n < 64 else 64))
+            n -= len(self._recv(n if n < 64 else 64, deadline))
 
-    def _read_packet(self):
-        """Read one packet; returns (type, short_body) where short_body is what we need of it (or b'')."""
-        first = self._recv(1)[0]
+    def _read_packet(self, deadline):
+        """Read one packet by `deadline`; returns (type, short_body) where short_body is what we need of it (or b'')."""
+        first = self._recv(1, deadline)[0]
         length = 0
         shift = 0
         while True:
-            b = self._recv(1)[0]
+            b = self._recv(1, deadline)[0]
             length |= (b & 0x7F) << shift
             if not b & 0x80:
                 break
@@ -139,36 +162,35 @@ class MQTTClient:
                 raise MQTTError("bad remaining length")
         kind = first & 0xF0
         if kind == _PUBLISH:
-            self.ignored += 1
             qos = (first >> 1) & 3
-            tlen = self._recv(2)
+            tlen = self._recv(2, deadline)
             tl = (tlen[0] << 8) | tlen[1]
-            self._skip(tl)
+            self._skip(tl, deadline)
             rest = length - 2 - tl
             if qos:
-                pid = self._recv(2)
+                pid = self._recv(2, deadline)
                 rest -= 2
-                self._skip(rest)
+                self._skip(rest, deadline)
                 if qos == 1:
                     self._send(bytes((_PUBACK, 2)) + pid)
             else:
-                self._skip(rest)
+                self._skip(rest, deadline)
             return kind, b""
         if length <= 4:
-            return kind, self._recv(length) if length else b""
-        self._skip(length)
+            return kind, self._recv(length, deadline) if length else b""
+        self._skip(length, deadline)
         return kind, b""
 
     def _wait_for(self, kind: int, body=None) -> bytes:
-        """Read packets until one of `kind` (and `body`, if given) arrives; bounded by timeout_ms overall."""
-        start = ticks_ms()
-        while ticks_diff(ticks_ms(), start) < self.timeout_ms:
-            k, b = self._read_packet()
+        """Read packets until one of `kind` (and `body`, if given) arrives; bounded by timeout_ms overall, the
+        deadline checked before every read (a packet that trickles in cannot stretch the wait)."""
+        deadline = ticks_add(ticks_ms(), self.timeout_ms)
+        while True:
+            k, b = self._read_packet(deadline)
             if k == kind and (body is None or b == body):
                 return b
             if k == _PINGRESP:
                 self._ping_pending = False
-        raise MQTTError("timed out waiting for packet type " + str(kind >> 4))
 
     # -- the protocol -----------------------------------------------------------------------------------
     def connect(self, will=None, clean: bool = True) -> None:
@@ -177,9 +199,8 @@ class MQTTClient:
         addr = self._address()
         sock = socket.socket()
         self.sock = sock
-        sock.settimeout(self.timeout_ms / 1000)
         try:
-            sock.connect(addr)
+            self._fed(_STEP_MS).connect(addr)
             flags = 0x02 if clean else 0
             payload = _str(self.client_id)
             if will is not None:
@@ -215,17 +236,28 @@ class MQTTClient:
             if addr is None:
                 addr = self.addr = socket.getaddrinfo(host, self.port)[0][-1]
             return addr
+        timer = None
         feed = self.feed
         if feed is not None:
             feed()
+            from machine import Timer  # here: a broker given by address never loads it
+
+            start = ticks_ms()
+            timer = Timer(-1)
+            timer.init(  # its callback runs while getaddrinfo polls lwIP (mp_handle_pending)
+                period=_LOOKUP_FEED_MS,
+                mode=Timer.PERIODIC,
+                callback=lambda _t: ticks_diff(ticks_ms(), start) < _LOOKUP_MAX_MS and feed(),
+            )
         try:
             addr = self.addr = lookup(host, self.port)[0][-1]
         except OSError:
             if addr is None:
                 raise MQTTError("cannot resolve " + host)
-        if feed is not None:
-            feed()
-        return addr
+        finally:
+            if timer is not None:
+                timer.deinit()
+        return addr  # connect() feeds before its next step
 
     def publish(self, topic: str, payload: bytes, retain: bool = False, qos: int = 0) -> None:
         """Send a PUBLISH; with qos=1 wait (bounded) for the matching PUBACK. No retry: the caller reconnects."""
@@ -239,13 +271,6 @@ class MQTTClient:
         else:
             self._send(_fixed(first, len(t) + len(payload)) + t + payload)
 
-    def ping(self) -> None:
-        """Send PINGREQ; the PINGRESP is collected by `poll` or any later wait."""
-        self._send(bytes((_PINGREQ, 0)))
-        self._ping_sent = ticks_ms()
-        self._ping_pending = True
-        self.pings += 1
-
     def poll(self) -> None:
         """Handle whatever the broker sent, without blocking when nothing is waiting."""
         poller = self._poller
@@ -257,7 +282,7 @@ class MQTTClient:
                 return
             if events[0][1] & (select.POLLHUP | select.POLLERR):
                 raise MQTTError("connection lost")
-            kind, _body = self._read_packet()
+            kind, _body = self._read_packet(ticks_add(ticks_ms(), self.timeout_ms))
             if kind == _PINGRESP:
                 self._ping_pending = False
 
@@ -269,15 +294,10 @@ class MQTTClient:
             if ticks_diff(now, self._ping_sent) > max(half, self.timeout_ms):
                 raise MQTTError("no PINGRESP from broker")
         elif ticks_diff(now, self._last_tx) >= half:
-            self.ping()
-
-    def disconnect(self) -> None:
-        """Polite DISCONNECT (the will is not sent), then close; never raises."""
-        try:
-            self._send(bytes((_DISCONNECT, 0)))
-        except Exception:
-            pass
-        self.close()
+            self._send(bytes((_PINGREQ, 0)))  # its PINGRESP is collected by `poll` or any later wait
+            self._ping_sent = ticks_ms()
+            self._ping_pending = True
+            self.pings += 1
 
     def close(self) -> None:
         sock = self.sock

@@ -65,4 +65,5 @@ while until <= sim_ms:
 print("stat heap_start", start_free, "heap_lowest", lowest, "heap_end", gc.mem_free())
 print("stat publications", node.logic.publications, "connects", node.connects, "errors", node.errors)
 print("stat pings", node.client.pings, "feeds", getattr(machine.WDT, "feeds", -1), "sim_s", clock.t // 1000)
-node.client.disconnect()
+node.client._send(b"\xe0\x00")  # DISCONNECT: a clean end of the run (no will)
+node.client.close()

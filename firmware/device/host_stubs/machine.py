@@ -2,7 +2,9 @@
 
 Input pin N reads the text ("0"/"1") of the file `$WSNAV_PINS/N` (missing: 0), so a test flips a sensor by
 writing one file; `time_pulse_us` returns the integer in `$WSNAV_PINS/N.pulse` (missing: -1, a timeout), an
-HC-SR04 echo. The WDT only counts feeds. Kept small: on the 38 KiB heap this costs what the board never pays.
+HC-SR04 echo. The WDT only counts feeds. No Timer or reset here: the drivers that need them install
+soft_timers' (only then, so the heap measured by run_node and longrun does not pay for them). Kept small: on the
+38 KiB heap this costs what the board never pays.
 """
 
 import os

@@ -35,7 +35,8 @@ try:
             c.maintain()
             time.sleep_ms(20)
         print("still up")
-    c.disconnect()
+    c._send(b"\xe0\x00")  # DISCONNECT (the node itself never sends one)
+    c.close()
     print("done")
 except OSError as exc:
     print("error", exc)

@@ -19,8 +19,13 @@ AP_IF = 1
 
 
 class WLAN:
+    PM_NONE = 0
+
     def __init__(self, interface=STA_IF):
         self._active = interface == AP_IF
+
+    def config(self, pm):
+        WLAN.pm = pm  # the radio's sleep type, global as on the ESP8266 (which boots in modem sleep, 2)
 
     def active(self, on=None):
         if on is not None:
