@@ -1,7 +1,8 @@
 """The robot's layered costmap, with costmap_2d's semantics: static -> obstacle -> zone, then inflation.
 
-The layers (robot_agent.costmap_layers) are merged in order, each by its own rule (all by numeric maximum today,
-so NO_INFORMATION, 255, stays unknown), then inflated with costmap_2d's formula (robot_agent.inflation). Every
+The layers (robot_agent.costmap_layers) are merged in order, each by its own rule (costmap_2d's: the static
+layer overwrites, the others by updateWithMax, where a layer's NO_INFORMATION never hides a known cost), then
+inflated with costmap_2d's formula (robot_agent.inflation). Every
 update touches only the bounds that changed: the cells whose merged cost a layer changed are merged again, and
 the inflation layer's reach around them re-inflated, computing distances on a window grown once more (a lethal
 cell farther than the radius cannot change a cell's cost), so the result is cell for cell what a whole-map
