@@ -130,6 +130,23 @@ class ObstacleLayer:
         self._pending.append(window)
         return True
 
+    def clear_outside(self, inside: Bounds) -> bool:
+        """Forget every mark outside the cell window `inside` (clear_costmap_recovery's clearMap on this layer);
+        True if a mark went (the window of those marks is then pending)."""
+        keep = inside.grow(0, self.frame)
+        before = self.marked.copy()
+        self.marked[...] = False
+        if not keep.empty:
+            self.marked[keep.rows, keep.cols] = before[keep.rows, keep.cols]
+        rows, cols = np.nonzero(before & ~self.marked)
+        if len(rows) == 0:
+            return False
+        self._last_scan = None
+        self._pending.append(
+            Bounds(int(rows.min()), int(cols.min()), int(rows.max()) + 1, int(cols.max()) + 1)
+        )
+        return True
+
     def _set_cells(self, xs: NDArray[np.float64], ys: NDArray[np.float64], value: bool) -> None:
         rows, cols = self.frame.world_to_cells(xs, ys)
         inside = (rows >= 0) & (rows < self.frame.height) & (cols >= 0) & (cols < self.frame.width)

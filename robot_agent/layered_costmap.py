@@ -113,6 +113,17 @@ class LayeredCostmap:
             return None
         return self.update()
 
+    def clear_obstacles_outside(self, x: float, y: float, size_m: float) -> Bounds | None:
+        """Forget the lidar's marks outside a square of side `size_m` centred on (x, y) (move_base's
+        clear_costmap_recovery on the obstacle layer); None if nothing changed."""
+        if self.obstacles is None:
+            return None
+        row0, col0 = self.frame.world_to_cell(x - size_m / 2.0, y - size_m / 2.0)
+        n = math.ceil(size_m / self.frame.resolution)
+        if not self.obstacles.clear_outside(Bounds(row0, col0, row0 + n, col0 + n)):
+            return None
+        return self.update()
+
     def update(self) -> Bounds | None:
         """costmap_2d's updateMap: ask each layer what it changed, merge there, re-inflate around it.
 

@@ -43,7 +43,7 @@ def test_one_run_per_route_and_config_arrives_without_collisions_and_repeats_wit
     for name in ("runs.csv", "summary.csv", "distance_m.png", "time_s.png", "cpu_per_sim_s.png"):
         assert (tmp_path / "out" / name).stat().st_size > 0
     assert (tmp_path / "out" / "paths_A-B.png").stat().st_size > 0
-    assert "| A->B | full | 1 | 1 | 0 |" in report.read_text()
+    assert "| A->B | full | 1 | 1 | 100% | 0 |" in report.read_text()
     again = run_experiment(site.path, [s for s in specs if s.config == "full"], workers=1).table
     deterministic = [c for c in COLUMNS if c not in NONDETERMINISTIC]
 
@@ -60,7 +60,10 @@ def test_one_run_per_route_and_config_arrives_without_collisions_and_repeats_wit
     ("argv", "message"),
     [
         (["experiment", "--runs", "0"], "--runs must be at least 1"),
-        (["experiment", "--runs", "1", "--configs", "fastest"], "--configs:"),
+        (
+            ["experiment", "--runs", "1", "--configs", "default,fastest"],
+            "--configs: fastest: no such agent config (built in: default, zones, full)",
+        ),
         (["experiment", "--runs", "1", "--broker", "127.0.0.1:1"], "--broker needs --credentials"),
         (["experiment", "--site", "/nonexistent/site", "--runs", "1"], "/nonexistent/site"),
     ],
