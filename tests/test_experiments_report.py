@@ -122,6 +122,8 @@ def test_run_plan_pairs_configurations_and_follows_the_seed() -> None:
     ab = {r.blocked for r in runs if r.route == "A->B"}
     assert ab == {("z1",), ("z4",)}  # both raffle outcomes occur in 20 runs
     assert plan_runs(spec, ["default", "full"], runs=20, seed=7) == runs
+    fewer = plan_runs(spec, ["default", "full"], runs=5, seed=7)
+    assert fewer == [r for r in runs if r.run < 5], "fewer runs are the first runs of more"
     assert plan_runs(spec, ["default", "full"], runs=20, seed=8) != runs
 
 
