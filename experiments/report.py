@@ -127,7 +127,21 @@ def summarise(table: pd.DataFrame, by: Sequence[str] = ("route",)) -> pd.DataFra
             row[f"{metric.column}_ci_low"] = low
             row[f"{metric.column}_ci_high"] = high
         rows.append(row)
-    return pd.DataFrame(rows)
+    return _in_config_order(pd.DataFrame(rows), list(by))
+
+
+def _in_config_order(summary: pd.DataFrame, by: list[str]) -> pd.DataFrame:
+    """Rows grouped by `by`, each group's configurations in the ablation's order (default, zones, full)."""
+    if summary.empty:
+        return summary
+    rank = {c: i for i, c in enumerate(CONFIG_ORDER)}
+    order = [rank.get(str(c), len(rank)) for c in summary["config"]]
+    return (
+        summary.assign(_rank=order)
+        .sort_values([*by, "_rank", "config"], kind="stable")
+        .drop(columns="_rank")
+        .reset_index(drop=True)
+    )
 
 
 def _mean_of(group: pd.DataFrame, column: str) -> float:
@@ -170,6 +184,7 @@ def paired_differences(
                 col = metric.column
                 diff = (b_g[col].to_numpy(dtype=np.float64) - a_g[col].to_numpy(dtype=np.float64))[both]
             mean, low, high = mean_ci(diff)
+            row[f"{metric.column}_n"] = int(np.isfinite(diff).sum())
             row[f"{metric.column}_diff"] = mean
             row[f"{metric.column}_ci_low"] = low
             row[f"{metric.column}_ci_high"] = high
@@ -189,7 +204,8 @@ def paired_table(diff: pd.DataFrame, before: str, after: str) -> str:
         cells = [str(r["group"]), str(r["pairs"]), str(r["both_arrived"])]
         for m in METRICS:
             mean, low, high = (float(r[f"{m.column}_{k}"]) for k in ("diff", "ci_low", "ci_high"))
-            apart = np.isfinite(low) and (high < 0 or low > 0)
+            n = int(r[f"{m.column}_n"])  # type: ignore[arg-type]
+            apart = n >= 2 and (high < 0 or low > 0)
             cells.append(f"{_fmt(mean, low, high)}{'' if not np.isfinite(mean) else (' *' if apart else '')}")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -350,18 +366,31 @@ def stall_section(table: pd.DataFrame) -> list[str]:
     stock move_base would stall too."""
     if "stalled_s" not in table.columns:
         return []
-    parts = ["## Stalls and move_base's recoveries", ""]
+    parts = [
+        "## Stalls and move_base's recoveries",
+        "",
+        "A stall that outlasts all four recoveries ends as stock move_base ends it: the goal aborted (a failed "
+        "run). Why a stock robot stalls before an obstacle about 3 m away: its face sits at the obstacle "
+        "layer's 3.0 m marking range, where readings just beyond it clear the marks and the 5 Hz planner "
+        "switches between the way through and the detour (docs/architecture.md, the move_base facts).",
+        "",
+    ]
     for config in [c for c in CONFIG_ORDER if c in set(table["config"])]:
         part = table.loc[table["config"].to_numpy() == config]
         stalled = part["stalled_s"].to_numpy(dtype=np.float64)
         worst = part.iloc[int(np.argmax(stalled))]
         if float(worst["stalled_s"]) <= 0:
-            parts += [f"- `{config}`: no stall.", ""]
+            parts += [f"- `{config}`: no stall in {len(part)} runs.", ""]
             continue
+        aborted = int((part["outcome"] == "aborted").sum()) if "outcome" in part.columns else 0
+        parts += [
+            f"- `{config}`: {int((stalled > 0).sum())} of {len(part)} runs stalled, {aborted} aborted by "
+            "move_base's rules."
+        ]
         log = str(worst.get("recovery_log", "") or "")
         log = "" if log == "nan" else log
         parts += [
-            f"- `{config}`: the longest stall is {worst['route']} with {worst['blocked']} blocked, run "
+            f"  The longest stall is {worst['route']} with {worst['blocked']} blocked, run "
             f"{worst['run']} (seed {worst['seed']}): {sig3(float(worst['stalled_s']))} s stalled, "
             f"{worst.get('outcome', '')} after {sig3(float(worst['time_s']))} s; "
             f"recoveries (s from the goal): {log or 'none'}.",
@@ -391,7 +420,7 @@ def write_report(table: pd.DataFrame, out: Path, header: str, path_figures: Sequ
             f"### {before} -> {after}: {what}",
             "",
             "Mean paired difference (run i of a route under both: same zone, same seed) with its 95% interval; "
-            "`*`: the interval excludes zero.",
+            "`*`: the interval excludes zero (two pairs or more).",
             "",
             paired_table(diff, before, after),
             "",
@@ -404,18 +433,18 @@ def write_report(table: pd.DataFrame, out: Path, header: str, path_figures: Sequ
         "## By route and blocked zone",
         "",
         "A route's raffle mixes detours of different lengths, which widens its interval; run i blocks the same "
-        "zone under both configurations, so each zone's rows compare like with like.",
+        "zone under every configuration, so each zone's rows compare like with like.",
         "",
         markdown_table(by_zone, ("route", "blocked")),
         "",
     ]
     if {"full", "default"} <= set(configs):
         parts += [verdict_table(verdicts(by_zone), "route and zone: full vs default"), ""]
-    parts += stall_section(table)
     for metric in METRICS:
         png = out / f"{metric.column}_by_zone.png"
         bar_chart(by_zone, metric, png)
         parts += [f"![{metric.label} by blocked zone]({png.name})", ""]
+    parts += stall_section(table)
     if path_figures:
         parts += ["## Paths (the paper's Figures 8-9)", ""]
     for png in path_figures:
