@@ -11,6 +11,7 @@ so a report can be remade without rerunning anything.
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,8 +86,11 @@ def sig3(x: float) -> str:
     """Three significant figures, never in exponent notation (0.0151, 2.00, 362, 1230)."""
     if not np.isfinite(x):
         return "n/a"
-    text = np.format_float_positional(x, precision=3, unique=False, fractional=False, trim="k")
-    return text.rstrip(".")
+    rounded = float(f"{x:.3g}")
+    if rounded == 0:
+        return "0"
+    decimals = 2 - math.floor(math.log10(abs(rounded)))
+    return f"{rounded:.{max(decimals, 0)}f}"
 
 
 def metric_values(group: pd.DataFrame, column: str) -> NDArray[np.float64]:

@@ -67,13 +67,15 @@ def test_a_failed_run_counts_at_the_cap_in_time_and_is_left_out_of_distance(tmp_
 
 
 def test_every_number_has_three_significant_figures() -> None:
-    assert [sig3(x) for x in (0.0151, 0.01462, 2.0, 361.74, 1234.5, 99.96)] == [
+    assert [sig3(x) for x in (0.0151, 0.01462, 0.006699, 2.0, 361.74, 1234.5, 99.96, -0.000886)] == [
         "0.0151",
         "0.0146",
+        "0.00670",
         "2.00",
         "362",
         "1230",
         "100",
+        "-0.000886",
     ]
     rows = table()
     rows["agent_cpu_s"] = np.where(rows["config"] == "full", 0.0151 * rows["time_s"], 2.0)
