@@ -1,4 +1,4 @@
-"""`wsnav experiment --site DIR --runs N --out DIR [...]`: the paper's experiment, both configurations, a report.
+"""`wsnav experiment --site DIR --runs N --out DIR [...]`: the paper's experiment, each configuration, a report.
 `wsnav demo [--out DIR]`: its short form, one `full` run of each route, a table and a picture.
 
 The work lives in wsnav.experiment_command, imported only when one of these runs, so other commands start fast.
