@@ -1,7 +1,8 @@
 """Which runs an experiment makes: route x configuration x run index, each with its raffled zone set and seed.
 
-Run i of a route blocks the same zones under both configurations (a paired comparison), and the whole list
-follows from the base seed alone, so the same seed gives the same table.
+Run i of a route blocks the same zones under every configuration (a paired comparison), and the whole list
+follows from the base seed alone, so the same seed gives the same table. Run i's zones and seed depend on the
+base seed, the route and i only: `--runs 20` makes exactly the first 20 runs of `--runs 50`.
 """
 
 from __future__ import annotations
@@ -37,9 +38,9 @@ def plan_runs(spec: SiteFile, configs: list[str], runs: int, seed: int) -> list[
     """All runs, ordered config-major so a progress bar shows each configuration's share."""
     out: list[RunSpec] = []
     for r_index, route in enumerate(spec.routes):
-        rng = np.random.default_rng([seed, r_index])
-        picks = rng.integers(0, len(route.raffle), size=runs)
-        seeds = rng.integers(0, 2**31 - 1, size=runs)
+        draws = [np.random.default_rng([seed, r_index, i]) for i in range(runs)]
+        picks = [int(rng.integers(0, len(route.raffle))) for rng in draws]
+        seeds = [int(rng.integers(0, 2**31 - 1)) for rng in draws]
         for config in configs:
             for i in range(runs):
                 out.append(
@@ -48,9 +49,9 @@ def plan_runs(spec: SiteFile, configs: list[str], runs: int, seed: int) -> list[
                         route=route_name(route.from_, route.to),
                         start=route.from_,
                         goal=route.to,
-                        blocked=tuple(route.raffle[int(picks[i])]),
+                        blocked=tuple(route.raffle[picks[i]]),
                         run=i,
-                        seed=int(seeds[i]),
+                        seed=seeds[i],
                     )
                 )
     return sorted(out, key=lambda s: (configs.index(s.config), s.route, s.run))

@@ -7,7 +7,9 @@ part of what is measured) and cleared once the robot has stopped, so the next ru
 
 from __future__ import annotations
 
+import math
 import resource
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +22,7 @@ from experiments.run_plan import RunSpec
 from robot_agent.agent import RobotAgent
 from robot_agent.agent_config import load_agent_config
 from robot_agent.lidar import LidarParams
+from robot_agent.navigator import NavEvent
 from robot_agent.sim_turtlebot3 import SimTurtleBot3, TurtleBot3Params
 from robot_agent.sim_world_grid import SimWorldGrid
 from runtime.clock import SimClock
@@ -60,12 +63,59 @@ COLUMNS = (
     "time_s",
     "distance_m",
     "replans",
+    "recoveries",
+    "stalled_s",
+    "outcome",
+    "recovery_log",
     "planning_ms",
     "agent_cpu_s",
     "peak_mem_mb",
 )
 NONDETERMINISTIC = ("planning_ms", "agent_cpu_s", "peak_mem_mb")
 """Columns that measure the machine rather than the run (the rest are the same for the same seed)."""
+
+
+STALL_DISTANCE_M = 0.2
+STALL_AFTER_S = 10.0
+"""A stall: the robot not STALL_DISTANCE_M from where it was for at least STALL_AFTER_S (move_base's
+oscillation_distance and oscillation_timeout), whatever it does meanwhile (turning, waiting, recovering)."""
+
+
+class StallMeter:
+    """Simulated time spent in stalls, measured on the robot's true pose alike for every configuration."""
+
+    def __init__(self, t: float, xy: tuple[float, float]) -> None:
+        self.stalled_s = 0.0
+        self._t, self._xy = t, xy
+
+    def update(self, t: float, xy: tuple[float, float]) -> None:
+        if math.hypot(xy[0] - self._xy[0], xy[1] - self._xy[1]) >= STALL_DISTANCE_M:
+            self.close(t)
+            self._t, self._xy = t, xy
+
+    def close(self, t: float) -> None:
+        """Count the stretch since the last progress if it was a stall (at a move, and at the run's end)."""
+        if t - self._t >= STALL_AFTER_S:
+            self.stalled_s += t - self._t
+        self._t = t
+
+
+def outcome_of(state: str, reason: str | None) -> str:
+    """How a run ended: arrived, timeout (the cap), aborted (move_base's recoveries all failed) or cancelled."""
+    if state == "arrived":
+        return "arrived"
+    if state == "cancelled":
+        return "aborted" if reason is not None and reason.startswith("aborted") else "cancelled"
+    return "timeout"
+
+
+def recovery_log(events: Iterable[NavEvent], t0: float) -> str:
+    """The run's recovery behaviours and its abort, if any, as `t name (trigger); ...` (t from the goal)."""
+    return "; ".join(
+        f"{e.t - t0:.1f} {e.detail}"
+        for e in events
+        if e.kind == "recovery" or (e.kind == "cancelled" and (e.detail or "").startswith("aborted"))
+    )
 
 
 @dataclass(frozen=True)
@@ -179,6 +229,7 @@ def _drive(
     agent.set_goal(site.point(spec.goal), spec.goal, clock.now())
     cpu0 = agent.stats.cpu_s
     trajectory: list[tuple[float, float]] = [robot.pose()[:2]]
+    stalls = StallMeter(clock.now(), robot.pose()[:2])
     next_sample = TRAJECTORY_EVERY_S
     t0 = clock.now()
     nav = agent.navigator
@@ -187,6 +238,7 @@ def _drive(
         agent.step(now)
         robot.step(DT, now + DT)
         clock.advance(DT)
+        stalls.update(clock.now(), robot.pose()[:2])
         sim.step(clock.now(), io_timeout_s=0.0)
         if not synced():
             settle(synced, poke, agent.bus.wait, "zone messages")
@@ -194,6 +246,7 @@ def _drive(
             trajectory.append(robot.pose()[:2])
             next_sample += TRAJECTORY_EVERY_S
     elapsed = clock.now() - t0
+    stalls.close(clock.now())
     trajectory.append(robot.pose()[:2])
     counters = agent.counters()
     row: dict[str, object] = {
@@ -207,6 +260,10 @@ def _drive(
         "time_s": round(elapsed, 3),
         "distance_m": round(robot.distance_m, 3),
         "replans": int(counters["replans"]),
+        "recoveries": int(counters["recoveries"]),
+        "stalled_s": round(stalls.stalled_s, 3),
+        "outcome": outcome_of(nav.state, nav.reason),
+        "recovery_log": recovery_log(nav.events, t0),
         "planning_ms": float(counters["planning_ms"]),
         "agent_cpu_s": round(agent.stats.cpu_s - cpu0, 6),
         "peak_mem_mb": round(peak_rss_mb(), 1),

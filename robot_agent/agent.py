@@ -144,6 +144,7 @@ class RobotAgent:
                 waiting_retry_s=config.waiting_retry_s,
                 blocked_replan_interval_s=config.blocked_replan_interval_s,
                 local_costmap_size_m=config.local_costmap_size_m,
+                recovery=config.recovery.params(),
             ),
             blocked_zones=self.blocked_zones,
             escape=ZoneEscape(self.costmap) if self.zone_layer is not None else None,
@@ -194,6 +195,7 @@ class RobotAgent:
             "zone_updates": self.stats.zone_updates,
             "costmap_scans": self.stats.costmap_scans,
         }
+        out["recoveries"] = nav.recovery.run if nav.recovery is not None else 0
         out.update({f"replans_{k}": v for k, v in nav.replans_by.items()})
         out.update({f"dropped_{k}": v for k, v in self.dropped().items()})
         return out

@@ -1,7 +1,8 @@
 """The robot agent's configuration: which layers it runs, how often it does each piece of work, and tuning.
 
-Two files ship in robot_agent/configs/: `default` (TurtleBot3's stock move_base behaviour, the paper's
-baseline) and `full` (the zone layer over MQTT with event-driven replanning). The experiment compares them on
+Three files ship in robot_agent/configs/: `default` (TurtleBot3's stock move_base behaviour, the paper's
+baseline), `zones` (default's timings and planner with the zone layer and Algorithm 3: what the sensor network
+alone brings) and `full` (zones with event-driven replanning and coarser planning). The experiment compares them on
 the agent's CPU, so each rate here is honoured tick by tick: work not due is not done.
 """
 
@@ -14,10 +15,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from robot_agent.global_planner import PlannerParams
 from robot_agent.inflation import InflationParams
+from robot_agent.move_base_recovery import RecoveryParams
 from schemas.yaml_file import read_yaml_mapping
 
 CONFIG_DIR = Path(__file__).parent / "configs"
-BUILTIN = ("default", "full")
+BUILTIN = ("default", "zones", "full")
 
 Rate = Annotated[float, Field(ge=0, le=1000)]
 PositiveRate = Annotated[float, Field(gt=0, le=1000)]
@@ -64,6 +66,37 @@ class PlannerSection(_Strict):
         )
 
 
+class RecoverySection(_Strict):
+    """Stock move_base's oscillation detection, patience and recovery behaviours (robot_agent.move_base_recovery);
+    the defaults are ROBOTIS' turtlebot3_navigation move_base_params (noetic)."""
+
+    enabled: bool = False
+    oscillation_timeout_s: Annotated[float, Field(ge=0)] = 10.0
+    oscillation_distance_m: Annotated[float, Field(ge=0)] = 0.2
+    planner_patience_s: Annotated[float, Field(ge=0)] = 5.0
+    controller_patience_s: Annotated[float, Field(ge=0)] = 15.0
+    conservative_reset_dist_m: Annotated[float, Field(ge=0)] = 3.0
+    aggressive_reset_dist_m: Annotated[float, Field(ge=0)] = 0.59
+    rotate: bool = True
+    on_no_path: bool = True
+    """Planner patience starts recoveries when no path is found (stock); false: wait for a zone to change
+    (Algorithm 3)."""
+
+    def params(self) -> RecoveryParams | None:
+        if not self.enabled:
+            return None
+        return RecoveryParams(
+            oscillation_timeout_s=self.oscillation_timeout_s,
+            oscillation_distance_m=self.oscillation_distance_m,
+            planner_patience_s=self.planner_patience_s,
+            controller_patience_s=self.controller_patience_s,
+            conservative_reset_dist_m=self.conservative_reset_dist_m,
+            aggressive_reset_dist_m=self.aggressive_reset_dist_m,
+            rotate=self.rotate,
+            on_no_path=self.on_no_path,
+        )
+
+
 class AgentConfig(_Strict):
     name: str = "custom"
     zone_layer: bool = True
@@ -87,10 +120,11 @@ class AgentConfig(_Strict):
     """At most one replan per this interval when the controller reports the path blocked."""
     inflation: InflationSection = InflationSection()
     planner: PlannerSection = PlannerSection()
+    recovery: RecoverySection = RecoverySection()
 
 
 def load_agent_config(location: str | Path) -> AgentConfig:
-    """A built-in configuration by name (`default`, `full`) or a YAML file; raises AgentConfigError (one line)."""
+    """A built-in configuration by name (`default`, `zones`, `full`) or a YAML file; raises AgentConfigError (one line)."""
     path = CONFIG_DIR / f"{location}.yaml" if str(location) in BUILTIN else Path(location)
     raw = read_yaml_mapping(
         path, AgentConfigError, "an agent config", f"no such agent config (built in: {', '.join(BUILTIN)})"

@@ -2,7 +2,9 @@
 
 A layer reports the windows it changed since it was last asked (costmap_2d's `updateBounds`) and combines its
 costs into a master window (`updateCosts`). The stack (robot_agent.layered_costmap) merges static, obstacle and
-zone layers in that order, then hands the result to the inflation layer. Adding a layer means writing one class
+zone layers in that order, then hands the result to the inflation layer. The rules are costmap_2d's: the static
+layer overwrites (StaticLayer without `use_maximum`), the others merge by `update_with_max`, in which a layer's
+NO_INFORMATION never overrides what master knows. Adding a layer means writing one class
 with these two methods and putting it in the stack's list; nothing else changes.
 """
 
@@ -16,12 +18,25 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robot_agent.backend import LaserScan
-from robot_agent.inflation import LETHAL_OBSTACLE, InflationParams, inflate, static_layer
+from robot_agent.inflation import (
+    LETHAL_OBSTACLE,
+    NO_INFORMATION,
+    InflationParams,
+    inflate,
+    static_layer,
+)
 from robot_agent.zone_geometry import Bounds, GridFrame
 from robot_agent.zone_layer import BlockedArea, ZoneLayer
 from schemas.ros_map import OccupancyGrid
 
 Costs = NDArray[np.uint8]
+
+
+def update_with_max(master: Costs, costs: Costs) -> None:
+    """costmap_2d's CostmapLayer::updateWithMax on a window: the layer's cost where master's is NO_INFORMATION or
+    lower, and never the layer's NO_INFORMATION (so a stale zone read as unknown leaves walls lethal)."""
+    take = (costs != NO_INFORMATION) & ((master == NO_INFORMATION) | (master < costs))
+    np.copyto(master, costs, where=take)
 
 
 class Layer(Protocol):
@@ -37,7 +52,8 @@ class Layer(Protocol):
 
 
 class StaticLayer:
-    """The site's map: walls lethal, unknown space unknown; never changes after start-up."""
+    """The site's map: walls lethal, unknown space unknown; never changes after start-up. The first layer: it
+    overwrites master, unknown included (costmap_2d's updateWithTrueOverwrite, StaticLayer's default)."""
 
     def __init__(self, grid: OccupancyGrid) -> None:
         self.costs: Costs = static_layer(grid)
@@ -46,14 +62,16 @@ class StaticLayer:
         return []
 
     def update_costs(self, master: Costs, bounds: Bounds) -> None:
-        np.maximum(master, self.costs[bounds.rows, bounds.cols], out=master)
+        master[...] = self.costs[bounds.rows, bounds.cols]
 
 
 class ObstacleLayer:
     """What the lidar sees: each scan clears the cells along its beams and marks the cells of its hits lethal.
 
     Beams with no return (+inf) clear up to the raytrace range (costmap_2d's `inf_is_valid`); hits are marked up
-    to the obstacle range. Only the scan's window is touched. The costmap's rate may be above the lidar's:
+    to the obstacle range. Only the scan's window is touched. It enters master by `update_with_max` with its
+    marks only (a cell it never marked is NO_INFORMATION to the merge): clearing removes its own marks and never
+    opens the static map's unknown space. The costmap's rate may be above the lidar's:
     applying the sweep already applied again would change nothing (each cell it touches ends cleared or marked
     whatever it was), so it is skipped.
     """
@@ -74,7 +92,7 @@ class ObstacleLayer:
 
     def update_costs(self, master: Costs, bounds: Bounds) -> None:
         marked = self.marked[bounds.rows, bounds.cols]
-        np.maximum(master, np.where(marked, np.uint8(LETHAL_OBSTACLE), np.uint8(0)), out=master)
+        update_with_max(master, np.where(marked, np.uint8(LETHAL_OBSTACLE), np.uint8(NO_INFORMATION)))
 
     def add_scan(self, scan: LaserScan) -> bool:
         """Clear and mark along the scan's beams; True if a cell changed (its window is then pending)."""
@@ -112,6 +130,23 @@ class ObstacleLayer:
         self._pending.append(window)
         return True
 
+    def clear_outside(self, inside: Bounds) -> bool:
+        """Forget every mark outside the cell window `inside` (clear_costmap_recovery's clearMap on this layer);
+        True if a mark went (the window of those marks is then pending)."""
+        keep = inside.grow(0, self.frame)
+        before = self.marked.copy()
+        self.marked[...] = False
+        if not keep.empty:
+            self.marked[keep.rows, keep.cols] = before[keep.rows, keep.cols]
+        rows, cols = np.nonzero(before & ~self.marked)
+        if len(rows) == 0:
+            return False
+        self._last_scan = None
+        self._pending.append(
+            Bounds(int(rows.min()), int(cols.min()), int(rows.max()) + 1, int(cols.max()) + 1)
+        )
+        return True
+
     def _set_cells(self, xs: NDArray[np.float64], ys: NDArray[np.float64], value: bool) -> None:
         rows, cols = self.frame.world_to_cells(xs, ys)
         inside = (rows >= 0) & (rows < self.frame.height) & (cols >= 0) & (cols < self.frame.width)
@@ -119,34 +154,39 @@ class ObstacleLayer:
 
 
 class ZoneCostLayer:
-    """The WSN zone layer's costs on the costmap's grid, repainted in the windows the zone layer changed."""
+    """The WSN zone layer's costs on the costmap's grid, repainted in the windows the zone layer changed.
+
+    Merged by `update_with_max`, as the ROS bridge's grid is by a StaticLayer with `use_maximum`: a clear zone
+    (0) changes nothing known, an unknown (stale) zone changes nothing at all, and walls stay walls. Cells outside
+    every zone and block are NO_INFORMATION here, so the layer never opens the map's unknown space."""
 
     def __init__(self, zone_layer: ZoneLayer) -> None:
         self.zone_layer = zone_layer
         frame = zone_layer.frame
-        self.costs: Costs = np.zeros((frame.height, frame.width), dtype=np.uint8)
+        self.costs: Costs = np.full((frame.height, frame.width), NO_INFORMATION, dtype=np.uint8)
+        """NO_INFORMATION where no zone or operator block lies: the merge leaves master as it is there."""
 
     def repaint(self, bounds: Bounds) -> None:
         """Forget what the zone layer changed and paint it afresh in `bounds` (start-up, rebuild)."""
         self.zone_layer.take_changes()
-        self.costs[bounds.rows, bounds.cols] = self.zone_layer.paint(bounds)
+        self.costs[bounds.rows, bounds.cols] = self.zone_layer.paint(bounds, outside=NO_INFORMATION)
 
     def take_bounds(self) -> list[Bounds]:
         """The zone layer's changed windows whose cells really changed cost."""
         out = []
         for w in self.zone_layer.take_changes():
-            new = self.zone_layer.paint(w)
+            new = self.zone_layer.paint(w, outside=NO_INFORMATION)
             if not np.array_equal(new, self.costs[w.rows, w.cols]):
                 self.costs[w.rows, w.cols] = new
                 out.append(w)
         return out
 
     def update_costs(self, master: Costs, bounds: Bounds) -> None:
-        np.maximum(master, self.costs[bounds.rows, bounds.cols], out=master)
+        update_with_max(master, self.costs[bounds.rows, bounds.cols])
 
     def update_costs_without(self, master: Costs, bounds: Bounds, exclude: Collection[BlockedArea]) -> None:
         """As `update_costs`, with some blocked areas left out (for letting a robot out of them)."""
-        np.maximum(master, self.zone_layer.paint(bounds, exclude=exclude), out=master)
+        update_with_max(master, self.zone_layer.paint(bounds, exclude=exclude, outside=NO_INFORMATION))
 
 
 class InflationLayer:

@@ -1,7 +1,8 @@
 """The robot's layered costmap, with costmap_2d's semantics: static -> obstacle -> zone, then inflation.
 
-The layers (robot_agent.costmap_layers) are merged in order, each by its own rule (all by numeric maximum today,
-so NO_INFORMATION, 255, stays unknown), then inflated with costmap_2d's formula (robot_agent.inflation). Every
+The layers (robot_agent.costmap_layers) are merged in order, each by its own rule (costmap_2d's: the static
+layer overwrites, the others by updateWithMax, where a layer's NO_INFORMATION never hides a known cost), then
+inflated with costmap_2d's formula (robot_agent.inflation). Every
 update touches only the bounds that changed: the cells whose merged cost a layer changed are merged again, and
 the inflation layer's reach around them re-inflated, computing distances on a window grown once more (a lethal
 cell farther than the radius cannot change a cell's cost), so the result is cell for cell what a whole-map
@@ -109,6 +110,17 @@ class LayeredCostmap:
     def update_scan(self, scan: LaserScan) -> Bounds | None:
         """Feed a scan to the obstacle layer and apply it; None if no cost changed."""
         if self.obstacles is None or not self.obstacles.add_scan(scan):
+            return None
+        return self.update()
+
+    def clear_obstacles_outside(self, x: float, y: float, size_m: float) -> Bounds | None:
+        """Forget the lidar's marks outside a square of side `size_m` centred on (x, y) (move_base's
+        clear_costmap_recovery on the obstacle layer); None if nothing changed."""
+        if self.obstacles is None:
+            return None
+        row0, col0 = self.frame.world_to_cell(x - size_m / 2.0, y - size_m / 2.0)
+        n = math.ceil(size_m / self.frame.resolution)
+        if not self.obstacles.clear_outside(Bounds(row0, col0, row0 + n, col0 + n)):
             return None
         return self.update()
 

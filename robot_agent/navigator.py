@@ -12,6 +12,10 @@ Pure logic over the costmap, planner, controller and robot backend, driven by `s
   is none. Once out, back on the costmap as it is: the zone is lethal again, no way back in.
 - The controller reports its path blocked (the lidar saw something): replan over the obstacle marks.
 - Configurably, replan at a fixed rate too (stock move_base's planner_frequency).
+- Configurably, stock move_base's oscillation detection, patience and recovery behaviours
+  (robot_agent.move_base_recovery): the robot not 0.2 m further in 10 s, the controller without a valid command
+  for 15 s, or (stock only) no plan for 5 s runs the next of conservative reset, rotation, aggressive reset,
+  rotation; when all have run, the goal is aborted (cancelled, naming move_base's reason).
 """
 
 from __future__ import annotations
@@ -28,15 +32,32 @@ from numpy.typing import NDArray
 from robot_agent.backend import Pose, RobotBackend, Velocity
 from robot_agent.costmap_planner import GlobalPlanner, PlanningCostmap
 from robot_agent.global_planner import Plan
+from robot_agent.move_base_recovery import (
+    ABORT_REASONS,
+    MoveBaseRecovery,
+    RecoveryParams,
+    RecoveryTrigger,
+    Rotation,
+)
 from robot_agent.zone_escape import EscapePlan, EscapeView, Leaving, plan_escape
 from robot_agent.zone_geometry import Bounds, GridFrame
 from robot_agent.zone_layer import BlockedArea
 from runtime.timers import Every
 
 NavState = Literal["idle", "navigating", "waiting", "arrived", "cancelled"]
-Trigger = Literal["goal", "zone", "blocked", "periodic", "retry"]
+Trigger = Literal["goal", "zone", "blocked", "periodic", "retry", "recovery"]
 EventKind = Literal[
-    "goal", "plan", "replan", "waiting", "resumed", "cancelled", "arrived", "blocked", "leaving", "left"
+    "goal",
+    "plan",
+    "replan",
+    "waiting",
+    "resumed",
+    "cancelled",
+    "arrived",
+    "blocked",
+    "leaving",
+    "left",
+    "recovery",
 ]
 GoalLabel = str | Pose
 
@@ -45,6 +66,7 @@ class Costmap(PlanningCostmap, Protocol):
     """What the navigator reads of robot_agent.layered_costmap.LayeredCostmap."""
 
     def in_lethal(self, x: float, y: float) -> bool: ...
+    def clear_obstacles_outside(self, x: float, y: float, size_m: float) -> Bounds | None: ...
     def local_window(
         self, pose: Pose, size_m: float, overlay: tuple[Bounds, NDArray[np.uint8]] | None = None
     ) -> tuple[NDArray[np.uint8], GridFrame]: ...
@@ -102,6 +124,8 @@ class NavigatorParams:
     local_costmap_size_m: float = 3.0
     settle_m: float = 0.25
     """Algorithm 3's tolerance: this near the goal a zone change no longer triggers a replan."""
+    recovery: RecoveryParams | None = None
+    """Stock move_base's oscillation detection and recovery behaviours; None: none."""
 
 
 @dataclass(frozen=True)
@@ -156,6 +180,8 @@ class Navigator:
         self._last_blocked_replan = -math.inf
         self.leaving: Leaving | None = None
         """The blocked areas the robot is driving out of, and whether a route goes on (None: in none)."""
+        self.recovery = MoveBaseRecovery(self.params.recovery) if self.params.recovery is not None else None
+        self._rotation: Rotation | None = None
 
     @property
     def active(self) -> bool:
@@ -176,6 +202,9 @@ class Navigator:
         self.replans_by.clear()
         self.reason = None
         self._record(now, "goal", detail=_label_text(label))
+        self._rotation = None
+        if self.recovery is not None:
+            self.recovery.start_goal(now, self.backend.pose())
         self._periodic.start(now)
         self._control.next = now
         zone = self._goal_blocked_zone()
@@ -213,6 +242,10 @@ class Navigator:
             return
         if self.state != "navigating":
             return
+        if self._rotation is not None:
+            if self._control.due(now):
+                self._rotate_tick(now)
+            return
         if self._periodic.due(now):
             self._plan(now, "periodic")
             if self.state != "navigating":
@@ -222,6 +255,9 @@ class Navigator:
 
     def _control_tick(self, now: float) -> None:
         pose = self.backend.pose()
+        if self.recovery is not None and self.recovery.control_cycle(now, pose):
+            self._recover(now, "oscillation")
+            return
         view: EscapeView | None = None
         if self.leaving is not None:
             here = self.escape.areas_at(pose[0], pose[1])
@@ -247,12 +283,56 @@ class Navigator:
             self._record(now, "arrived")
         elif result.status == "blocked":
             self.backend.stop()
-            if now - self._last_blocked_replan >= self.params.blocked_replan_interval_s:
+            if self.recovery is not None and self.recovery.controller_out_of_patience(now):
+                self._recover(now, "controlling")
+            elif now - self._last_blocked_replan >= self.params.blocked_replan_interval_s:
                 self._last_blocked_replan = now
                 self._record(now, "blocked", detail=result.reason)
                 self._plan(now, "blocked")
         else:
+            if self.recovery is not None:
+                self.recovery.valid_control(now)
             self.backend.command(result.velocity)
+
+    def _recover(self, now: float, trigger: RecoveryTrigger) -> None:
+        """move_base's CLEARING state: stop, run the next recovery behaviour, then plan again; abort when all
+        have run."""
+        assert self.recovery is not None
+        self.backend.stop()
+        name = self.recovery.next_behaviour(trigger)
+        if name is None:
+            self._cancel(now, f"aborted: {ABORT_REASONS[trigger]} even after all recovery behaviours")
+            return
+        self._record(now, "recovery", detail=f"{name} ({trigger})")
+        if self.state == "waiting":
+            self._control.start(now)
+            self._periodic.start(now)
+        self.state, self.reason = "navigating", f"recovery: {name}"
+        side = self.recovery.params.reset_distance(name)
+        if side is None:
+            self.controller.clear()
+            self._rotation = Rotation(self.backend.pose()[2])
+            self._rotate_tick(now)
+            return
+        x, y, _ = self.backend.pose()
+        self.costmap.clear_obstacles_outside(x, y, side)
+        self._after_behaviour(now)
+
+    def _rotate_tick(self, now: float) -> None:
+        assert self.recovery is not None and self._rotation is not None
+        w = self._rotation.step(self.backend.pose()[2], self.recovery.params)
+        if w is not None:
+            self.backend.command(Velocity(0.0, w))
+            return
+        self.backend.stop()
+        self._rotation = None
+        self._after_behaviour(now)
+
+    def _after_behaviour(self, now: float) -> None:
+        assert self.recovery is not None
+        self.recovery.behaviour_done(now)
+        self.reason = None
+        self._plan(now, "recovery")
 
     def _plan(self, now: float, trigger: Trigger, *, escape: bool = True) -> None:
         """Plan to the goal and act on it; from inside blocked zones (and `escape`), by the way out first."""
@@ -286,6 +366,8 @@ class Navigator:
             self._left(now)  # planned from outside the zones: it is out
         self.leaving = None
         if plan.reachable:
+            if self.recovery is not None:
+                self.recovery.planned(now)
             self._follow(now, trigger, plan.path, plan.length_m, None)
             return
         if plan.reason == "goal_outside":
@@ -293,6 +375,9 @@ class Navigator:
             return
         if plan.reason == "start_outside":
             self._cancel(now, "the robot is outside the map")
+            return
+        if self.recovery is not None and self.recovery.plan_failed(now):
+            self._recover(now, "planning")
             return
         self._wait(now, trigger, self._no_path_reason(plan))
 
@@ -368,6 +453,7 @@ class Navigator:
         self.state, self.reason = "waiting", reason
 
     def _cancel(self, now: float, reason: str) -> None:
+        self._rotation = None
         self._stop()
         self.state, self.reason = "cancelled", reason
         self._record(now, "cancelled", detail=reason)

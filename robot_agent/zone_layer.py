@@ -163,25 +163,33 @@ class ZoneLayer:
         self._pending.clear()
         return out
 
-    def paint(self, bounds: Bounds, exclude: Collection[BlockedArea] = ()) -> NDArray[np.uint8]:
-        """The zone layer's costs inside `bounds` (numeric maximum where areas overlap; 0 outside every area).
+    def paint(
+        self, bounds: Bounds, exclude: Collection[BlockedArea] = (), outside: int = FREE_SPACE
+    ) -> NDArray[np.uint8]:
+        """The zone layer's costs inside `bounds` (numeric maximum where areas overlap; `outside` in cells no
+        area covers: FREE_SPACE for the ROS grid, NO_INFORMATION for the costmap's merge, which skips them).
 
         `exclude` leaves out blocked areas: what the layer would paint without the areas a robot stands in, so it
         can be let out of them.
         """
         out = np.zeros(bounds.shape, dtype=np.uint8)
+        covered = np.zeros(bounds.shape, dtype=bool)
         for zone_id, cost in self._costs.items():
-            if cost != FREE_SPACE and BlockedArea("zone", zone_id) not in exclude:
-                self._paint_window(out, bounds, self._windows[zone_id], cost)
+            if BlockedArea("zone", zone_id) not in exclude:
+                self._paint_window(out, covered, bounds, self._windows[zone_id], cost)
         for block_id, window in self._polys.items():
             if BlockedArea("block", block_id) not in exclude:
-                self._paint_window(out, bounds, window, LETHAL_OBSTACLE)
+                self._paint_window(out, covered, bounds, window, LETHAL_OBSTACLE)
+        if outside != FREE_SPACE:
+            out[~covered] = outside
         return out
 
     # -- internals ------------------------------------------------------------------------------------------
 
     @staticmethod
-    def _paint_window(out: NDArray[np.uint8], bounds: Bounds, window: CellWindow, cost: int) -> None:
+    def _paint_window(
+        out: NDArray[np.uint8], covered: NDArray[np.bool_], bounds: Bounds, window: CellWindow, cost: int
+    ) -> None:
         if window.empty:
             return
         area = Bounds.of_window(window)
@@ -191,6 +199,7 @@ class ZoneLayer:
         dst = out[common.within(bounds)]
         src = window.mask[common.within(area)]
         np.maximum(dst, np.where(src, np.uint8(cost), np.uint8(0)), out=dst)
+        covered[common.within(bounds)] |= src
 
     def _tick(self, t: float) -> None:
         if self._started is None:

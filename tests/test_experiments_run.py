@@ -43,7 +43,7 @@ def test_one_run_per_route_and_config_arrives_without_collisions_and_repeats_wit
     for name in ("runs.csv", "summary.csv", "distance_m.png", "time_s.png", "cpu_per_sim_s.png"):
         assert (tmp_path / "out" / name).stat().st_size > 0
     assert (tmp_path / "out" / "paths_A-B.png").stat().st_size > 0
-    assert "| A->B | full | 1 | 1 | 0 |" in report.read_text()
+    assert "| A->B | full | 1 | 1 | 100% | 0 |" in report.read_text()
     again = run_experiment(site.path, [s for s in specs if s.config == "full"], workers=1).table
     deterministic = [c for c in COLUMNS if c not in NONDETERMINISTIC]
 
@@ -60,7 +60,10 @@ def test_one_run_per_route_and_config_arrives_without_collisions_and_repeats_wit
     ("argv", "message"),
     [
         (["experiment", "--runs", "0"], "--runs must be at least 1"),
-        (["experiment", "--runs", "1", "--configs", "fastest"], "--configs:"),
+        (
+            ["experiment", "--runs", "1", "--configs", "default,fastest"],
+            "--configs: fastest: no such agent config (built in: default, zones, full)",
+        ),
         (["experiment", "--runs", "1", "--broker", "127.0.0.1:1"], "--broker needs --credentials"),
         (["experiment", "--site", "/nonexistent/site", "--runs", "1"], "/nonexistent/site"),
     ],
@@ -79,3 +82,27 @@ def test_each_run_measures_its_own_memory_peak_not_the_workers_lifetime_peak() -
     del block
     reset_peak_rss()
     assert peak_rss_mb() < lifetime - 200
+
+
+def test_each_step_of_the_ablation_changes_only_what_the_report_attributes_to_it() -> None:
+    """default -> zones: the sensor network only (zone layer, Algorithm 3's waiting instead of planner
+    patience); zones -> full: event-driven replanning and coarser, less frequent work only."""
+    from robot_agent.agent_config import load_agent_config
+
+    def settings(name: str) -> dict[str, object]:
+        flat = load_agent_config(name).model_dump()
+        flat.pop("name")
+        for section in ("inflation", "planner", "recovery"):
+            for key, value in flat.pop(section).items():
+                flat[f"{section}.{key}"] = value
+        return flat
+
+    default, zones, full = settings("default"), settings("zones"), settings("full")
+    assert {k for k in default if default[k] != zones[k]} == {"zone_layer", "recovery.on_no_path"}
+    assert {k for k in zones if zones[k] != full[k]} == {
+        "replan_rate_hz",
+        "global_costmap_rate_hz",
+        "local_costmap_size_m",
+        "planner.downsample",
+    }
+    assert default["recovery.enabled"] and zones["recovery.enabled"] and full["recovery.enabled"]

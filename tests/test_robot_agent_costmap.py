@@ -123,6 +123,41 @@ def test_incremental_updates_equal_whole_map_recomputation_after_random_zone_cha
     assert {FREE_SPACE, 180, LETHAL_OBSTACLE, NO_INFORMATION} <= seen, "every kind of zone cost was exercised"
 
 
+def test_a_zone_merges_like_costmap_2d_update_with_max_so_unknown_never_hides_walls(school: Site) -> None:
+    """costmap_2d's updateWithMax: a layer's NO_INFORMATION is skipped and a lower cost never lowers master.
+
+    Stale zones read as unknown must leave master exactly as the map alone makes it (the walls inside z1 stay
+    lethal and keep seeding inflation); a caution zone keeps its walls lethal; blocked is lethal throughout.
+    An overwriting merge (or a plain numeric maximum, where 255 beats 254) fails here.
+    """
+    costmap, layer = school_costmap(school, ZonePolicy(stale="unknown", caution_cost=150))
+    map_only = LayeredCostmap(school.grid, INFLATION, obstacle_layer=False)
+    walls = static_layer(school.grid) == LETHAL_OBSTACLE
+    window = layer.zone_window("z1")
+    z1_walls = np.zeros(walls.shape, dtype=bool)
+    z1_walls[window.rows, window.cols] = window.mask & walls[window.rows, window.cols]
+    assert z1_walls.sum() > 100, "z1 covers walls: the case the merge must get right"
+
+    layer.on_zone_state(ZoneState(zone="z1", node="n1", state="clear", seq=1), 1.0)
+    costmap.update_zones(1.0)
+    assert np.array_equal(costmap.master, map_only.master), "a clear zone changes nothing"
+    costmap.update_zones(100.0)  # every node silent for far more than 3 heartbeats: stale, read as unknown
+    assert set(layer.zone_costs().values()) == {NO_INFORMATION}
+    assert np.array_equal(costmap.master, map_only.master), "an unknown zone changes nothing in master"
+    assert (costmap.master[z1_walls] == LETHAL_OBSTACLE).all()
+
+    layer.on_zone_state(ZoneState(zone="z1", node="n1", state="caution", seq=2), 101.0)
+    layer.on_zone_state(ZoneState(zone="z1", node="n2", state="caution", seq=1), 101.0)
+    costmap.update_zones(101.0)
+    z1_cells = np.zeros(walls.shape, dtype=bool)
+    z1_cells[window.rows, window.cols] = window.mask
+    assert (costmap.master[z1_walls] == LETHAL_OBSTACLE).all(), "a caution cost never lowers a wall"
+    assert (costmap.master[z1_cells & ~walls] >= 150).all()
+    incremental = costmap.master.copy()
+    costmap.rebuild()
+    assert np.array_equal(incremental, costmap.master)
+
+
 def test_zone_costs_are_painted_by_policy(school: Site) -> None:
     costmap, layer = school_costmap(school, ZonePolicy(caution_cost=150))
     layer.on_zone_state(ZoneState(zone="z4", node="n5", state="caution", seq=1), 1.0)

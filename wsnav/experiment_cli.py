@@ -1,4 +1,4 @@
-"""`wsnav experiment --site DIR --runs N --out DIR [...]`: the paper's experiment, both configurations, a report.
+"""`wsnav experiment --site DIR --runs N --out DIR [...]`: the paper's experiment, each configuration, a report.
 `wsnav demo [--out DIR]`: its short form, one `full` run of each route, a table and a picture.
 
 The work lives in wsnav.experiment_command, imported only when one of these runs, so other commands start fast.
@@ -30,7 +30,9 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     exp.add_argument("--out", type=Path, default=Path("out/experiment"), help="output directory")
     exp.add_argument("--seed", type=int, default=1, help="base seed (same seed, same table); default 1")
     exp.add_argument(
-        "--configs", default="default,full", help="agent configs, comma-separated (default,full)"
+        "--configs",
+        default="default,zones,full",
+        help="agent configs, comma-separated, any of default,zones,full or YAML files (default,zones,full)",
     )
     exp.add_argument(
         "--workers", type=int, default=os.cpu_count() or 1, metavar="K", help="processes (default: the cores)"
