@@ -1,12 +1,13 @@
 """The site's topic access rules, derived once from the site file and enforced by amqtt and Mosquitto alike.
 
-- a node publishes only `zones/<its zone>/state/<itself>` and `nodes/<itself>/status` (and may read them back,
-  e.g. to resume its `seq` after a reboot);
+- a node publishes only `zones/<its zone>/state/<itself>`, `nodes/<itself>/status` and `nodes/<itself>/info`
+  (its diagnostics), and may read back the first two (e.g. to resume its `seq` after a reboot);
 - a robot reads zones, nodes, operator topics, other robots' status and the simulated world, and publishes only
   under `robots/<itself>/`;
 - the operator publishes `operator/...`, robot goals and the simulated world (`sim/...`, used by the zone
-  simulator), and reads everything of the site.
-Nothing outside `wsn/<site>/` is allowed to anyone. The same `AclRules` feed the amqtt plugin below and the
+  simulator), and reads everything of the site; it also publishes and reads Home Assistant's discovery configs
+  (`homeassistant/#`, `wsnav broker ha-discovery`).
+Nothing else outside `wsn/<site>/` is allowed to anyone. The same `AclRules` feed the amqtt plugin below and the
 Mosquitto ACL file (broker.mosquitto), so the two brokers enforce one model.
 """
 
@@ -21,6 +22,9 @@ from amqtt.session import Session
 from broker.credentials import OPERATOR
 from schemas import topics
 from schemas.site_file import SiteFile
+
+HA_DISCOVERY = "homeassistant/#"
+"""Home Assistant's default discovery prefix: the operator publishes the site's configs there."""
 
 
 @dataclass(frozen=True)
@@ -45,8 +49,8 @@ def site_rules(spec: SiteFile) -> AclRules:
     subscribe: dict[str, list[str]] = {}
     for node in spec.nodes:
         own = [topics.zone_state(site, node.zone, node.id), topics.node_status(site, node.id)]
-        publish[node.id] = own
-        subscribe[node.id] = list(own)
+        publish[node.id] = [*own, topics.node_info(site, node.id)]
+        subscribe[node.id] = own
     for robot in spec.robots:
         publish[robot.id] = [f"{root}/robots/{robot.id}/#"]
         subscribe[robot.id] = [
@@ -57,8 +61,8 @@ def site_rules(spec: SiteFile) -> AclRules:
             topics.all_robot_statuses(site),
             f"{root}/sim/#",
         ]
-    publish[OPERATOR] = [f"{root}/operator/#", f"{root}/robots/+/goal", f"{root}/sim/#"]
-    subscribe[OPERATOR] = [f"{root}/#"]
+    publish[OPERATOR] = [f"{root}/operator/#", f"{root}/robots/+/goal", f"{root}/sim/#", HA_DISCOVERY]
+    subscribe[OPERATOR] = [f"{root}/#", HA_DISCOVERY]
     return AclRules(publish=publish, subscribe=subscribe)
 
 

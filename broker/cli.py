@@ -1,4 +1,4 @@
-"""`wsnav broker run | credentials | mosquitto-config`."""
+"""`wsnav broker run | credentials | mosquitto-config | ha-discovery`."""
 
 from __future__ import annotations
 
@@ -101,6 +101,18 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         "another's connection by reusing its client id",
     )
     mosq.set_defaults(func=mosquitto_command)
+
+    ha = bsub.add_parser(
+        "ha-discovery", help="publish Home Assistant MQTT discovery for the site's zones and nodes (retained)"
+    )
+    ha.add_argument("--site", type=Path, required=True, help="site directory or site.yaml")
+    ha.add_argument("--broker", type=host_port, required=True, help="HOST:PORT of the site's broker")
+    ha.add_argument(
+        "--credentials", type=Path, required=True, help="the operator's credentials file (operator.json)"
+    )
+    ha.add_argument("--prefix", default="homeassistant", help="Home Assistant's discovery prefix")
+    ha.add_argument("--dry-run", action="store_true", help="print the topics and payloads, publish nothing")
+    ha.set_defaults(func=ha_discovery_command)
 
 
 def _site(path: Path) -> Site:
@@ -216,4 +228,48 @@ def mosquitto_command(args: argparse.Namespace) -> int:
     for path in files:
         print(f"wrote {path}")
     print(f"run: mosquitto -c {files[0]}")
+    return 0
+
+
+def ha_discovery_command(args: argparse.Namespace) -> int:
+    from broker.ha_discovery import discovery_messages
+
+    site = _site(args.site)
+    if not args.prefix or any(c in args.prefix for c in "+#") or args.prefix.strip("/") != args.prefix:
+        raise CliError(f"--prefix {args.prefix!r}: a topic prefix without wildcards or outer slashes")
+    messages = discovery_messages(site.spec, args.prefix)
+    if args.dry_run:
+        for topic, payload in messages:
+            print(topic, payload.decode())
+        return 0
+    import time
+
+    from broker.credentials import CredentialsError, load_credentials
+    from runtime.mqtt_bus import BusError, connect_with_credentials
+
+    host, port = args.broker
+    try:
+        creds = load_credentials(args.credentials)
+        bus = connect_with_credentials(host, port, creds, client_id=f"{creds.username}-ha-discovery")
+    except (CredentialsError, BusError) as exc:
+        raise CliError(str(exc)) from None
+    # Read them back: a broker drops a publish its ACL refuses without telling the publisher.
+    missing = dict(messages)
+    try:
+        bus.subscribe(f"{args.prefix}/binary_sensor/wsnav_{site.name}/#")
+        for topic, payload in messages:
+            bus.publish(topic, payload, retain=True)
+        deadline = time.monotonic() + 10.0
+        while missing and bus.wait(max(0.0, deadline - time.monotonic())):
+            for msg in bus.poll():
+                if missing.get(msg.topic) == msg.payload:
+                    del missing[msg.topic]
+    finally:
+        bus.close()
+    if missing:
+        raise CliError(
+            f"{len(missing)} of {len(messages)} discovery configs did not come back from the broker (first: "
+            f"{next(iter(missing))}): may {creds.username!r} publish and read {args.prefix}/#?"
+        )
+    print(f"published {len(messages)} discovery configs under {args.prefix}/ (retained)")
     return 0

@@ -30,7 +30,7 @@ def subscriptions(site: str) -> list[str]:
     return [
         topics.all_zone_states(site),
         topics.all_node_statuses(site),
-        f"{topics.ROOT}/{site}/nodes/+/info",
+        topics.all_node_infos(site),
         topics.all_robot_statuses(site),
         topics.all_operator_blocks(site),
     ]

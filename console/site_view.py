@@ -8,7 +8,7 @@ are the site clock (Unix time in a real deployment), so a robot status's `t` giv
 from __future__ import annotations
 
 import collections
-import json
+import logging
 import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -16,6 +16,7 @@ from typing import Any, Literal
 from schemas import topics
 from schemas.messages import (
     MAX_OPERATOR_PAYLOAD_BYTES,
+    NodeInfo,
     NodeStatus,
     OperatorBlock,
     PayloadError,
@@ -31,10 +32,7 @@ Key = tuple[Kind, str]
 TRAIL_S = 300.0
 """How much of each robot's way the console keeps (and the page draws)."""
 TRAIL_STEP_M = 0.05
-MAX_INFO_BYTES = 2048
-MAX_INFO_FIELDS = 32
-NODE_INFO_SUFFIX = "/info"
-"""`nodes/<node>/info`: optional diagnostics a node may send (retained JSON object); shown field by field."""
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -77,17 +75,19 @@ class SiteView:
         self.blocks: dict[str, BlockView] = {}
         self.dropped: collections.Counter[str] = collections.Counter()
         self.last_drop: str | None = None
+        self._logged: dict[str, str] = {}
+        """topic -> the last drop logged for it: one line per sender and problem, not one per message."""
 
     # -- intake --------------------------------------------------------------------------------------------
 
     def apply(self, topic: str, payload: bytes, received_at: float) -> set[Key]:
         """Take one message in; the entries it changed (none for a message that is dropped, counted why)."""
         try:
-            if topic.endswith(NODE_INFO_SUFFIX):
-                return self._node_info(topic, payload, received_at)
             parsed = topics.parse(topic)
             if parsed is None or parsed.site != self.site.name:
                 return self._drop(f"not a topic of site {self.site.name}: {topic}")
+            if parsed.kind == "node_info" and parsed.node is not None:
+                return self._node_info(parsed.node, payload, received_at)
             if parsed.kind == "zone_state" and parsed.node is not None:
                 return self._zone_state(parsed.node, parse_payload(ZoneState, payload), received_at)
             if parsed.kind == "node_status" and parsed.node is not None:
@@ -98,12 +98,15 @@ class SiteView:
             if parsed.kind == "operator_block" and parsed.block_id is not None:
                 return self._block(parsed.block_id, payload, received_at)
         except PayloadError as exc:
-            return self._drop(f"{topic}: {exc}")
+            return self._drop(f"{topic}: {exc}", topic)
         return set()
 
-    def _drop(self, why: str) -> set[Key]:
+    def _drop(self, why: str, topic: str | None = None) -> set[Key]:
         self.dropped[why.split(":")[0]] += 1
         self.last_drop = why
+        if topic is not None and self._logged.get(topic) != why:
+            self._logged[topic] = why
+            log.warning("dropped %s", why)
         return set()
 
     def _zone_state(self, node_id: str, msg: ZoneState, at: float) -> set[Key]:
@@ -123,29 +126,21 @@ class SiteView:
         node.online, node.status_at = msg.status == "online", at
         return {("node", node_id), ("zone", node.zone)}
 
-    def _node_info(self, topic: str, payload: bytes, at: float) -> set[Key]:
-        """Diagnostics of any shape: a JSON object of scalars, shown as it came."""
-        parts = topic.split("/")
-        node = self.nodes.get(parts[3]) if len(parts) == 5 and parts[1] == self.site.name else None
+    def _node_info(self, node_id: str, payload: bytes, at: float) -> set[Key]:
+        """A node's diagnostics (schemas.messages.NodeInfo), shown field by field; an empty payload clears them."""
+        node = self.nodes.get(node_id)
         if node is None:
-            return self._drop(f"info of unknown node: {topic}")
+            return self._drop(f"info of unknown node: {node_id}")
         if not payload:
             node.info, node.info_at = None, None
-            return {("node", parts[3])}
-        if len(payload) > MAX_INFO_BYTES:
-            raise PayloadError(f"payload of {len(payload)} bytes exceeds {MAX_INFO_BYTES}")
-        try:
-            raw = json.loads(payload)
-        except ValueError:
-            raise PayloadError("node info: not JSON") from None
-        if not isinstance(raw, dict):
-            raise PayloadError("node info: not a JSON object")
-        info = {
-            str(k)[:40]: (v if isinstance(v, int | float | bool) or v is None else str(v)[:120])
-            for k, v in list(raw.items())[:MAX_INFO_FIELDS]
-        }
-        node.info, node.info_at = info, at
-        return {("node", parts[3])}
+            return {("node", node_id)}
+        msg = parse_payload(NodeInfo, payload)
+        if msg.node != node_id:
+            return self._drop(
+                f"info of {msg.node} on {node_id}'s topic", topics.node_info(self.site.name, node_id)
+            )
+        node.info, node.info_at = msg.model_dump(exclude={"v", "node"}, exclude_none=True), at
+        return {("node", node_id)}
 
     def _robot_status(self, robot_id: str, msg: RobotStatus, at: float) -> set[Key]:
         robot = self.robots.setdefault(robot_id, RobotView())

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 DEVICE_DIR = Path(__file__).resolve().parent / "device"
-PURE_MODULES = ("backoff", "debounce", "node_logic", "nodeconfig", "payloads", "sensing")
+PURE_MODULES = ("backoff", "debounce", "diagnostics", "node_logic", "nodeconfig", "payloads", "sensing")
 """No I/O, no machine/network: safe to import on CPython. The rest of device/ needs a board (or host_stubs)."""
 
 

@@ -72,6 +72,44 @@ class NodeStatus(_Message):
     status: NodeStatusValue
 
 
+ResetCause = Literal[
+    "power_on",
+    "watchdog",
+    "exception",
+    "soft_wdt",
+    "soft_reset",
+    "deep_sleep",
+    "reset_pin",
+    "unknown",
+]
+"""`machine.reset_cause()` on the ESP8266 is the SDK's rst_info reason 0..6, named in this order
+(firmware/device/diagnostics.py maps them); anything else is `unknown`."""
+MAX_INFO_ERROR_CHARS = 32
+"""A node's last error is cut to this many characters: the whole message must fit the largest free block of a
+node's fragmented heap (firmware/device/diagnostics.py)."""
+
+
+class NodeInfo(_Message):
+    """`nodes/<node>/info`: a node's diagnostics, retained, QoS 0; after every (re)connect and every few minutes.
+
+    `rssi` and `heap_free` are absent where there is nothing to measure (a wired or emulated node)."""
+
+    node: Id
+    fw: Annotated[str, Field(pattern=r"^[0-9A-Za-z._+-]{1,16}$")]
+    """The firmware's version (firmware/device/diagnostics.py FIRMWARE_VERSION)."""
+    reset: ResetCause
+    """Why the board last started: a `watchdog` or `exception` after a deploy is worth a look."""
+    uptime_s: Annotated[int, Field(ge=0)]
+    rssi: Annotated[int, Field(ge=-127, le=0)] | None = None
+    """Wi-Fi signal in dBm; below about -80 the link drops often."""
+    heap_free: Annotated[int, Field(ge=0)] | None = None
+    """Free GC heap in bytes after a collection."""
+    reconnects: Annotated[int, Field(ge=0)]
+    """Broker connections since boot, minus the first."""
+    error: Annotated[str, Field(pattern=r'^[^"\\\x00-\x1f]*$', max_length=MAX_INFO_ERROR_CHARS)] | None = None
+    """Why the broker link last went down (no quotes, backslashes or control characters), if it ever did."""
+
+
 class RobotStatus(_Message):
     """`robots/<robot>/status`: what the agent is doing, at 2 Hz and on every state change."""
 
@@ -154,6 +192,7 @@ M = TypeVar("M", bound=_Message)
 MESSAGE_MODELS: dict[str, type[_Message]] = {
     "zone_state": ZoneState,
     "node_status": NodeStatus,
+    "node_info": NodeInfo,
     "robot_status": RobotStatus,
     "robot_goal": RobotGoal,
     "operator_block": OperatorBlock,

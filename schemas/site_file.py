@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from schemas.ids import Id
 
@@ -19,25 +19,64 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+SAFE_PINS = "4, 5, 12, 13 or 14"
+
+
+def pin_problem(pin: int, is_input: bool, pull_up: bool = False) -> str | None:
+    """Why an ESP8266 GPIO cannot take this sensor line (None: it can). The firmware's config check
+    (firmware/device/nodeconfig.py `pin_problem`) says the same; tests/test_firmware_logic.py keeps them in step."""
+    if pin in (1, 3):
+        return f"is the serial console ({'TX' if pin == 1 else 'RX'})"
+    if 6 <= pin <= 11:
+        return "is wired to the SPI flash"
+    if is_input and pin in (0, 2, 15):
+        return "selects the boot mode: a sensor driving it at power-on can keep the board from starting"
+    if pull_up and pin == 16:
+        return "has no pull-up for the IR receiver"
+    return None
+
+
+def _checked_pin(pin: int, is_input: bool, pull_up: bool = False) -> int:
+    why = pin_problem(pin, is_input, pull_up)
+    if why is not None:
+        raise ValueError(f"GPIO{pin} {why} (use {SAFE_PINS})")
+    return pin
+
+
+GpioPin = Annotated[int, Field(ge=0, le=16)]
+
+
 class DigitalSensor(_Strict):
     """PIR motion sensor or IR break-beam: one digital pin; `invert` when the module is active-low."""
 
     type: Literal["pir", "ir_beam"]
-    pin: Annotated[int, Field(ge=0, le=16)]
+    pin: GpioPin
     invert: bool = False
+
+    @field_validator("pin")
+    @classmethod
+    def _safe_pin(cls, pin: int, info: ValidationInfo) -> int:
+        return _checked_pin(pin, True, pull_up=info.data.get("type") == "ir_beam")
 
 
 class UltrasonicSensor(_Strict):
     """HC-SR04: an object nearer than `threshold_m` means the passage is blocked; median of `samples` pings."""
 
     type: Literal["hcsr04"]
-    trigger_pin: Annotated[int, Field(ge=0, le=16)]
-    echo_pin: Annotated[int, Field(ge=0, le=16)]
+    trigger_pin: GpioPin
+    echo_pin: GpioPin
     threshold_m: Annotated[float, Field(gt=0.02, le=4.0)] = 1.0
     samples: Annotated[int, Field(ge=1, le=15)] = 5
     caution_m: Annotated[float, Field(le=4.0)] | None = None
     """An object between `threshold_m` and this distance narrows the passage: the node says `caution`.
     Absent: the node only ever says `blocked` or `clear`."""
+
+    @field_validator("trigger_pin", "echo_pin")
+    @classmethod
+    def _safe_pins(cls, pin: int, info: ValidationInfo) -> int:
+        if info.field_name == "echo_pin" and pin == info.data.get("trigger_pin"):
+            raise ValueError("must differ from trigger_pin")
+        return _checked_pin(pin, is_input=info.field_name == "echo_pin")
 
     @model_validator(mode="after")
     def _caution_beyond_threshold(self) -> UltrasonicSensor:

@@ -14,7 +14,9 @@ from schemas.ids import ID_PATTERN
 ROOT = "wsn"
 _ID = re.compile(ID_PATTERN)
 
-TopicKind = Literal["zone_state", "node_status", "robot_status", "robot_goal", "operator_block", "sim_world"]
+TopicKind = Literal[
+    "zone_state", "node_status", "node_info", "robot_status", "robot_goal", "operator_block", "sim_world"
+]
 
 
 def _check(*ids: str) -> None:
@@ -31,6 +33,12 @@ def zone_state(site: str, zone: str, node: str) -> str:
 def node_status(site: str, node: str) -> str:
     _check(site, node)
     return f"{ROOT}/{site}/nodes/{node}/status"
+
+
+def node_info(site: str, node: str) -> str:
+    """A node's diagnostics (schemas.messages.NodeInfo), retained."""
+    _check(site, node)
+    return f"{ROOT}/{site}/nodes/{node}/info"
 
 
 def robot_status(site: str, robot: str) -> str:
@@ -62,6 +70,11 @@ def all_zone_states(site: str) -> str:
 def all_node_statuses(site: str) -> str:
     _check(site)
     return f"{ROOT}/{site}/nodes/+/status"
+
+
+def all_node_infos(site: str) -> str:
+    _check(site)
+    return f"{ROOT}/{site}/nodes/+/info"
 
 
 def all_operator_blocks(site: str) -> str:
@@ -97,6 +110,8 @@ def parse(topic: str) -> Topic | None:
             return Topic("zone_state", site, zone=zone, node=node)
         case ["nodes", node, "status"]:
             return Topic("node_status", site, node=node)
+        case ["nodes", node, "info"]:
+            return Topic("node_info", site, node=node)
         case ["robots", robot, "status"]:
             return Topic("robot_status", site, robot=robot)
         case ["robots", robot, "goal"]:

@@ -114,6 +114,23 @@ def test_node_cannot_publish_into_another_zone(endpoint: Endpoint) -> None:
         assert not set(forbidden) & set(watcher.topics())
 
 
+def test_node_publishes_its_own_diagnostics_and_no_one_elses(endpoint: Endpoint) -> None:
+    own = topics.node_info(SITE, "n1")
+    forbidden = [
+        topics.node_info(SITE, "n2"),  # another node's diagnostics
+        f"wsn/{SITE}/nodes/n1/debug",  # nothing else new under its own node
+        "homeassistant/binary_sensor/wsnav_tiny/z1_n1/config",  # discovery is the operator's (Pi side)
+    ]
+    with client(endpoint, "operator", "watcher") as watcher, client(endpoint, "n1") as node:
+        assert watcher.subscribe(f"wsn/{SITE}/#") == [1]
+        assert watcher.subscribe("homeassistant/#") == [1]
+        for topic in forbidden:
+            node.publish(topic, b'{"v":1}')
+        node.publish(own, b"sentinel")
+        watcher.wait_for(own, b"sentinel")
+        assert not set(forbidden) & set(watcher.topics())
+
+
 def test_robot_cannot_publish_zone_states(endpoint: Endpoint) -> None:
     forbidden = [
         topics.zone_state(SITE, "z1", "n1"),

@@ -3,6 +3,7 @@ dropped, and what the operator's requests turn into."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import pytest
@@ -10,10 +11,12 @@ import pytest
 from console import operator_commands as commands
 from console.operator_commands import CommandError
 from console.site_view import SiteView
+from console.terminal import render
 from schemas import topics
 from schemas.messages import (
     MAX_PAYLOAD_BYTES,
     ROBOT_PATH_POINTS,
+    NodeInfo,
     NodeStatus,
     OperatorBlock,
     RobotStatus,
@@ -86,16 +89,38 @@ def test_bad_messages_are_dropped_counted_and_change_nothing(site: Site) -> None
     assert sum(view.dropped.values()) == len(bad)
 
 
-def test_node_diagnostics_of_any_shape_are_shown_field_by_field(site: Site) -> None:
+def test_node_diagnostics_are_shown_field_by_field(site: Site) -> None:
     view = SiteView(site)
-    info = b'{"v": 1, "firmware": "1.4.2", "reset_cause": "watchdog", "uptime_s": 3600, "rssi_dbm": -71, "nested": {"a": 1}}'
-    assert view.apply("wsn/tiny/nodes/n2/info", info, 5.0) == {("node", "n2")}
+    info = NodeInfo(
+        node="n2", fw="0.2.0", reset="watchdog", uptime_s=3600, rssi=-71, heap_free=9100, reconnects=2,
+        error="[Errno 113] EHOSTUNREACH",
+    )  # fmt: skip
+    assert view.apply(topics.node_info("tiny", "n2"), info.to_payload(), 5.0) == {("node", "n2")}
     shown = view.entry(("node", "n2"), 6.0)
     assert shown is not None and shown["info"] == {
-        "v": 1, "firmware": "1.4.2", "reset_cause": "watchdog", "uptime_s": 3600, "rssi_dbm": -71, "nested": "{'a': 1}",
+        "fw": "0.2.0", "reset": "watchdog", "uptime_s": 3600, "rssi": -71, "heap_free": 9100, "reconnects": 2,
+        "error": "[Errno 113] EHOSTUNREACH",
     }  # fmt: skip
-    view.apply("wsn/tiny/nodes/n2/info", b"", 7.0)
+    assert "reset=watchdog" in render(view.snapshot(6.0))
+    view.apply(topics.node_info("tiny", "n2"), b"", 7.0)
     assert (view.entry(("node", "n2"), 7.0) or {})["info"] is None
+
+
+def test_a_malformed_node_info_is_dropped_with_one_log_line(
+    site: Site, caplog: pytest.LogCaptureFixture
+) -> None:
+    view = SiteView(site)
+    good = NodeInfo(node="n1", fw="0.2.0", reset="power_on", uptime_s=5, reconnects=0).to_payload()
+    view.apply(topics.node_info("tiny", "n1"), good, 1.0)
+    bad = b'{"v":1,"node":"n1","fw":"0.2.0","reset":"gremlins","uptime_s":5,"reconnects":0}'
+    with caplog.at_level(logging.WARNING, logger="console.site_view"):
+        for t in (2.0, 3.0, 4.0):  # a retained bad message comes back on every reconnect: logged once
+            assert view.apply(topics.node_info("tiny", "n1"), bad, t) == set()
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1 and "wsn/tiny/nodes/n1/info" in lines[0] and "reset" in lines[0], lines
+    assert (view.entry(("node", "n1"), 5.0) or {})["info"] == {
+        "fw": "0.2.0", "reset": "power_on", "uptime_s": 5, "reconnects": 0,
+    }  # fmt: skip
 
 
 def test_robot_trail_keeps_the_last_minutes(site: Site) -> None:

@@ -18,13 +18,16 @@ import firmware
 from firmware.testing import HOST_STUBS, build_for_host, micropython_cmd, micropython_env
 from schemas import topics
 from schemas.credentials import NodeConfig
-from schemas.messages import NodeStatus, ZoneState, ZoneStateValue
+from schemas.messages import NodeInfo, NodeStatus, ZoneState, ZoneStateValue, parse_payload
+from schemas.site_file import pin_problem
 
 firmware.add_device_path()
 sys.path.append(str(HOST_STUBS))
 
 # Imported by their board names, as the zone simulator does (pyright cannot see sys.path changes).
 logic_checks: Any = importlib.import_module("logic_checks")
+diagnostics: Any = importlib.import_module("diagnostics")
+node_logic: Any = importlib.import_module("node_logic")
 nodeconfig: Any = importlib.import_module("nodeconfig")
 payloads: Any = importlib.import_module("payloads")
 
@@ -67,6 +70,33 @@ def test_payloads_match_the_schema_models_byte_for_byte() -> None:
                 payloads.node_status_payload(node, status)
                 == NodeStatus(node=node, status=status).to_payload()
             )
+
+
+def test_diagnostics_match_the_schema_model_byte_for_byte() -> None:
+    """Whatever the node measures and whatever its last error said (quotes, backslashes, non-ASCII, too long),
+    diagnostics.info writes exactly what NodeInfo accepts and serialises, and at most ~160 bytes of it (the
+    largest free block of the board's heap after connecting is a few hundred)."""
+    rng = random.Random(11)
+    errors = [None, "wifi lost", OSError(113), 'say "hi"\\ now', "dns \u00e9chec \u2603", "x" * 200]
+    names = ["power_on", "watchdog", "exception", "soft_wdt", "soft_reset", "deep_sleep", "reset_pin"]
+    for _ in range(300):
+        node = "".join(rng.choices("abcXYZ019_-", k=rng.randint(1, 32)))
+        logic = node_logic.NodeLogic("s", "z1", node, 0, 0, 1000)
+        error = rng.choice(errors)
+        cause, connects = rng.randint(-1, 9), rng.randint(0, 5)
+        now_ms, rssi, heap = rng.randint(0, 2**40), rng.choice([None, 31, -40, -90]), rng.choice([None, 9000])
+        topic, payload, retain, qos, due_ms = diagnostics.info(
+            logic, now_ms, connects, cause, rssi, heap, error
+        )
+        info = parse_payload(NodeInfo, payload)
+        assert info.to_payload() == payload and (topic, retain, qos) == (topics.node_info("s", node), True, 0)
+        assert len(payload) <= 160 + len(node), payload
+        assert info.reset == (names[cause] if 0 <= cause < 7 else "unknown")
+        assert info.rssi == (None if rssi == 31 else rssi) and info.heap_free == heap
+        assert info.uptime_s == now_ms // 1000 and info.reconnects == max(connects - 1, 0)
+        assert (info.error is None) == (error is None) and (info.error is None or len(info.error) <= 32)
+        assert not diagnostics.due(due_ms, due_ms - 1) and diagnostics.due(due_ms, due_ms)
+        assert due_ms == now_ms + diagnostics.INFO_PERIOD_MS
 
 
 def test_the_only_modules_simulators_may_import_are_pure() -> None:
@@ -128,7 +158,8 @@ def test_config_accepts_what_the_schema_accepts(sensor: dict[str, Any], tmp_path
         ({"heartbeat_s": True}, "heartbeat_s must be a number"),
         ({"on_delay_ms": 1.5}, "on_delay_ms must be an integer"),
         ({"sensor": {"type": "pir"}}, "missing key sensor.pin"),
-        ({"sensor": {"type": "pir", "pin": 17}}, "sensor.pin must be a GPIO number"),
+        ({"sensor": {"type": "pir", "pin": 17}}, "sensor.pin must be a GPIO the sensor can use"),
+        ({"sensor": {"type": "ir_beam", "pin": 1}}, "sensor.pin must be a GPIO the sensor can use"),
         ({"sensor": {"type": "sonar", "pin": 1}}, "sensor.type must be pir, ir_beam or hcsr04"),
         ({"keepalive_s": 2}, "keepalive_s must be in [5, 3600]"),
         (
@@ -154,6 +185,65 @@ def test_config_errors_name_the_key(changes: dict[str, Any], message: str, tmp_p
     path.write_text(json.dumps(base_config(**changes)))
     with pytest.raises(nodeconfig.ConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
         nodeconfig.load(str(path))
+
+
+SENSOR_LINES: list[tuple[str, str, bool, bool]] = [
+    # (sensor type, key, an input, pulled up)
+    ("pir", "pin", True, False),
+    ("ir_beam", "pin", True, True),
+    ("hcsr04", "trigger_pin", False, False),
+    ("hcsr04", "echo_pin", True, False),
+]
+
+
+def sensor_on(kind: str, key: str, pin: int) -> dict[str, Any]:
+    if kind == "hcsr04":
+        sensor: dict[str, Any] = {"type": kind, "trigger_pin": 12, "echo_pin": 14}
+        if key == "echo_pin" and pin == 12:
+            sensor["trigger_pin"] = 13
+        if key == "trigger_pin" and pin == 14:
+            sensor["echo_pin"] = 13
+    else:
+        sensor = {"type": kind}
+    sensor[key] = pin
+    return sensor
+
+
+@pytest.mark.parametrize(("kind", "key", "is_input", "pull_up"), SENSOR_LINES)
+def test_the_board_and_the_site_check_refuse_the_same_pins(
+    kind: str, key: str, is_input: bool, pull_up: bool
+) -> None:
+    """GPIO1/3 (serial console) and 6-11 (SPI flash) never; 0, 2, 15 (boot mode) not as inputs; 16 not for an IR
+    receiver (no pull-up). The schema (site check, credentials, deploy) names the problem; the board's own
+    parser refuses the same pins with one message."""
+    refused = []
+    for pin in range(17):
+        why = pin_problem(pin, is_input, pull_up)
+        try:
+            NodeConfig.model_validate(base_config(sensor=sensor_on(kind, key, pin)))
+            schema_ok = True
+        except ValueError as exc:
+            schema_ok = False
+            assert f"sensor.{key}" in str(exc) or key in str(exc)
+        try:
+            nodeconfig.parse(base_config(sensor=sensor_on(kind, key, pin)))
+            board_ok = True
+        except nodeconfig.ConfigError as exc:
+            board_ok = False
+            assert f"sensor.{key} must be a GPIO the sensor can use" in str(exc)
+        assert schema_ok == board_ok == (why is None), (pin, why)
+        if why is not None:
+            refused.append(pin)
+    expected = {1, 3, 6, 7, 8, 9, 10, 11} | ({0, 2, 15} if is_input else set()) | ({16} if pull_up else set())
+    assert set(refused) == expected
+
+
+def test_an_ultrasonic_sensor_needs_two_pins() -> None:
+    sensor = {"type": "hcsr04", "trigger_pin": 12, "echo_pin": 12}
+    with pytest.raises(ValueError, match="must differ from trigger_pin"):
+        NodeConfig.model_validate(base_config(sensor=sensor))
+    with pytest.raises(nodeconfig.ConfigError, match=r"sensor\.echo_pin must be a GPIO the sensor can use"):
+        nodeconfig.parse(base_config(sensor=sensor))
 
 
 def test_site_file_rejects_a_caution_band_inside_the_blocking_distance() -> None:

@@ -87,6 +87,25 @@ BAD_SITES: list[tuple[str, dict[str, object], str]] = [
         {"nodes": [{"id": "n1", "zone": "z1", "sensor": {"type": "laser", "pin": 5}}]},
         "nodes[0] (n1).sensor",
     ),
+    (
+        "a pin wired to the SPI flash",
+        {"nodes": [{"id": "n1", "zone": "z1", "sensor": {"type": "pir", "pin": 6}}]},
+        "nodes[0] (n1).sensor.pin: GPIO6 is wired to the SPI flash (use 4, 5, 12, 13 or 14)",
+    ),
+    (
+        "the serial console's pin",
+        {"nodes": [{"id": "n1", "zone": "z1", "sensor": {"type": "ir_beam", "pin": 3}}]},
+        "nodes[0] (n1).sensor.pin: GPIO3 is the serial console (RX)",
+    ),
+    (
+        "a boot-mode pin as the echo input",
+        {
+            "nodes": [
+                {"id": "n1", "zone": "z1", "sensor": {"type": "hcsr04", "trigger_pin": 12, "echo_pin": 15}}
+            ]
+        },
+        "nodes[0] (n1).sensor.echo_pin: GPIO15 selects the boot mode",
+    ),
     ("missing map", {"map": "nowhere.yaml"}, "nowhere.yaml"),
     ("misspelt key", {"zonez": []}, "zonez: Extra inputs are not permitted"),
 ]

@@ -9,13 +9,15 @@ from pathlib import Path
 from broker.embedded import BrokerThread
 from runtime.clock import SimClock
 from schemas import topics
-from schemas.messages import NodeStatus, ZoneState, parse_payload
+from schemas.messages import NodeInfo, NodeStatus, ZoneState, parse_payload
 from schemas.site import load_site
 from tests.zone_sim_fixtures import SITE, drive, settle, sim_site, subscriber, wait_online
 from zone_sim.emulated_node import Sent
-from zone_sim.firmware_modules import SEQ_BASE_BITS, NodeLogic
+from zone_sim.firmware_modules import SEQ_BASE_BITS, NodeLogic, diagnostics
 from zone_sim.scenario import Block, Scenario
 from zone_sim.simulator import ZoneSimulator
+
+FIRMWARE_VERSION = diagnostics.FIRMWARE_VERSION
 
 
 def test_emulated_nodes_send_the_contracts_bytes_as_the_firmware_does(tmp_path: Path) -> None:
@@ -24,6 +26,7 @@ def test_emulated_nodes_send_the_contracts_bytes_as_the_firmware_does(tmp_path: 
     sent: list[Sent] = []
     with BrokerThread(site_dir) as broker:
         robot = subscriber(broker, clock)
+        robot.subscribe(topics.all_node_infos(SITE))  # retained: arrives even if this lands after the publish
         sim = ZoneSimulator(
             load_site(site_dir),
             broker.credentials_dir,
@@ -41,11 +44,22 @@ def test_emulated_nodes_send_the_contracts_bytes_as_the_firmware_does(tmp_path: 
         sim.stop()
         robot.close()
 
+    infos: list[NodeInfo] = []
     for s in sent:
-        assert (s.retain, s.qos) == (True, 1)
         parsed = topics.parse(s.topic)
         assert parsed is not None and parsed.node == s.node
-        if parsed.kind == "zone_state":
+        assert (s.retain, s.qos) == (True, 0 if parsed.kind == "node_info" else 1)
+        if parsed.kind == "node_info":  # the firmware's diagnostics, without what only a board can measure
+            info = parse_payload(NodeInfo, s.payload)
+            assert info.to_payload() == s.payload and info.node == s.node
+            assert (info.reset, info.rssi, info.heap_free, info.fw) == (
+                "power_on",
+                None,
+                None,
+                FIRMWARE_VERSION,
+            )
+            infos.append(info)
+        elif parsed.kind == "zone_state":
             msg = parse_payload(ZoneState, s.payload)
             assert s.topic == topics.zone_state(SITE, msg.zone, s.node)
             assert (
@@ -56,8 +70,11 @@ def test_emulated_nodes_send_the_contracts_bytes_as_the_firmware_does(tmp_path: 
             assert s.topic == topics.node_status(SITE, s.node)
             assert NodeStatus(node=s.node, status=status.status).to_payload() == s.payload
 
+    assert sorted(i.node for i in infos) == ["n1", "n2", "n3"]  # one each, right after connecting
+    assert all(i.reconnects == 0 and i.error is None for i in infos)
+
     # On connect: birth `online`, then the current state with the boot's seq base + 1, as NodeLogic decides.
-    n1 = [s for s in sent if s.node == "n1"]
+    n1 = [s for s in sent if s.node == "n1" and not s.topic.endswith("/info")]
     base = random.Random("3/node/n1").getrandbits(SEQ_BASE_BITS)
     logic = NodeLogic(SITE, "z1", "n1", 200, 400, 1000, base)
     expected = [(topic, payload) for topic, payload, _r, _q in logic.on_connect(0)]

@@ -2,8 +2,9 @@
 
 It follows firmware/device/app.py step for step: a reading every loop period (50 ms on the board), the
 debouncer and heartbeat decided by NodeLogic, birth `online` + current state after every connect, the last will
-`offline`, reconnects spaced by the firmware's Backoff (500 ms .. 30 s with jitter), and a fresh seq base from
-`getrandbits(20)` at every boot. Time is the simulator's clock, in the board's milliseconds since boot.
+`offline`, reconnects spaced by the firmware's Backoff (500 ms .. 30 s with jitter), a fresh seq base from
+`getrandbits(20)` at every boot, and the firmware's diagnostics (`nodes/<node>/info`) after every connect and
+every few minutes, without RSSI or free heap (nothing to measure). Time is the simulator's clock, in the board's milliseconds since boot.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
-from zone_sim.firmware_modules import SEQ_BASE_BITS, Backoff, NodeLogic
+from zone_sim.firmware_modules import POWER_ON_RESET, SEQ_BASE_BITS, Backoff, NodeLogic, diagnostics
 from zone_sim.links import LinkAddress, LinkLoop, NodeLink
 from zone_sim.sensor_model import SimulatedSensor
 
@@ -68,6 +69,9 @@ class EmulatedNode:
         self.boots = 0
         self.connects = 0
         self.logic = self._new_logic()
+        self._boot_connects = 0
+        self._info_due_t = 0.0
+        self._last_error: str | None = None
         self.link: NodeLink | None = None
         self._boot_t = 0.0
         self._next_sample_t = 0.0
@@ -99,6 +103,8 @@ class EmulatedNode:
         self.boots += 1
         if self.boots > 1:
             self.logic = self._new_logic()
+            self._boot_connects = self.connects
+        self._last_error = None
         self._backoff.reset()
         self.power = Power.ON
         self._boot_t = t
@@ -151,6 +157,8 @@ class EmulatedNode:
             msg = logic.step(occupied, self._ms(t))
             if msg is not None:
                 self._send(msg, t)
+            if logic.connected and t >= self._info_due_t:
+                self._send_info(t)
             self._next_sample_t = t + period
 
     @property
@@ -187,9 +195,22 @@ class EmulatedNode:
         self._backoff.reset()
         for msg in self.logic.on_connect(self._ms(self._now)):
             self._send(msg, self._now)
+        self._send_info(self._now)
+
+    def _send_info(self, t: float) -> None:
+        """The firmware's diagnostics, as app.py sends them (without what only a board can measure): after each
+        connect and when the period diagnostics.info returns is up."""
+        ms = self._ms(t)
+        connects = self.connects - self._boot_connects
+        topic, payload, retain, qos, due_ms = diagnostics.info(
+            self.logic, ms, connects, POWER_ON_RESET, error=self._last_error
+        )
+        self._send((topic, payload, retain, qos), t)
+        self._info_due_t = t + (due_ms - ms) / 1000
 
     def _link_down(self, why: str) -> None:
         self.logic.on_disconnect()
+        self._last_error = why
         if self.power is not Power.ON:
             return
         self._on_event(self.id, why)

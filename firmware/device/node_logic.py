@@ -108,15 +108,3 @@ class NodeLogic:
         if last is None or now_ms - last >= self.heartbeat_ms:
             return self.state_message(now_ms)
         return None
-
-    def next_due_ms(self, now_ms: int) -> int:
-        """Milliseconds until `step` could publish without a sensor change (heartbeat or pending debounce)."""
-        due = self.heartbeat_ms
-        if self.last_publish_ms is not None:
-            due = self.heartbeat_ms - (now_ms - self.last_publish_ms)
-            if due < 0:
-                due = 0
-        pending = self.debouncer.pending_ms(now_ms)
-        if 0 <= pending < due:
-            due = pending
-        return due

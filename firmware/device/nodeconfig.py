@@ -5,10 +5,18 @@ plain attributes in the units the firmware uses (ms, mm), so a bad file fails at
 instead of deep in the main loop. The host validates the same file fully with pydantic before deploy.
 """
 
-from payloads import valid_id
-
 DIGITAL = ("pir", "ir_beam")
 ULTRASONIC = "hcsr04"
+
+
+def valid_id(text) -> bool:
+    """True if `text` is a contract id (a topic level without separators or wildcards)."""
+    if not isinstance(text, str) or not 1 <= len(text) <= 32:
+        return False
+    for c in text:
+        if not ("a" <= c <= "z" or "A" <= c <= "Z" or "0" <= c <= "9" or c == "_" or c == "-"):
+            return False
+    return True
 
 
 class ConfigError(ValueError):
@@ -62,10 +70,16 @@ def _dict(d, key: str, default=None, where: str = "") -> dict:
     return v
 
 
-def _pin(d, key: str) -> int:
+_UNSAFE = (1, 3, 6, 7, 8, 9, 10, 11)
+"""The serial console (GPIO1, 3) and the SPI flash (GPIO6-11); inputs also avoid the boot-mode pins 0, 2, 15 and
+an IR receiver GPIO16 (no pull-up). One message for all: each extra string stays on the heap as an interned name
+after this module is dropped; `wsnav site check` (schemas/site_file.py `pin_problem`) names the exact problem."""
+
+
+def _pin(d, key: str, unsafe) -> int:
     p = _int(d, key, where="sensor.")
-    if not 0 <= p <= 16:
-        raise ConfigError("config: sensor." + key + " must be a GPIO number 0..16")
+    if not 0 <= p <= 16 or p in _UNSAFE or p in unsafe:
+        raise ConfigError("config: sensor." + key + " must be a GPIO the sensor can use (wsnav site check says why)")
     return p
 
 
@@ -115,11 +129,11 @@ def parse(d) -> dict:
     c["caution_mm"] = 0
     c["samples"] = 5
     if c["sensor_type"] in DIGITAL:
-        c["pin"] = _pin(sensor, "pin")
+        c["pin"] = _pin(sensor, "pin", (0, 2, 15, 16) if c["sensor_type"] == "ir_beam" else (0, 2, 15))
         c["invert"] = _bool(sensor, "invert", False, "sensor.")
     elif c["sensor_type"] == ULTRASONIC:
-        c["trigger_pin"] = _pin(sensor, "trigger_pin")
-        c["echo_pin"] = _pin(sensor, "echo_pin")
+        c["trigger_pin"] = _pin(sensor, "trigger_pin", ())
+        c["echo_pin"] = _pin(sensor, "echo_pin", (0, 2, 15, c["trigger_pin"]))
         c["threshold_mm"] = int(_num(sensor, "threshold_m", 1.0, "sensor.") * 1000)
         c["samples"] = _int(sensor, "samples", 5, "sensor.")
         if not 1 <= c["samples"] <= 15:

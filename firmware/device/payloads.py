@@ -3,7 +3,8 @@
 Pure logic (MicroPython and CPython). Built by concatenation, not json.dumps, because the contract's bytes are
 compact JSON in the models' field order (`{"v":1,"zone":"z1","node":"n1","state":"blocked","seq":3}`) and
 MicroPython's json.dumps puts spaces after separators. Ids never need escaping: they match
-`[A-Za-z0-9_-]{1,32}` (checked by `valid_id`, used by the config loader).
+`[A-Za-z0-9_-]{1,32}` (checked by nodeconfig's `valid_id`, which lives there so that it leaves the heap with the
+config loader after boot).
 """
 
 ROOT = "wsn"
@@ -17,16 +18,6 @@ OFFLINE = "offline"
 
 SEQ_MAX = 2**30 - 1
 """The schema allows 2**31-1; we stay below 2**30 so seq is a small int (no heap) on the ESP8266."""
-
-
-def valid_id(text) -> bool:
-    """True if `text` is a contract id (a topic level without separators or wildcards)."""
-    if not isinstance(text, str) or not 1 <= len(text) <= 32:
-        return False
-    for c in text:
-        if not ("a" <= c <= "z" or "A" <= c <= "Z" or "0" <= c <= "9" or c == "_" or c == "-"):
-            return False
-    return True
 
 
 def zone_state_topic(site: str, zone: str, node: str) -> str:

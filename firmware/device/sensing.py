@@ -28,11 +28,6 @@ def median(values: list) -> int:
     return values[len(values) // 2]
 
 
-def ultrasonic_occupied(pulses_us: list, threshold_mm: int) -> bool:
-    """Occupied when the median distance of the pings is nearer than the threshold."""
-    return ultrasonic_level(pulses_us, threshold_mm, 0) == BLOCKED
-
-
 def ultrasonic_level(pulses_us: list, threshold_mm: int, caution_mm: int) -> int:
     """BLOCKED when the median distance of the pings is nearer than `threshold_mm`, CAUTION when it is nearer
     than `caution_mm` (0, or not beyond the threshold: no caution band), else CLEAR.

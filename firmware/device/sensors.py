@@ -17,10 +17,12 @@ PING_GAP_MS = 25
 
 
 class DigitalSensor:
-    """PIR (high while motion) or IR break-beam receiver; `invert` for active-low modules."""
+    """PIR (high while motion) or IR break-beam receiver; `invert` for active-low modules. `pull` turns on the
+    pin's internal pull-up: an IR receiver's open-collector output needs one (GPIO16 has none: the config refuses
+    it for an IR beam)."""
 
-    def __init__(self, pin: int, invert: bool = False) -> None:
-        self._pin = Pin(pin, Pin.IN)
+    def __init__(self, pin: int, invert: bool = False, pull: bool = False) -> None:
+        self._pin = Pin(pin, Pin.IN, Pin.PULL_UP) if pull else Pin(pin, Pin.IN)
         self.invert = invert
 
     def reading(self) -> bool:
@@ -65,4 +67,4 @@ def from_config(cfg):
         return Ultrasonic(
             cfg["trigger_pin"], cfg["echo_pin"], cfg["threshold_mm"], cfg["samples"], cfg["caution_mm"]
         )
-    return DigitalSensor(cfg["pin"], cfg["invert"])
+    return DigitalSensor(cfg["pin"], cfg["invert"], cfg["sensor_type"] == "ir_beam")

@@ -4,9 +4,11 @@ board's VM. Prints "ok N" after N checks passed."""
 
 from backoff import Backoff
 from debounce import BLOCKED, CAUTION, CLEAR, Debouncer
+from diagnostics import FIRMWARE_VERSION, INFO_PERIOD_MS, due, info
 from node_logic import NodeLogic
-from payloads import node_status_payload, valid_id, zone_state_payload, zone_state_topic
-from sensing import digital_occupied, echo_us_to_mm, median, ultrasonic_level, ultrasonic_occupied
+from nodeconfig import valid_id
+from payloads import node_status_payload, zone_state_payload, zone_state_topic
+from sensing import digital_occupied, echo_us_to_mm, median, ultrasonic_level
 
 
 def check_debounce_delays_on_and_off():
@@ -112,7 +114,6 @@ def check_node_logic_publishes_changes_heartbeats_and_reconnects():
     assert n.step(True, 50) is None
     msg = n.step(True, 100)
     assert msg is not None and msg[1] == zone_state_payload("z1", "n1", "blocked", 43)
-    assert n.next_due_ms(100) == 1000
     assert n.step(True, 1099) is None
     beat = n.step(True, 1100)
     assert beat is not None and beat[1] == zone_state_payload("z1", "n1", "blocked", 44)
@@ -131,9 +132,21 @@ def check_node_logic_publishes_caution():
     assert n.step(BLOCKED, 200) is None
     msg = n.step(BLOCKED, 300)
     assert msg is not None and msg[1] == zone_state_payload("z1", "n1", "blocked", 3)
-    assert n.next_due_ms(300) == 1000
     beat = n.step(True, 1300)  # a bool is still a level: True is blocked
     assert beat is not None and beat[1] == zone_state_payload("z1", "n1", "blocked", 4)
+
+
+def check_diagnostics_payload():
+    n = NodeLogic("s", "z1", "n1", 100, 100, 1000, 0)
+    msg = info(n, 3723000, 3, 1, -61, 8000, 'OSError: "x"\\y')
+    assert msg[0] == "wsn/s/nodes/n1/info" and msg[2:] == (True, 0, 3723000 + INFO_PERIOD_MS)
+    assert msg[1] == (
+        b'{"v":1,"node":"n1","fw":"' + FIRMWARE_VERSION.encode() + b'","reset":"watchdog","uptime_s":3723,'
+        b'"rssi":-61,"heap_free":8000,"reconnects":2,"error":"OSError: \'x\'/y"}'
+    )
+    plain = info(n, 0, 0, 42, 31)[1]  # no link RSSI (the SDK's 31), nothing measured, unknown cause
+    assert plain == b'{"v":1,"node":"n1","fw":"' + FIRMWARE_VERSION.encode() + b'","reset":"unknown","uptime_s":0,"reconnects":0}'
+    assert due(5, 5) and not due(5, 4)
 
 
 def check_seq_wraps_below_2_to_30():
@@ -147,8 +160,8 @@ def check_sensing():
     assert echo_us_to_mm(-1) > 4000 and echo_us_to_mm(0) > 4000
     assert median([5, 1, 9]) == 5
     # one wild echo does not decide: median of five
-    assert ultrasonic_occupied([2000, 2100, -1, 1900, 60000], 1000) is True
-    assert ultrasonic_occupied([-1, -1, 2000, -2, 30000], 1000) is False
+    assert ultrasonic_level([2000, 2100, -1, 1900, 60000], 1000, 0) == BLOCKED
+    assert ultrasonic_level([-1, -1, 2000, -2, 30000], 1000, 0) == CLEAR
     # 1000 mm blocks, 2000 mm is the caution band's edge; 8746 us is 1500 mm
     assert ultrasonic_level([8746, 8746, 5000, 60000, -1], 1000, 2000) == CAUTION
     assert ultrasonic_level([8746, 5000, 5000, -1, 1], 1000, 2000) == BLOCKED

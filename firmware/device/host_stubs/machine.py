@@ -28,6 +28,8 @@ def _read(name, default):
 class Pin:
     IN = 0
     OUT = 1
+    PULL_UP = 1
+    """The ESP8266's value; the stub reads a pin the same with or without it."""
 
     def __init__(self, id, mode=0, pull=-1, value=0):
         self.id = id
