@@ -84,9 +84,11 @@ def mosquitto_broker(
 
 
 @contextlib.contextmanager
-def amqtt_broker(site: Path, creds: Path, cpus: str | None = None) -> Iterator[RunningBroker]:
+def amqtt_broker(
+    site: Path, creds: Path, cpus: str | None = None, extra_args: list[str] | None = None
+) -> Iterator[RunningBroker]:
     """`wsnav broker run` (retained messages in memory, no --data) on a free loopback port."""
-    broker = BrokerProcess(site, creds)
+    broker = BrokerProcess(site, creds, extra_args=extra_args)
     broker.args = _pinned(broker.args, cpus)
     with broker:
         assert broker.proc is not None
@@ -95,14 +97,20 @@ def amqtt_broker(site: Path, creds: Path, cpus: str | None = None) -> Iterator[R
 
 @contextlib.contextmanager
 def site_broker(
-    kind: str, site: Path, creds: Path, root: Path, cpus: str | None = None
+    kind: str,
+    site: Path,
+    creds: Path,
+    root: Path,
+    cpus: str | None = None,
+    amqtt_args: list[str] | None = None,
 ) -> Iterator[RunningBroker]:
-    """The broker named `kind` (one of BROKERS) for `site`, on credentials already written to `creds`."""
+    """The broker named `kind` (one of BROKERS) for `site`, on credentials already written to `creds`;
+    `amqtt_args` go to `wsnav broker run`."""
     if kind == "mosquitto":
         with mosquitto_broker(load_site(site).spec, creds, root, cpus) as running:
             yield running
     elif kind == "amqtt":
-        with amqtt_broker(site, creds, cpus) as running:
+        with amqtt_broker(site, creds, cpus, amqtt_args) as running:
             yield running
     else:
         raise ValueError(f"unknown broker {kind!r} (one of {', '.join(BROKERS)})")

@@ -23,6 +23,8 @@ import argparse
 import json
 import multiprocessing as mp
 import os
+import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -199,9 +201,17 @@ def _ms(xs: np.ndarray, p: float) -> float:
 
 
 def measure(
-    nodes: int, seconds: float, broker: str = "amqtt", cpus: str | None = "0", sub_qos: int = 1
+    nodes: int,
+    seconds: float,
+    broker: str = "amqtt",
+    cpus: str | None = "0",
+    sub_qos: int = 1,
+    amqtt_args: list[str] | None = None,
+    profile_dir: Path | None = None,
 ) -> dict[str, Any]:
-    """One point: `nodes` emulated nodes for a `seconds` window through `broker` (pinned to `cpus`)."""
+    """One point: `nodes` emulated nodes for a `seconds` window through `broker` (pinned to `cpus`);
+    `profile_dir`: py-spy samples each process (broker, simulator, this one: subscriber and probe) over the
+    window into `<process>-<broker>-<nodes>.txt` there (collapsed stacks, native frames included)."""
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="wsnav-fanin-") as tmp:
         root = Path(tmp)
@@ -210,9 +220,11 @@ def measure(
         spec = load_site(site_dir).spec
         write_credentials(spec, creds)
         names = [n.id for n in spec.nodes if n.id != PROBE] + [PROBE]
-        with site_broker(broker, site_dir, creds, root, cpus) as running:
+        with site_broker(broker, site_dir, creds, root, cpus, amqtt_args) as running:
             broker_ps = psutil.Process(running.pid)
             sub, got = subscribe_all(running.host, running.port, creds, names, sub_qos)
+            sub_drops = [0]  # the broker dropping the subscriber (seen under heavy load on amqtt)
+            sub.on_disconnect = lambda *_: sub_drops.__setitem__(0, sub_drops[0] + 1)
             probe = Probe(running.host, running.port, creds)
             probe.start()
             time.sleep(3.0)
@@ -230,11 +242,15 @@ def measure(
             sim_ps = psutil.Process(child.pid)
             time.sleep(2.0)  # let the connect wave's backlog drain before the window opens
             probe.start()
+            pids = {"broker": running.pid, "simulator": sim_ps.pid, "subscriber": os.getpid()}
+            spies = _spy(pids, seconds, profile_dir, f"{broker}-{nodes}") if profile_dir else []
             b0, s0, t0 = cpu_s(broker_ps), cpu_s(sim_ps), time.monotonic()
             go.set()
             time.sleep(seconds)
             b1, s1, t1 = cpu_s(broker_ps), cpu_s(sim_ps), time.monotonic()
             probe.pause()
+            for spy in spies:
+                spy.wait(60)
             child.join(120)
             time.sleep(5.0)  # the grace for stragglers
             probe.close()
@@ -277,7 +293,54 @@ def measure(
         "broker_cpu_pct": 100 * (b1 - b0) / (t1 - t0),
         "seconds_over_100ms": sum(1 for p99 in per_second if p99 > 100),
         "seconds_measured": len(per_second),
+        "subscriber_drops": sub_drops[0],
     }
+
+
+def _spy(pids: dict[str, int], seconds: float, out: Path, tag: str) -> list[subprocess.Popen[bytes]]:
+    """py-spy on each process for the window, 100 samples/s with native frames (to see the garbage collector):
+    each sample stops the process for a moment, so a profiled run's lags are not the benchmark's."""
+    out.mkdir(parents=True, exist_ok=True)
+    spy = Path(sys.executable).with_name("py-spy")
+    spies = []
+    for name, pid in pids.items():
+        args = [str(spy), "record", "-p", str(pid), "-d", str(int(seconds)), "-r", "100", "-f", "raw",
+                "--native", "-o", str(out / f"{name}-{tag}.txt")]  # fmt: skip
+        spies.append(subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+    return spies
+
+
+LOOPS = {"broker": "BaseEventLoop._run_once", "simulator": "ZoneSimulator.run", "subscriber": "Client._loop"}
+"""The frame each process's work runs under: samples outside it are idle threads (thread pools, paho's)."""
+WAITING = ("select (", "epoll_wait", "EpollSelector.select", "select_select_impl", "select_epoll_poll")
+
+
+def summarize_profile(path: Path, loop: str, top: int = 10) -> str:
+    """Where the loop of one process spends its samples: waiting for I/O, in the garbage collector (CPython's
+    `gc_collect_main` among the native frames), and the busiest functions (inclusive), all as % of the loop's."""
+    inclusive: dict[str, int] = {}
+    total = gc_samples = waiting = 0
+    for line in path.read_text().splitlines():
+        stack, _, count = line.rpartition(" ")
+        if loop not in stack:
+            continue
+        n = int(count)
+        total += n
+        if "gc_collect_main" in stack:
+            gc_samples += n
+        elif any(w in stack for w in WAITING):
+            waiting += n
+        frames = {f.split(" (")[0] for f in stack.split(";") if " (" in f and not f.startswith("0x")}
+        for f in frames:
+            inclusive[f] = inclusive.get(f, 0) + n
+    pct = lambda n: 100 * n / max(total, 1)  # noqa: E731
+    ranked = sorted(((f, n) for f, n in inclusive.items() if n < total), key=lambda kv: -kv[1])
+    lines = [
+        f"{path.name}: {total} samples in {loop}: waiting for I/O {pct(waiting):.1f} %, "
+        f"garbage collector {pct(gc_samples):.1f} %"
+    ]
+    lines += [f"  {pct(n):5.1f} % {name}" for name, n in ranked[:top]]
+    return "\n".join(lines)
 
 
 HEADER = (
@@ -342,8 +405,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--sub-qos", type=int, choices=(0, 1), default=1, help="the subscriber's QoS (default 1)"
     )
+    parser.add_argument(
+        "--amqtt-gc-freeze",
+        help="passed to `wsnav broker run --gc-freeze` (0: the collector untouched; default: the broker's)",
+    )
+    parser.add_argument(
+        "--profile", type=Path, help="py-spy every process over each window into this folder, and summarise"
+    )
     parser.add_argument("--no-write", action="store_true", help="print only; leave BENCHMARKS.md alone")
     args = parser.parse_args(argv)
+    amqtt_args = None if args.amqtt_gc_freeze is None else ["--gc-freeze", args.amqtt_gc_freeze]
     brokers = list(BROKERS) if args.broker == "both" else [args.broker]
     counts = [args.nodes] if args.nodes else list(CURVE_NODES)
     cpus = args.broker_cpus or None
@@ -352,15 +423,30 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(HEADER, flush=True)
     results = []
+    skipped: list[str] = []
     for broker in brokers:
         for nodes in counts:
-            r = measure(nodes, args.seconds, broker, cpus, args.sub_qos)
+            if any(r["broker"] == broker and r["lost"] > r["sent"] / 2 for r in results):
+                skipped.append(f"{broker} {nodes}")  # it already lost most messages at fewer nodes
+                continue
+            r = measure(nodes, args.seconds, broker, cpus, args.sub_qos, amqtt_args, args.profile)
             results.append(r)
             print(report(r), flush=True)
-    if args.nodes or args.no_write:
+            if r["subscriber_drops"]:
+                print(f"  the broker dropped the subscriber {r['subscriber_drops']} times", flush=True)
+            if args.profile:
+                for name in ("broker", "simulator", "subscriber"):
+                    found = args.profile / f"{name}-{broker}-{nodes}.txt"
+                    summary = (
+                        summarize_profile(found, LOOPS[name]) if found.exists() else f"{found}: no samples"
+                    )
+                    print(summary, flush=True)
+    if args.nodes or args.no_write or args.profile:
         return 0
     plot(results, PICTURE)
     rows = "\n".join(report(r) for r in results)
+    if skipped:
+        rows += f"\n\nNot run: {', '.join(skipped)} nodes (that broker had already lost most messages at fewer nodes)."
     body = (
         f"```\n{COMMAND}\n```\n\n"
         "N emulated nodes (firmware NodeLogic, one paho link each, all on one thread of one process) publish\n"
