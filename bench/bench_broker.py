@@ -1,13 +1,34 @@
-"""The broker a benchmark measures through: `wsnav broker run` as its own process, with the full security model,
-on fresh credentials for the site in a folder the benchmark owns (so a run never touches the repo's sites)."""
+"""The broker a benchmark measures through, with the full security model on fresh credentials in a folder the
+benchmark owns (so a run never touches the repo's sites): `wsnav broker run` (amqtt) or Mosquitto from
+`wsnav broker mosquitto-config`, each as its own process, optionally pinned to CPUs (`taskset`)."""
 
 from __future__ import annotations
 
+import contextlib
+import os
+import socket
+import subprocess
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 from broker.credentials import write_credentials
 from broker.embedded import BrokerProcess
+from broker.mosquitto import CONF, MosquittoOptions, write_mosquitto_config
 from schemas.site import load_site
+from schemas.site_file import SiteFile
+
+BROKERS = ("amqtt", "mosquitto")
+
+
+@dataclass(frozen=True)
+class RunningBroker:
+    """Where a benchmark's broker listens, and its process id (for its CPU time)."""
+
+    host: str
+    port: int
+    pid: int
 
 
 def fresh_broker(site: Path, root: Path) -> BrokerProcess:
@@ -16,3 +37,80 @@ def fresh_broker(site: Path, root: Path) -> BrokerProcess:
     creds = root / "creds"
     write_credentials(load_site(site).spec, creds)
     return BrokerProcess(site, creds, data_dir=root / "amqtt-data")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _pinned(args: list[str], cpus: str | None) -> list[str]:
+    """`taskset -c CPUS` in front: the process and every thread it starts run on those CPUs only."""
+    return args if cpus is None else ["taskset", "-c", cpus, *args]
+
+
+@contextlib.contextmanager
+def mosquitto_broker(
+    spec: SiteFile, creds: Path, root: Path, cpus: str | None = None
+) -> Iterator[RunningBroker]:
+    """Mosquitto on a free loopback port from the site's own configuration (`wsnav broker mosquitto-config`:
+    the same passwords and per-id ACL as amqtt's), its files and persistence under `root`."""
+    port = free_port()
+    (root / "mq-data").mkdir()
+    options = MosquittoOptions(
+        bind=("127.0.0.1", port), data_dir=root / "mq-data", user="root" if os.geteuid() == 0 else None
+    )
+    write_mosquitto_config(spec, creds, root / "mq", options)
+    proc = subprocess.Popen(
+        _pinned(["mosquitto", "-c", str(root / "mq" / CONF)], cpus),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                if time.monotonic() > deadline or proc.poll() is not None:
+                    raise SystemExit("mosquitto did not start") from None
+                time.sleep(0.1)
+        yield RunningBroker("127.0.0.1", port, proc.pid)
+    finally:
+        proc.terminate()
+        proc.wait(20)
+
+
+@contextlib.contextmanager
+def amqtt_broker(
+    site: Path, creds: Path, cpus: str | None = None, extra_args: list[str] | None = None
+) -> Iterator[RunningBroker]:
+    """`wsnav broker run` (retained messages in memory, no --data) on a free loopback port."""
+    broker = BrokerProcess(site, creds, extra_args=extra_args)
+    broker.args = _pinned(broker.args, cpus)
+    with broker:
+        assert broker.proc is not None
+        yield RunningBroker(broker.host, broker.port, broker.proc.pid)
+
+
+@contextlib.contextmanager
+def site_broker(
+    kind: str,
+    site: Path,
+    creds: Path,
+    root: Path,
+    cpus: str | None = None,
+    amqtt_args: list[str] | None = None,
+) -> Iterator[RunningBroker]:
+    """The broker named `kind` (one of BROKERS) for `site`, on credentials already written to `creds`;
+    `amqtt_args` go to `wsnav broker run`."""
+    if kind == "mosquitto":
+        with mosquitto_broker(load_site(site).spec, creds, root, cpus) as running:
+            yield running
+    elif kind == "amqtt":
+        with amqtt_broker(site, creds, cpus, amqtt_args) as running:
+            yield running
+    else:
+        raise ValueError(f"unknown broker {kind!r} (one of {', '.join(BROKERS)})")

@@ -13,33 +13,29 @@ console process before the page is opened (same traffic) and with it open.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import multiprocessing as mp
 import os
-import socket
 import subprocess
 import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import psutil
 import yaml
 
+from bench.bench_broker import free_port, mosquitto_broker
 from bench.benchmarks_md import bench_parser, machine_note, write_section
 from bench.zone_fanin import cpu_s, fanin_site, simulate, subscribe_all
 from broker.credentials import load_credentials, write_credentials
-from broker.mosquitto import CONF, MosquittoOptions, write_mosquitto_config
 from runtime.mqtt_bus import connect_with_credentials
 from schemas import topics
 from schemas.messages import ROBOT_PATH_POINTS, RobotStatus
 from schemas.site import load_site
-from schemas.site_file import SiteFile
 
 SITE = "fanin"
 SECTION = "## Operator console: 1000 nodes and 20 robots to the browser"
@@ -60,35 +56,6 @@ window.EventSource = function (url) {
   return es;
 };
 """
-
-
-@contextlib.contextmanager
-def mosquitto(spec: SiteFile, creds: Path, root: Path) -> Iterator[tuple[str, int]]:
-    """Mosquitto from the site's own configuration (`wsnav broker mosquitto-config`): 1000 msg/s is past what
-    amqtt carries on this machine (see the fan-in section), and this measures the console, not the broker."""
-    port = _free_port()
-    (root / "mq-data").mkdir()
-    options = MosquittoOptions(
-        bind=("127.0.0.1", port), data_dir=root / "mq-data", user="root" if os.geteuid() == 0 else None
-    )
-    write_mosquitto_config(spec, creds, root / "mq", options)
-    proc = subprocess.Popen(
-        ["mosquitto", "-c", str(root / "mq" / CONF)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-    )
-    try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=1).close()
-                break
-            except OSError:
-                if time.monotonic() > deadline or proc.poll() is not None:
-                    raise SystemExit("mosquitto did not start") from None
-                time.sleep(0.1)
-        yield "127.0.0.1", port
-    finally:
-        proc.terminate()
-        proc.wait(20)
 
 
 def site_with_robots(directory: Path, nodes: int, robots: int) -> Path:
@@ -130,7 +97,8 @@ def measure(nodes: int, robots: int, seconds: float) -> dict[str, float]:
         creds = root / "creds"
         spec = load_site(site_dir).spec
         write_credentials(spec, creds)
-        with mosquitto(spec, creds, root) as (host, broker_port):
+        with mosquitto_broker(spec, creds, root) as running:
+            host, broker_port = running.host, running.port
             addr = f"{host}:{broker_port}"
             sub, got = subscribe_all(host, broker_port, creds, [n.id for n in spec.nodes])
             ctx = mp.get_context("spawn")
@@ -142,7 +110,7 @@ def measure(nodes: int, robots: int, seconds: float) -> dict[str, float]:
             )
             sim.start()
             online, _ = ready.get(timeout=400)
-            port = _free_port()
+            port = free_port()
             console = subprocess.Popen(
                 [sys.executable, "-m", "wsnav.cli", "console", "--site", str(site_dir), "--broker", addr,
                  "--credentials", str(creds / "operator.json"), "--bind", f"127.0.0.1:{port}"],
@@ -219,12 +187,6 @@ def measure(nodes: int, robots: int, seconds: float) -> dict[str, float]:
         "slow_seconds": slow_seconds,
         "measured_seconds": len(per_second),
     }  # fmt: skip
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def report(r: dict[str, float]) -> str:

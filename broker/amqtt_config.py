@@ -43,6 +43,9 @@ class BrokerOptions:
     """A socket that has not sent a whole CONNECT by then is closed."""
     max_packet_bytes: int = MAX_PACKET_BYTES
     """Bigger packets end the connection (and are never stored or delivered)."""
+    gc_freeze_s: float = 0.0
+    """How often long-lived objects are frozen out of garbage collections (broker.gc_pacing); 0: never. The
+    collector is the whole process's: `wsnav broker run` turns it on, a broker embedded in another program not."""
 
 
 def bind_text(host: str, port: int) -> str:

@@ -68,6 +68,12 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     run.add_argument(
         "--max-packet-bytes", type=int, default=32768, help="bigger MQTT packets close the connection"
     )
+    run.add_argument(
+        "--gc-freeze",
+        type=float,
+        default=10.0,
+        help="seconds between freezing long-lived objects out of garbage collections (0: never)",
+    )
     run.add_argument("--log-level", choices=["debug", "info", "warning", "error"], default="warning")
     run.set_defaults(func=run_command)
 
@@ -145,6 +151,8 @@ def run_command(args: argparse.Namespace) -> int:
         raise CliError("--max-packet-bytes must be between 1024 and 268435455")
     if args.max_connections < 0:
         raise CliError("--max-connections must be >= 0")
+    if not 0 <= args.gc_freeze <= 3600:
+        raise CliError("--gc-freeze must be >= 0 and <= 3600 seconds")
     options = BrokerOptions(
         bind=args.bind,
         data_dir=args.data,
@@ -155,6 +163,7 @@ def run_command(args: argparse.Namespace) -> int:
         max_connections=args.max_connections,
         connect_timeout_s=args.connect_timeout,
         max_packet_bytes=args.max_packet_bytes,
+        gc_freeze_s=args.gc_freeze,
     )
     logging.basicConfig(
         level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"

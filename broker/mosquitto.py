@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import math
 import os
 import secrets
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from broker.acl import AclRules, site_rules
@@ -40,6 +41,10 @@ class MosquittoOptions:
     max_packet_bytes: int = MAX_PACKET_BYTES
     max_connections: int = -1
     """-1: unlimited (bounded by the open-file limit)."""
+    max_queued_messages: int = 10_000
+    """Per client: QoS 1 messages Mosquitto holds for a subscriber that is not reading (its default, 1000, is
+    half a second of a 2000-node site: a robot whose loop stalls that long lost heartbeats, bench.zone_fanin).
+    write_mosquitto_config raises it to 10 s of the site's heartbeats for bigger sites."""
     bind_client_ids: bool = True
     """False (`--shared-client-ids`): one identity may hold several connections under distinct client ids, and
     then any identity can kick another's connection by using its client id. For simulation stacks only."""
@@ -82,6 +87,7 @@ def conf_text(out: Path, options: MosquittoOptions) -> str:
         f"persistence_location {options.data_dir}/",
         f"autosave_interval {options.autosave_interval_s}",
         "max_qos 1",
+        f"max_queued_messages {options.max_queued_messages}",
         "log_dest stderr",
         "log_type error",
         "log_type warning",
@@ -98,6 +104,8 @@ def write_mosquitto_config(
     """Write conf, password and ACL files into `out` (0600, folder 0700); returns the files written."""
     creds = load_folder(credentials_dir, spec)
     out = out.resolve()
+    beats = 10 * sum(1 / spec.heartbeat_of(node) for node in spec.nodes)
+    options = replace(options, max_queued_messages=max(options.max_queued_messages, math.ceil(beats)))
     secure_dir(out)
     passwords = "".join(f"{ident}:{mosquitto_hash(c.password)}\n" for ident, c in creds.items())
     files = {

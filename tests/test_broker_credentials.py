@@ -4,17 +4,30 @@ and Mosquitto's password format produced without Mosquitto's tools."""
 from __future__ import annotations
 
 import json
+import os
 import stat
 import subprocess
 import sys
+import time
 from pathlib import Path
 
+import paho.mqtt.client as mqtt
 import pytest
+from paho.mqtt.enums import CallbackAPIVersion
 
-from broker.credentials import PASSWORD_FILE, read_password_file, verify_password
-from broker.mosquitto import ACL, CONF, PASSWORDS, mosquitto_hash
+from broker.credentials import (
+    PASSWORD_FILE,
+    load_credentials,
+    read_password_file,
+    verify_password,
+    write_credentials,
+)
+from broker.mosquitto import ACL, CONF, PASSWORDS, MosquittoOptions, mosquitto_hash, write_mosquitto_config
 from schemas.credentials import Credentials, NodeConfig
+from schemas.site import load_site
+from tests.conftest import require_tool
 from tests.site_fixtures import tiny_site
+from tests.test_broker_helpers import free_port, wait_listening
 
 
 def wsnav(*args: str | Path) -> subprocess.CompletedProcess[str]:
@@ -137,3 +150,49 @@ def test_mosquitto_config_bad_credentials_is_one_line(tmp_path: Path, broken: st
     )
     assert result.returncode != 0
     assert len(result.stderr.splitlines()) == 1 and "robot1.json" in result.stderr
+
+
+def test_mosquitto_keeps_messages_for_a_subscriber_that_stalls(tmp_path: Path) -> None:
+    """A robot whose loop stalls while 3000 zone states arrive gets every one of them once it reads again
+    (Mosquitto's own default queue, 1000 messages, dropped the rest)."""
+    mosquitto = require_tool("mosquitto")
+    site = tiny_site(tmp_path / "site")
+    creds = tmp_path / "creds"
+    write_credentials(load_site(site).spec, creds)
+    port = free_port()
+    (tmp_path / "data").mkdir()
+    options = MosquittoOptions(
+        bind=("127.0.0.1", port), data_dir=tmp_path / "data", user="root" if os.geteuid() == 0 else None
+    )
+    write_mosquitto_config(load_site(site).spec, creds, tmp_path / "conf", options)
+    proc = subprocess.Popen([mosquitto, "-c", str(tmp_path / "conf" / CONF)], stderr=subprocess.DEVNULL)
+    try:
+        wait_listening("127.0.0.1", port, proc)
+        got: list[int] = []
+        robot = paho_client(creds, "robot1", port)
+        robot.on_message = lambda _c, _u, m: got.append(json.loads(m.payload)["seq"])
+        robot.subscribe("wsn/tiny/zones/+/state/+", qos=1)
+        robot.loop(1.0)
+        robot.loop(0.2)
+        node = paho_client(creds, "n1", port)
+        node.loop_start()
+        topic = "wsn/tiny/zones/z1/state/n1"
+        for seq in range(3000):  # the robot is not reading: Mosquitto queues what it cannot send
+            payload = json.dumps({"zone": "z1", "node": "n1", "state": "clear", "seq": seq})
+            node.publish(topic, payload, qos=1).wait_for_publish(5)
+        node.loop_stop()
+        deadline = time.monotonic() + 30
+        while len(got) < 3000 and time.monotonic() < deadline:
+            robot.loop(0.1)
+        assert sorted(set(got)) == list(range(3000)), f"{3000 - len(set(got))} of 3000 lost"
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+
+def paho_client(creds: Path, ident: str, port: int) -> mqtt.Client:
+    c = load_credentials(creds / f"{ident}.json")
+    client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=ident)
+    client.username_pw_set(c.username, c.password)
+    client.connect("127.0.0.1", port)
+    return client

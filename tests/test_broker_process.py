@@ -166,6 +166,10 @@ def test_port_in_use_is_one_line_and_nonzero(setup: tuple[Path, Path]) -> None:
             ],
             "--max-packet-bytes must be",
         ),
+        (
+            ["--site", "{site}", "--credentials", "{creds}", "--bind", "127.0.0.1:0", "--gc-freeze", "-1"],
+            "--gc-freeze must be",
+        ),
     ],
 )
 def test_bad_input_is_one_line(

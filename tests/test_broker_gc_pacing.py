@@ -1,0 +1,65 @@
+"""broker.gc_pacing: what is frozen is skipped by collections, and nothing frozen stays unreclaimed for good."""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import weakref
+from collections.abc import Iterator
+
+import pytest
+
+from broker.gc_pacing import freeze_now, pace_collections, refresh
+
+
+class Session:
+    """Stands for a broker session: an object in a reference cycle, as amqtt's sessions and handlers are."""
+
+    def __init__(self) -> None:
+        self.me = self
+
+
+@pytest.fixture(autouse=True)
+def thawed() -> Iterator[None]:
+    gc.unfreeze()
+    yield
+    gc.unfreeze()
+    gc.collect()
+
+
+def test_frozen_objects_are_skipped_until_the_refresh_reclaims_them() -> None:
+    session = Session()
+    gone = weakref.ref(session)
+    assert freeze_now() > 0
+    del session  # the node reconnects: its old session is now cyclic garbage, but frozen
+    gc.collect()
+    assert gone() is not None, "a frozen object was walked by a collection"
+    refresh()
+    assert gone() is None, "the refresh left frozen garbage in memory"
+
+
+def test_garbage_is_collected_before_freezing() -> None:
+    session = Session()
+    gone = weakref.ref(session)
+    del session
+    freeze_now()
+    assert gone() is None, "garbage was frozen (it would stay until the next refresh)"
+
+
+def test_the_pacer_freezes_on_its_period_and_refreshes() -> None:
+    async def run() -> tuple[int, bool]:
+        session = Session()
+        gone = weakref.ref(session)
+        task = asyncio.create_task(pace_collections(every_s=0.02, refresh_s=0.15))
+        await asyncio.sleep(0.07)
+        frozen = gc.get_freeze_count()
+        del session
+        await asyncio.sleep(0.3)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        return frozen, gone() is None
+
+    frozen, reclaimed = asyncio.run(run())
+    assert frozen > 0
+    assert reclaimed
