@@ -14,24 +14,19 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
-import socket
 import statistics
-import subprocess
 import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
-from bench.bench_broker import fresh_broker
+from bench.bench_broker import fresh_broker, mosquitto_broker
 from broker.credentials import load_credentials
-from broker.mosquitto import CONF, MosquittoOptions, write_mosquitto_config
 from schemas import topics
 from schemas.site import load_site
 
@@ -146,38 +141,6 @@ def measure(name: str, host: str, port: int, creds_dir: Path, latency_n: int, bu
     )
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-@contextmanager
-def mosquitto(site: Path, creds: Path, work: Path) -> Iterator[tuple[str, int]]:
-    exe = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
-    port = free_port()
-    (work / "data").mkdir(parents=True)
-    options = MosquittoOptions(
-        bind=("127.0.0.1", port), data_dir=work / "data", user="root" if os.geteuid() == 0 else None
-    )
-    write_mosquitto_config(load_site(site).spec, creds, work / "conf", options)
-    proc = subprocess.Popen([exe, "-c", str(work / "conf" / CONF)], stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=1).close()
-                break
-            except OSError:
-                if proc.poll() is not None or time.monotonic() > deadline:
-                    raise RuntimeError("mosquitto did not start") from None
-                time.sleep(0.05)
-        yield "127.0.0.1", port
-    finally:
-        proc.terminate()
-        proc.wait(30)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--latency-messages", type=int, default=2000)
@@ -197,9 +160,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.skip_mosquitto or not (shutil.which("mosquitto") or Path("/usr/sbin/mosquitto").exists()):
             print("mosquitto: not installed, skipped", file=sys.stderr)
         else:
-            with mosquitto(site, creds, root / "mosquitto") as (host, port):
+            with mosquitto_broker(load_site(site).spec, creds, root) as mq:
                 results.append(
-                    measure("mosquitto", host, port, creds, args.latency_messages, args.throughput_messages)
+                    measure(
+                        "mosquitto", mq.host, mq.port, creds, args.latency_messages, args.throughput_messages
+                    )
                 )
     print(f"broker latency/throughput, loopback, {os.cpu_count()} CPUs, auth + ACL on, paho-mqtt clients")
     print(
