@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Collection
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from robot_agent.backend import LaserScan
+from robot_agent.backend import LaserScan, Pose
 from robot_agent.inflation import LETHAL_OBSTACLE, InflationParams, inflate, static_layer
 from robot_agent.zone_geometry import Bounds, GridFrame
 from robot_agent.zone_layer import BlockedArea, ZoneLayer
@@ -171,3 +172,84 @@ class InflationLayer:
 
     def update_costs(self, master: Costs, bounds: Bounds) -> None:
         master[...] = inflate(master, self.resolution, self.params)
+
+
+@dataclass(frozen=True)
+class OtherRobot:
+    """Another robot of the fleet as its last status told it: where it stands, how big it is, what it does."""
+
+    robot: str
+    pose: Pose
+    radius: float
+    state: str
+    priority: int
+    """Its place in the site's robot list: 0 has right of way over everyone (robot_agent.right_of_way)."""
+    expires_at: float
+    """Clock time after which its pose is too old to keep (it went silent, or its status was an old retained one)."""
+
+
+class RobotsLayer:
+    """The other robots' footprints (from `robots/<id>/status`): each a lethal disk until its pose goes stale.
+
+    The inflation layer then adds this robot's own radius around them, so the planner keeps the two footprints
+    apart as it keeps the robot off walls. Only the windows of disks that moved, appeared or expired are repainted.
+    """
+
+    def __init__(self, frame: GridFrame) -> None:
+        self.frame = frame
+        self.costs: Costs = np.zeros((frame.height, frame.width), dtype=np.uint8)
+        self.robots: dict[str, OtherRobot] = {}
+        self._windows: dict[str, Bounds] = {}
+        self._pending: list[Bounds] = []
+
+    def put(self, other: OtherRobot) -> None:
+        """Place (or move) a robot's disk; a robot that did not move changes nothing."""
+        old = self.robots.get(other.robot)
+        self.robots[other.robot] = other
+        if old is not None and (old.pose[:2], old.radius) == (other.pose[:2], other.radius):
+            return
+        before = self._windows.get(other.robot)
+        self._windows[other.robot] = self._disk_window(other)
+        self._repaint([self._windows[other.robot], *([before] if before is not None else [])])
+
+    def expire(self, now: float) -> list[str]:
+        """Forget the robots whose pose is older than allowed; returns their ids."""
+        gone = [r for r, o in self.robots.items() if o.expires_at <= now]
+        for robot in gone:
+            del self.robots[robot]
+            self._repaint([self._windows.pop(robot)])
+        return gone
+
+    @property
+    def changed(self) -> bool:
+        """Whether a disk moved, appeared or went since the stack last asked."""
+        return bool(self._pending)
+
+    def take_bounds(self) -> list[Bounds]:
+        out, self._pending = self._pending, []
+        return out
+
+    def update_costs(self, master: Costs, bounds: Bounds) -> None:
+        np.maximum(master, self.costs[bounds.rows, bounds.cols], out=master)
+
+    def _disk_window(self, other: OtherRobot) -> Bounds:
+        row, col = self.frame.world_to_cell(other.pose[0], other.pose[1])
+        reach = math.ceil(other.radius / self.frame.resolution) + 1
+        return Bounds(row - reach, col - reach, row + reach + 1, col + reach + 1).grow(0, self.frame)
+
+    def _repaint(self, windows: list[Bounds]) -> None:
+        """Paint every robot's disk afresh in `windows` (disks may overlap, so a window is redrawn whole)."""
+        frame = self.frame
+        res = frame.resolution
+        for w in windows:
+            if w.empty:
+                continue
+            ys = frame.origin_y + (np.arange(w.row0, w.row1) + 0.5) * res
+            xs = frame.origin_x + (np.arange(w.col0, w.col1) + 0.5) * res
+            painted = np.zeros(w.shape, dtype=bool)
+            for other in self.robots.values():
+                # A cell is covered when its centre lies within the radius grown by half a cell.
+                d = np.hypot(xs[None, :] - other.pose[0], ys[:, None] - other.pose[1])
+                painted |= d <= other.radius + res / 2
+            self.costs[w.rows, w.cols] = np.where(painted, np.uint8(LETHAL_OBSTACLE), np.uint8(0))
+            self._pending.append(w)

@@ -1,4 +1,4 @@
-"""The robot's layered costmap, with costmap_2d's semantics: static -> obstacle -> zone, then inflation.
+"""The robot's layered costmap, with costmap_2d's semantics: static -> obstacle -> zone -> robots, then inflation.
 
 The layers (robot_agent.costmap_layers) are merged in order, each by its own rule (all by numeric maximum today,
 so NO_INFORMATION, 255, stays unknown), then inflated with costmap_2d's formula (robot_agent.inflation). Every
@@ -22,6 +22,7 @@ from robot_agent.costmap_layers import (
     InflationLayer,
     Layer,
     ObstacleLayer,
+    RobotsLayer,
     StaticLayer,
     ZoneCostLayer,
 )
@@ -43,7 +44,7 @@ CHANGE_LOG = 64
 
 
 class LayeredCostmap:
-    """Static, obstacle (lidar) and zone (WSN) layers merged in order, then inflated; updated in bounds."""
+    """Static, obstacle (lidar), zone (WSN) and, in a fleet, robots layers merged in order, then inflated."""
 
     def __init__(
         self,
@@ -54,7 +55,9 @@ class LayeredCostmap:
         obstacle_layer: bool = True,
         obstacle_range_m: float = 3.0,
         raytrace_range_m: float = 3.5,
+        robots_layer: RobotsLayer | None = None,
     ) -> None:
+        """`robots_layer`: the other robots' footprints (a fleet), merged after the zone layer."""
         self.frame = GridFrame.of_grid(grid)
         if zone_layer is not None and zone_layer.frame != self.frame:
             raise ValueError("the zone layer was built for another grid frame")
@@ -69,6 +72,11 @@ class LayeredCostmap:
             self.layers.append(self.obstacles)
         if self.zones is not None:
             self.layers.append(self.zones)
+        self.robots = robots_layer
+        if robots_layer is not None:
+            if robots_layer.frame != self.frame:
+                raise ValueError("the robots layer was built for another grid frame")
+            self.layers.append(robots_layer)
         self.inflation = InflationLayer(inflation, grid.resolution)
         self.merged: NDArray[np.uint8] = self.static.costs.copy()
         """The layers merged, before inflation."""
