@@ -122,8 +122,8 @@ def fleet_experiment(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise CliError(f"{args.out}: cannot create output directory: {exc.strerror}") from None
     results = []
-    with _broker(args, site) as at:
-        for config in configs:
+    for config in configs:  # an embedded broker per configuration: nothing retained or queued carries over
+        with _broker(args, site) as at:
             results.append(run_fleet(site, at, config, args.minutes * 60.0, args.seed, progress=print))
     reproduce = (
         f"wsnav fleet-experiment --site {args.site} --minutes {args.minutes:g} --seed {args.seed} "
