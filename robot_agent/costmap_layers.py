@@ -9,7 +9,7 @@ with these two methods and putting it in the stack's list; nothing else changes.
 from __future__ import annotations
 
 import math
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -77,8 +77,11 @@ class ObstacleLayer:
         marked = self.marked[bounds.rows, bounds.cols]
         np.maximum(master, np.where(marked, np.uint8(LETHAL_OBSTACLE), np.uint8(0)), out=master)
 
-    def add_scan(self, scan: LaserScan) -> bool:
-        """Clear and mark along the scan's beams; True if a cell changed (its window is then pending)."""
+    def add_scan(self, scan: LaserScan, known: Sequence[tuple[float, float, float]] = ()) -> bool:
+        """Clear and mark along the scan's beams; True if a cell changed (its window is then pending).
+
+        Hits inside a `known` disc (x, y, radius: another robot, which the robots layer holds) clear but are not
+        marked: a robot that drove on would otherwise leave its mark wherever this robot's lidar last saw it."""
         if scan is self._last_scan:
             return False
         self._last_scan = scan
@@ -89,6 +92,14 @@ class ObstacleLayer:
         angles = yaw + scan.angle_min + scan.angle_increment * np.arange(len(ranges))
         usable = ~np.isnan(ranges) & (ranges >= scan.range_min)
         hit = usable & np.isfinite(ranges) & (ranges < scan.range_max) & (ranges <= self.obstacle_range_m)
+        near = [
+            (kx, ky, kr) for kx, ky, kr in known if math.hypot(kx - x, ky - y) <= self.obstacle_range_m + kr
+        ]
+        if near:
+            reach = np.where(hit, ranges, 0.0)
+            hx, hy = x + np.cos(angles) * reach, y + np.sin(angles) * reach
+            for kx, ky, kr in near:
+                hit &= np.hypot(hx - kx, hy - ky) > kr
         clear_len = np.minimum(np.where(np.isfinite(ranges), ranges, np.inf), self.raytrace_range_m)
         clear_len = np.where(usable, clear_len, 0.0)
         reach = math.ceil(max(self.raytrace_range_m, self.obstacle_range_m) / res) + 2
@@ -188,6 +199,10 @@ class OtherRobot:
     """Clock time after which its pose is too old to keep (it went silent, or its status was an old retained one)."""
 
 
+KNOWN_ROBOT_MARGIN_M = 0.2
+"""Lidar hits this far beyond a known robot's footprint are its (it drives 0.11 m between two 2 Hz statuses)."""
+
+
 class RobotsLayer:
     """The other robots' footprints (from `robots/<id>/status`): each a lethal disk until its pose goes stale.
 
@@ -219,6 +234,10 @@ class RobotsLayer:
             del self.robots[robot]
             self._repaint([self._windows.pop(robot)])
         return gone
+
+    def known_discs(self) -> list[tuple[float, float, float]]:
+        """Each robot's footprint grown by KNOWN_ROBOT_MARGIN_M: lidar hits there are that robot, not an obstacle."""
+        return [(o.pose[0], o.pose[1], o.radius + KNOWN_ROBOT_MARGIN_M) for o in self.robots.values()]
 
     @property
     def changed(self) -> bool:

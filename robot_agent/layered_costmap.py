@@ -115,8 +115,10 @@ class LayeredCostmap:
         return self.update()
 
     def update_scan(self, scan: LaserScan) -> Bounds | None:
-        """Feed a scan to the obstacle layer and apply it; None if no cost changed."""
-        if self.obstacles is None or not self.obstacles.add_scan(scan):
+        """Feed a scan to the obstacle layer and apply it; None if no cost changed. Other robots the robots layer
+        knows are left to it (not marked by the lidar)."""
+        known = self.robots.known_discs() if self.robots is not None else []
+        if self.obstacles is None or not self.obstacles.add_scan(scan, known):
             return None
         return self.update()
 

@@ -82,6 +82,33 @@ def test_other_robots_are_lethal_where_they_stand_incrementally_as_a_rebuild_wou
     np.testing.assert_array_equal(costmap.master, free_before)
 
 
+def test_the_lidar_leaves_known_robots_to_the_robots_layer_so_they_leave_no_ghost_behind(
+    school: Site,
+) -> None:
+    """A robot seen by the lidar and marked would stay marked after it drove on, wherever no later beam passes
+    (it kept a robot of the fleet experiment waiting for minutes: "the goal is occupied by an obstacle")."""
+    world = SimWorldGrid(school.grid)
+    me = SimTurtleBot3("robot1", world, (9.0, 7.2, 0.0))
+    SimTurtleBot3("robot2", world, (10.0, 7.2, math.pi))
+    SimTurtleBot3("robot3", world, (9.0, 8.2, math.pi))  # unknown to the robots layer: marked as an obstacle
+    me.step(0.05, 0.05)
+    scan = me.scan()
+    assert scan is not None
+    frame = GridFrame.of_grid(school.grid)
+    for known in (False, True):
+        layer = RobotsLayer(frame)
+        if known:
+            layer.put(other("robot2", 10.05, 7.2, priority=1))  # its status is a little behind
+        costmap = LayeredCostmap(school.grid, InflationParams(0.105, 1.0, 3.0), robots_layer=layer)
+        costmap.update_scan(scan)
+        assert costmap.obstacles is not None
+        marked = costmap.obstacles.marked
+        r2, c2 = frame.world_to_cell(10.0 - 0.105, 7.2)
+        r3, c3 = frame.world_to_cell(9.0, 8.2 - 0.105)
+        assert bool(marked[r2 - 1 : r2 + 2, c2 - 1 : c2 + 2].any()) is not known
+        assert marked[r3 - 1 : r3 + 2, c3 - 1 : c3 + 2].any()
+
+
 # -- who yields -------------------------------------------------------------------------------------------
 
 
