@@ -83,6 +83,39 @@ class WatchedBus:
         self.inner.close()
 
 
+class Audience(Deliveries):
+    """Every agent's `Deliveries` in a lock-step fleet: a message published is expected by each agent whose
+    subscriptions match it (an agent's own status by no one: it does not subscribe to it)."""
+
+    def __init__(self) -> None:
+        super().__init__([])
+        self.members: list[Deliveries] = []
+
+    def expect(self, topic: str, payload: bytes) -> None:
+        for member in self.members:
+            member.expect(topic, payload)
+
+    def delivered(self, messages: list[Message]) -> None:
+        return  # each member is told by its own agent's bus
+
+    @property
+    def pending(self) -> int:
+        return sum(member.pending for member in self.members)
+
+
+class FleetBus(WatchedBus):
+    """One agent's bus in a lock-step fleet: it watches its own deliveries and announces what it publishes
+    (its status) to the audience, so simulated time waits until the other agents have it."""
+
+    def __init__(self, inner: Bus, deliveries: Deliveries, audience: Audience) -> None:
+        super().__init__(inner, deliveries)
+        self.audience = audience
+
+    def publish(self, topic: str, payload: bytes, *, qos: int = 1, retain: bool = False) -> None:
+        self.audience.expect(topic, payload)
+        super().publish(topic, payload, qos=qos, retain=retain)
+
+
 class ExpectingBus(WatchedBus):
     """A publisher's bus (the zone simulator's world publisher) announcing what it sends to `Deliveries`."""
 

@@ -27,9 +27,11 @@ from numpy.typing import NDArray
 from robot_agent.agent_config import AgentConfig
 from robot_agent.backend import Pose, RobotBackend
 from robot_agent.controller import ControllerParams, PathFollower
+from robot_agent.costmap_layers import OtherRobot, RobotsLayer
 from robot_agent.costmap_planner import GlobalPlanner
 from robot_agent.layered_costmap import LayeredCostmap
 from robot_agent.navigator import GoalLabel, Navigator, NavigatorParams
+from robot_agent.right_of_way import must_yield_to, yield_reason
 from robot_agent.zone_escape import ZoneEscape
 from robot_agent.zone_geometry import GridFrame
 from robot_agent.zone_intake import ZoneIntake
@@ -87,6 +89,8 @@ class AgentStats:
     statuses: int = 0
     goals: int = 0
     sim_worlds: int = 0
+    robot_statuses: int = 0
+    """Other robots' statuses taken into the robots layer."""
     dropped: Counter[str] = field(default_factory=Counter)
     """Messages the agent itself dropped (goals, simulated world, unexpected topics), by reason."""
 
@@ -117,6 +121,16 @@ class RobotAgent:
             known = ", ".join(robots) or "none"
             raise ValueError(f"robot {self.robot_id!r} is not in site {site.name!r} (robots: {known})")
         radius = max(robots[self.robot_id].footprint_radius, backend.radius)
+        self.radius = radius
+        self.priority = list(robots).index(self.robot_id)
+        """Place in the site's robot list: the order of right of way (robot_agent.right_of_way)."""
+        self.fleet: dict[str, tuple[int, float]] = {}
+        """The other robots whose status this agent follows: id -> (priority, the site's footprint radius)."""
+        if config.fleet_layer:
+            self.fleet = {
+                r.id: (i, r.footprint_radius) for i, r in enumerate(robots.values()) if r.id != self.robot_id
+            }
+        self.robots_layer = RobotsLayer(GridFrame.of_grid(site.grid)) if self.fleet else None
         inflation = config.inflation.params(radius)
         self.zone_layer: ZoneLayer | None = None
         self.intake: ZoneIntake | None = None
@@ -124,7 +138,11 @@ class RobotAgent:
             self.zone_layer = ZoneLayer(site.spec, GridFrame.of_grid(site.grid), site.spec.policy)
             self.intake = ZoneIntake(site.spec, self.zone_layer)
         self.costmap = LayeredCostmap(
-            site.grid, inflation, zone_layer=self.zone_layer, obstacle_layer=config.obstacle_layer
+            site.grid,
+            inflation,
+            zone_layer=self.zone_layer,
+            obstacle_layer=config.obstacle_layer,
+            robots_layer=self.robots_layer,
         )
         controller = PathFollower(
             ControllerParams(
@@ -156,6 +174,7 @@ class RobotAgent:
         self.status_topic = topics.robot_status(site.name, self.robot_id)
         self.goal_topic = topics.robot_goal(site.name, self.robot_id)
         self.sim_world_topic = topics.sim_world(site.name)
+        self.fleet_topics = {topics.robot_status(site.name, r): r for r in self.fleet}
         self._costmap_timer = Every(config.global_costmap_rate_hz)
         self._zone_timer = Every(config.zone_refresh_rate_hz)
         self._status_timer = Every(config.status_rate_hz)
@@ -166,6 +185,7 @@ class RobotAgent:
     def subscriptions(self) -> list[str]:
         subs = list(self.intake.subscriptions()) if self.intake is not None else []
         subs.append(self.goal_topic)
+        subs.extend(self.fleet_topics)
         if self.sim_world is not None:
             subs.append(self.sim_world_topic)
         return subs
@@ -215,6 +235,7 @@ class RobotAgent:
             reason=nav.reason[:200] if nav.reason else None,
             path=path_ahead(nav.path, x, y) if nav.state == "navigating" else None,
             t=round(now, 3),
+            footprint_radius=round(self.radius, 3),
         )
 
     # -- commands from code (the CLI, the experiment) ----------------------------------------------------
@@ -242,6 +263,8 @@ class RobotAgent:
                     goal, cancel = None, True
             elif message.topic == self.sim_world_topic and self.sim_world is not None:
                 self._apply_world(message)
+            elif message.topic in self.fleet_topics:
+                self._take_robot_status(message)
             elif self.intake is not None:
                 if self.intake.handle(message):
                     zones_changed_at = min(zones_changed_at, message.received_at)
@@ -258,6 +281,8 @@ class RobotAgent:
             if scan is not None:
                 self.stats.costmap_scans += 1
                 self.costmap.update_scan(scan)
+        if self.robots_layer is not None:
+            self._update_fleet(now)
         self.navigator.step(now)
         self._publish_status(now)
         self.stats.cpu_s += time.thread_time() - t0
@@ -325,6 +350,54 @@ class RobotAgent:
             self.stats.dropped["goal_invalid"] += 1
             return None
         return (x, y, yaw), (x, y, yaw)
+
+    def _take_robot_status(self, message: Message) -> None:
+        """Another robot's status: its footprint goes into the robots layer until the pose is too old."""
+        assert self.robots_layer is not None
+        robot = self.fleet_topics[message.topic]
+        try:
+            status = parse_payload(RobotStatus, message.payload)
+        except PayloadError:
+            self.stats.dropped["robot_status_invalid"] += 1
+            return
+        x, y, yaw = status.pose
+        if status.robot != robot or not all(math.isfinite(v) for v in (x, y, yaw)):
+            self.stats.dropped["robot_status_invalid"] += 1
+            return
+        # Judged by the older of arrival and making: a retained status from a robot long gone is not kept.
+        made = min(message.received_at, status.t if status.t is not None else math.inf)
+        priority, site_radius = self.fleet[robot]
+        self.robots_layer.put(
+            OtherRobot(
+                robot=robot,
+                pose=(x, y, yaw),
+                radius=status.footprint_radius or site_radius,
+                state=status.state,
+                priority=priority,
+                expires_at=made + self.config.robot_pose_timeout_s,
+            )
+        )
+        self.stats.robot_statuses += 1
+
+    def _update_fleet(self, now: float) -> None:
+        """Other robots: expire old poses, fold the layer's changes into the costmap, apply the right of way."""
+        assert self.robots_layer is not None
+        self.robots_layer.expire(now)
+        if self.robots_layer.changed:
+            self.costmap.update()
+        nav = self.navigator
+        if self.config.yield_distance_m <= 0 or nav.state not in ("navigating", "waiting"):
+            return
+        other = must_yield_to(
+            self.backend.pose(),
+            self.priority,
+            self.robots_layer.robots.values(),
+            self.config.yield_distance_m,
+        )
+        if other is not None:
+            nav.hold(now, yield_reason(other))
+        elif nav.holding is not None:
+            nav.release(now)
 
     def _apply_world(self, message: Message) -> None:
         assert self.sim_world is not None

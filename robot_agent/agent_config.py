@@ -118,6 +118,13 @@ class AgentConfig(_Strict):
     """While waiting for a way, also retry planning this often (0: only when a zone changes)."""
     blocked_replan_interval_s: Annotated[float, Field(gt=0)] = 0.5
     """At most one replan per this interval when the controller reports the path blocked."""
+    fleet_layer: bool = True
+    """On a site with several robots: the others' published poses as a costmap layer, and the right-of-way rule
+    (robot_agent.right_of_way). A site with one robot has neither."""
+    robot_pose_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
+    """Another robot's pose is forgotten this long after its status was made (statuses come at 2 Hz)."""
+    yield_distance_m: Annotated[float, Field(ge=0, le=20)] = 1.5
+    """Yield to a robot with right of way coming this way within this distance (0: never yield)."""
     inflation: InflationSection = InflationSection()
     planner: PlannerSection = PlannerSection()
     recovery: RecoverySection = RecoverySection()

@@ -11,13 +11,14 @@ with these two methods and putting it in the stack's list; nothing else changes.
 from __future__ import annotations
 
 import math
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from robot_agent.backend import LaserScan
+from robot_agent.backend import LaserScan, Pose
 from robot_agent.inflation import (
     LETHAL_OBSTACLE,
     NO_INFORMATION,
@@ -94,8 +95,11 @@ class ObstacleLayer:
         marked = self.marked[bounds.rows, bounds.cols]
         update_with_max(master, np.where(marked, np.uint8(LETHAL_OBSTACLE), np.uint8(NO_INFORMATION)))
 
-    def add_scan(self, scan: LaserScan) -> bool:
-        """Clear and mark along the scan's beams; True if a cell changed (its window is then pending)."""
+    def add_scan(self, scan: LaserScan, known: Sequence[tuple[float, float, float]] = ()) -> bool:
+        """Clear and mark along the scan's beams; True if a cell changed (its window is then pending).
+
+        Hits inside a `known` disc (x, y, radius: another robot, which the robots layer holds) clear but are not
+        marked: a robot that drove on would otherwise leave its mark wherever this robot's lidar last saw it."""
         if scan is self._last_scan:
             return False
         self._last_scan = scan
@@ -106,6 +110,14 @@ class ObstacleLayer:
         angles = yaw + scan.angle_min + scan.angle_increment * np.arange(len(ranges))
         usable = ~np.isnan(ranges) & (ranges >= scan.range_min)
         hit = usable & np.isfinite(ranges) & (ranges < scan.range_max) & (ranges <= self.obstacle_range_m)
+        near = [
+            (kx, ky, kr) for kx, ky, kr in known if math.hypot(kx - x, ky - y) <= self.obstacle_range_m + kr
+        ]
+        if near:
+            reach = np.where(hit, ranges, 0.0)
+            hx, hy = x + np.cos(angles) * reach, y + np.sin(angles) * reach
+            for kx, ky, kr in near:
+                hit &= np.hypot(hx - kx, hy - ky) > kr
         clear_len = np.minimum(np.where(np.isfinite(ranges), ranges, np.inf), self.raytrace_range_m)
         clear_len = np.where(usable, clear_len, 0.0)
         reach = math.ceil(max(self.raytrace_range_m, self.obstacle_range_m) / res) + 2
@@ -211,3 +223,92 @@ class InflationLayer:
 
     def update_costs(self, master: Costs, bounds: Bounds) -> None:
         master[...] = inflate(master, self.resolution, self.params)
+
+
+@dataclass(frozen=True)
+class OtherRobot:
+    """Another robot of the fleet as its last status told it: where it stands, how big it is, what it does."""
+
+    robot: str
+    pose: Pose
+    radius: float
+    state: str
+    priority: int
+    """Its place in the site's robot list: 0 has right of way over everyone (robot_agent.right_of_way)."""
+    expires_at: float
+    """Clock time after which its pose is too old to keep (it went silent, or its status was an old retained one)."""
+
+
+KNOWN_ROBOT_MARGIN_M = 0.2
+"""Lidar hits this far beyond a known robot's footprint are its (it drives 0.11 m between two 2 Hz statuses)."""
+
+
+class RobotsLayer:
+    """The other robots' footprints (from `robots/<id>/status`): each a lethal disk until its pose goes stale.
+
+    The inflation layer then adds this robot's own radius around them, so the planner keeps the two footprints
+    apart as it keeps the robot off walls. Only the windows of disks that moved, appeared or expired are repainted.
+    """
+
+    def __init__(self, frame: GridFrame) -> None:
+        self.frame = frame
+        self.costs: Costs = np.zeros((frame.height, frame.width), dtype=np.uint8)
+        self.robots: dict[str, OtherRobot] = {}
+        self._windows: dict[str, Bounds] = {}
+        self._pending: list[Bounds] = []
+
+    def put(self, other: OtherRobot) -> None:
+        """Place (or move) a robot's disk; a robot that did not move changes nothing."""
+        old = self.robots.get(other.robot)
+        self.robots[other.robot] = other
+        if old is not None and (old.pose[:2], old.radius) == (other.pose[:2], other.radius):
+            return
+        before = self._windows.get(other.robot)
+        self._windows[other.robot] = self._disk_window(other)
+        self._repaint([self._windows[other.robot], *([before] if before is not None else [])])
+
+    def expire(self, now: float) -> list[str]:
+        """Forget the robots whose pose is older than allowed; returns their ids."""
+        gone = [r for r, o in self.robots.items() if o.expires_at <= now]
+        for robot in gone:
+            del self.robots[robot]
+            self._repaint([self._windows.pop(robot)])
+        return gone
+
+    def known_discs(self) -> list[tuple[float, float, float]]:
+        """Each robot's footprint grown by KNOWN_ROBOT_MARGIN_M: lidar hits there are that robot, not an obstacle."""
+        return [(o.pose[0], o.pose[1], o.radius + KNOWN_ROBOT_MARGIN_M) for o in self.robots.values()]
+
+    @property
+    def changed(self) -> bool:
+        """Whether a disk moved, appeared or went since the stack last asked."""
+        return bool(self._pending)
+
+    def take_bounds(self) -> list[Bounds]:
+        out, self._pending = self._pending, []
+        return out
+
+    def update_costs(self, master: Costs, bounds: Bounds) -> None:
+        np.maximum(master, self.costs[bounds.rows, bounds.cols], out=master)
+
+    def _disk_window(self, other: OtherRobot) -> Bounds:
+        row, col = self.frame.world_to_cell(other.pose[0], other.pose[1])
+        reach = math.ceil(other.radius / self.frame.resolution) + 1
+        return Bounds(row - reach, col - reach, row + reach + 1, col + reach + 1).grow(0, self.frame)
+
+    def _repaint(self, windows: list[Bounds]) -> None:
+        """Paint every robot's disk afresh in `windows` (disks may overlap, so a window is redrawn whole)."""
+        frame = self.frame
+        res = frame.resolution
+        for w in windows:
+            if w.empty:
+                continue
+            ys = frame.origin_y + (np.arange(w.row0, w.row1) + 0.5) * res
+            xs = frame.origin_x + (np.arange(w.col0, w.col1) + 0.5) * res
+            painted = np.zeros(w.shape, dtype=bool)
+            for other in self.robots.values():
+                # A cell is covered when its centre lies within the radius grown by half a cell.
+                d = np.hypot(xs[None, :] - other.pose[0], ys[:, None] - other.pose[1])
+                painted |= d <= other.radius + res / 2
+            self.costs[w.rows, w.cols] = np.where(painted, np.uint8(LETHAL_OBSTACLE), np.uint8(0))
+            self._pending.append(w)

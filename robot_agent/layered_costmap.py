@@ -1,4 +1,4 @@
-"""The robot's layered costmap, with costmap_2d's semantics: static -> obstacle -> zone, then inflation.
+"""The robot's layered costmap, with costmap_2d's semantics: static -> obstacle -> zone -> robots, then inflation.
 
 The layers (robot_agent.costmap_layers) are merged in order, each by its own rule (costmap_2d's: the static
 layer overwrites, the others by updateWithMax, where a layer's NO_INFORMATION never hides a known cost), then
@@ -23,6 +23,7 @@ from robot_agent.costmap_layers import (
     InflationLayer,
     Layer,
     ObstacleLayer,
+    RobotsLayer,
     StaticLayer,
     ZoneCostLayer,
 )
@@ -44,7 +45,7 @@ CHANGE_LOG = 64
 
 
 class LayeredCostmap:
-    """Static, obstacle (lidar) and zone (WSN) layers merged in order, then inflated; updated in bounds."""
+    """Static, obstacle (lidar), zone (WSN) and, in a fleet, robots layers merged in order, then inflated."""
 
     def __init__(
         self,
@@ -55,7 +56,9 @@ class LayeredCostmap:
         obstacle_layer: bool = True,
         obstacle_range_m: float = 3.0,
         raytrace_range_m: float = 3.5,
+        robots_layer: RobotsLayer | None = None,
     ) -> None:
+        """`robots_layer`: the other robots' footprints (a fleet), merged after the zone layer."""
         self.frame = GridFrame.of_grid(grid)
         if zone_layer is not None and zone_layer.frame != self.frame:
             raise ValueError("the zone layer was built for another grid frame")
@@ -70,6 +73,11 @@ class LayeredCostmap:
             self.layers.append(self.obstacles)
         if self.zones is not None:
             self.layers.append(self.zones)
+        self.robots = robots_layer
+        if robots_layer is not None:
+            if robots_layer.frame != self.frame:
+                raise ValueError("the robots layer was built for another grid frame")
+            self.layers.append(robots_layer)
         self.inflation = InflationLayer(inflation, grid.resolution)
         self.merged: NDArray[np.uint8] = self.static.costs.copy()
         """The layers merged, before inflation."""
@@ -108,8 +116,10 @@ class LayeredCostmap:
         return self.update()
 
     def update_scan(self, scan: LaserScan) -> Bounds | None:
-        """Feed a scan to the obstacle layer and apply it; None if no cost changed."""
-        if self.obstacles is None or not self.obstacles.add_scan(scan):
+        """Feed a scan to the obstacle layer and apply it; None if no cost changed. Other robots the robots layer
+        knows are left to it (not marked by the lidar)."""
+        known = self.robots.known_discs() if self.robots is not None else []
+        if self.obstacles is None or not self.obstacles.add_scan(scan, known):
             return None
         return self.update()
 

@@ -89,6 +89,13 @@ class MoveBaseRecovery:
         self._last_valid_control_t = now
         self._no_plan_since = None
 
+    def restart_clocks(self, now: float, pose: Pose) -> None:
+        """The robot stood still on purpose (it yielded to another robot), which stock move_base never does:
+        progress and patience count from now, so the wait itself is not taken for an oscillation."""
+        self._osc_pose, self._osc_reset_t = pose, now
+        self._last_valid_control_t = now
+        self._no_plan_since = None
+
     def control_cycle(self, now: float, pose: Pose) -> bool:
         """Note progress at the start of a control cycle; True when the robot has oscillated for too long."""
         p = self.params

@@ -16,6 +16,9 @@ Pure logic over the costmap, planner, controller and robot backend, driven by `s
   (robot_agent.move_base_recovery): the robot not 0.2 m further in 10 s, the controller without a valid command
   for 15 s, or (stock only) no plan for 5 s runs the next of conservative reset, rotation, aggressive reset,
   rotation; when all have run, the goal is aborted (cancelled, naming move_base's reason).
+
+- Held by the agent (another robot has right of way, robot_agent.right_of_way): stop and wait, keeping the goal,
+  with the agent's reason; released, plan again from where it stands.
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ from robot_agent.zone_layer import BlockedArea
 from runtime.timers import Every
 
 NavState = Literal["idle", "navigating", "waiting", "arrived", "cancelled"]
-Trigger = Literal["goal", "zone", "blocked", "periodic", "retry", "recovery"]
+Trigger = Literal["goal", "zone", "blocked", "periodic", "retry", "recovery", "yield"]
 EventKind = Literal[
     "goal",
     "plan",
@@ -183,6 +186,9 @@ class Navigator:
         self.recovery = MoveBaseRecovery(self.params.recovery) if self.params.recovery is not None else None
         self._rotation: Rotation | None = None
 
+        self.holding: str | None = None
+        """Why the agent holds the robot (it yields to another robot), None when it does not."""
+
     @property
     def active(self) -> bool:
         return self.state in ("navigating", "waiting")
@@ -198,6 +204,7 @@ class Navigator:
     def set_goal(self, goal: Pose, label: GoalLabel, now: float) -> None:
         """A new goal replaces the old one; planned at once."""
         self.goal, self.goal_label = goal, label
+        self.holding = None
         self.replans = 0
         self.replans_by.clear()
         self.reason = None
@@ -218,6 +225,32 @@ class Navigator:
         if self.active:
             self._cancel(now, reason)
 
+    def hold(self, now: float, reason: str) -> None:
+        """Stop and wait for something outside the navigator (another robot's right of way), keeping the goal.
+
+        Only a robot driving on its route is held: one leaving a blocked zone goes on out first."""
+        if self.holding is not None:
+            if reason != self.holding:
+                self.holding = self.reason = reason
+                self._record(now, "waiting", "yield", reason)
+            return
+        if self.state != "navigating" or self.leaving is not None:
+            return
+        self._stop()
+        self.holding = reason
+        self.state, self.reason = "waiting", reason
+        self._record(now, "waiting", "yield", reason)
+
+    def release(self, now: float) -> None:
+        """The hold is over: plan again from where the robot stands."""
+        if self.holding is None:
+            return
+        self.holding = None
+        if self.recovery is not None:
+            self.recovery.restart_clocks(now, self.backend.pose())
+        if self.state == "waiting":
+            self._plan(now, "yield")
+
     def on_zones_changed(self, now: float) -> None:
         """The zone layer changed the costmap: Algorithm 3, run at once rather than on the planner's timer."""
         if not self.active or self.goal is None:
@@ -226,6 +259,8 @@ class Navigator:
         if zone is not None:
             self._cancel(now, zone)
             return
+        if self.holding is not None:
+            return  # planned when released, over the costmap as it is then
         x, y, _ = self.backend.pose()
         if (
             self.state == "navigating"
@@ -237,7 +272,7 @@ class Navigator:
     def step(self, now: float) -> None:
         """Timers: periodic replanning, retries while waiting, and the controller at its rate."""
         if self.state == "waiting":
-            if self._retry.due(now):
+            if self.holding is None and self._retry.due(now):
                 self._plan(now, "retry")
             return
         if self.state != "navigating":
@@ -455,6 +490,7 @@ class Navigator:
     def _cancel(self, now: float, reason: str) -> None:
         self._rotation = None
         self._stop()
+        self.holding = None
         self.state, self.reason = "cancelled", reason
         self._record(now, "cancelled", detail=reason)
 

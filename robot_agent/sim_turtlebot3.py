@@ -77,6 +77,7 @@ class SimTurtleBot3:
         """Odometry: path length travelled (m)."""
         self.time_s = 0.0
         """Simulated time integrated so far (s)."""
+        self.world.place_robot(robot_id, self._x, self._y, self.params.radius)
 
     # RobotBackend
     @property
@@ -132,10 +133,16 @@ class SimTurtleBot3:
             self._integrate(h)
             remaining -= h
         self.time_s += dt
+        self.world.place_robot(self._id, self._x, self._y, self.params.radius)
         period = 1.0 / self.lidar.rate_hz
         if self._next_scan is None or now >= self._next_scan - 1e-9:
             self._scan = cast_scan(
-                self.world.occupied, self.world.frame, self.pose(), self.lidar, now, self._rng
+                self.world.occupied_seen_by(self._id),
+                self.world.frame,
+                self.pose(),
+                self.lidar,
+                now,
+                self._rng,
             )
             due = now + period if self._next_scan is None else self._next_scan + period
             self._next_scan = due if due > now else now + period
@@ -175,8 +182,9 @@ class SimTurtleBot3:
         self._in_contact = True
 
     def overlaps(self, x: float, y: float) -> bool:
-        """Whether the footprint circle at (x, y) overlaps an occupied cell's square."""
-        return self.clearance(x, y) < self.params.radius
+        """Whether the footprint circle at (x, y) overlaps an occupied cell's square or another robot."""
+        radius = self.params.radius
+        return self.clearance(x, y) < radius or self.world.robot_touching(self._id, x, y, radius) is not None
 
     def clearance(self, x: float, y: float, reach: float | None = None) -> float:
         """Distance (m) from (x, y) to the nearest occupied cell's square, capped at `reach` (default radius+1 cell)."""

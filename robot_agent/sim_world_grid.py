@@ -1,10 +1,13 @@
-"""The simulated world as the robot's sensors and bumper see it: the site's static map plus placed obstacles.
+"""The simulated world as the robot's sensors and bumper see it: the site's static map, placed obstacles, and
+the other robots of a simulated fleet (each a disk where it stands, for the others' lidars and bumpers).
 
 The zone simulator publishes the obstacles it placed (schemas.messages.SimWorld, the whole set each time);
 `apply` rasterises them onto a copy of the map's occupied cells, touching only the obstacles' windows.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,6 +30,41 @@ class SimWorldGrid:
         self.version = 0
         """Bumped on every change of `occupied`, so a reader can cache what it derives from it."""
         self._clearance: tuple[int, NDArray[np.float32]] | None = None
+        self._robots: dict[str, tuple[float, float, float]] = {}
+        """Robot id -> (x, y, radius) of each simulated robot in this world."""
+
+    def place_robot(self, robot_id: str, x: float, y: float, radius: float) -> None:
+        """Where a simulated robot of this world stands now (it registers and moves itself)."""
+        self._robots[robot_id] = (x, y, radius)
+
+    def occupied_seen_by(self, robot_id: str) -> NDArray[np.bool_]:
+        """The occupied cells with every other robot's footprint painted in: what this robot's lidar sees.
+
+        With no other robot in the world, `occupied` itself (no copy)."""
+        others = [disk for r, disk in self._robots.items() if r != robot_id]
+        if not others:
+            return self.occupied
+        out = self.occupied.copy()
+        frame = self.frame
+        res = frame.resolution
+        for x, y, radius in others:
+            row, col = frame.world_to_cell(x, y)
+            reach = math.ceil(radius / res) + 1
+            r0, r1 = max(row - reach, 0), min(row + reach + 1, frame.height)
+            c0, c1 = max(col - reach, 0), min(col + reach + 1, frame.width)
+            if r1 <= r0 or c1 <= c0:
+                continue
+            ys = frame.origin_y + (np.arange(r0, r1) + 0.5) * res
+            xs = frame.origin_x + (np.arange(c0, c1) + 0.5) * res
+            out[r0:r1, c0:c1] |= np.hypot(xs[None, :] - x, ys[:, None] - y) <= radius
+        return out
+
+    def robot_touching(self, robot_id: str, x: float, y: float, radius: float) -> str | None:
+        """Another robot whose footprint the footprint of `robot_id` at (x, y) would overlap, or None."""
+        for other, (ox, oy, r) in self._robots.items():
+            if other != robot_id and math.hypot(ox - x, oy - y) < radius + r:
+                return other
+        return None
 
     @property
     def obstacle_ids(self) -> list[str]:

@@ -129,6 +129,9 @@ class RobotStatus(_Message):
     t: float | None = None
     """When the status was made, on the site clock: Unix time in a real deployment (so another host can tell
     how old it is), simulated time in simulation."""
+    footprint_radius: Annotated[float, Field(gt=0, le=2.0)] | None = None
+    """The robot's footprint (a circle, metres), so the other robots keep clear of it; absent in older
+    payloads, then the site file's radius for this robot applies."""
 
 
 class RobotGoal(_Message):

@@ -115,6 +115,8 @@ class Node(_Strict):
 class Robot(_Strict):
     id: Id
     footprint_radius: Annotated[float, Field(gt=0, le=2.0)] = 0.105
+    start: Id | None = None
+    """The named point where the robot stands when a simulated fleet starts (`wsnav fleet --sim`)."""
 
 
 class Route(_Strict):
@@ -162,6 +164,9 @@ class SiteFile(_Strict):
                 f"ids used by both a node and a robot (they share one credentials folder): {sorted(clash)}"
             )
         zones = {z.id for z in self.zones}
+        for i, robot in enumerate(self.robots):
+            if robot.start is not None and robot.start not in self.points:
+                raise ValueError(f"robots[{i}] ({robot.id}): unknown start point {robot.start!r}")
         for i, node in enumerate(self.nodes):
             if node.zone not in zones:
                 raise ValueError(f"nodes[{i}] ({node.id}): unknown zone {node.zone!r}")

@@ -38,7 +38,7 @@ SITE = "tiny"
 
 @pytest.fixture(scope="module")
 def site_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return tiny_site(tmp_path_factory.mktemp("site"))
+    return tiny_site(tmp_path_factory.mktemp("site"), robots=[{"id": "robot1"}, {"id": "robot2"}])
 
 
 @pytest.fixture(scope="module")
@@ -162,6 +162,32 @@ def test_robot_reads_zones_and_operator_gives_goals(endpoint: Endpoint) -> None:
         op.publish(goal, b'"B"')
         robot.wait_for(state, b"clear")
         robot.wait_for(goal, b'"B"')
+
+
+def test_a_robot_reads_another_robots_status_and_nothing_else_of_it(endpoint: Endpoint) -> None:
+    """A fleet: robot2 sees where robot1 is (its status), but cannot read robot1's goals, nor speak for it."""
+    status, goal = topics.robot_status(SITE, "robot1"), topics.robot_goal(SITE, "robot1")
+    with (
+        client(endpoint, "robot1") as robot1,
+        client(endpoint, "robot2") as robot2,
+        client(endpoint, "operator", "watcher") as watcher,
+    ):
+        assert robot2.subscribe(status) == [1]
+        granted = robot2.subscribe(goal)
+        if endpoint.kind == "amqtt":
+            assert granted == [128]  # Mosquitto grants any filter and drops each message on delivery instead
+        assert watcher.subscribe(f"wsn/{SITE}/robots/#") == [1]
+        watcher.publish(goal, b'{"goal": "B"}')
+        robot1.publish(status, b"robot1-here")
+        robot2.wait_for(status, b"robot1-here")
+        assert goal not in robot2.topics()
+        for forbidden in (status, goal):
+            robot2.publish(forbidden, b"spoofed")
+        sentinel = topics.robot_status(SITE, "robot2")
+        robot2.publish(sentinel, b"sentinel")
+        watcher.wait_for(sentinel, b"sentinel")
+        seen = sorted(r.payload for r in watcher.received if r.topic in (status, goal))
+        assert seen == sorted([b'{"goal": "B"}', b"robot1-here"])  # the spoofed ones never reached anyone
 
 
 def test_client_that_subscribes_to_nothing_receives_nothing(endpoint: Endpoint) -> None:

@@ -126,3 +126,27 @@ def test_a_reset_clears_the_lidar_marks_outside_its_square_and_keeps_the_walls(t
     # The next costmap update takes the newest sweep in again, as costmap_2d's observation buffer does.
     assert costmap.update_scan(scan_from(pose, {0: 1.0})) is not None
     assert costmap.cost_at(6.0, 1.25) == LETHAL_OBSTACLE
+
+
+def test_a_robot_held_for_another_robot_runs_no_recovery_when_released(tiny: Site) -> None:
+    """Yielding to a robot with right of way is a wait on purpose: released after 20 s, the robot drives on
+    instead of taking the wait for an oscillation (move_base's rule would fire at once: 10 s without 0.2 m)."""
+    costmap = LayeredCostmap(tiny.grid, INFLATION)
+    robot = SimTurtleBot3("robot1", SimWorldGrid(tiny.grid), (1.0, 4.0, 0.0))
+    planner = GlobalPlanner(PlannerParams())
+    nav = Navigator(costmap, planner, Dithering(), robot, NavigatorParams(recovery=RecoveryParams()))
+    nav.set_goal((9.0, 4.0, 0.0), "B", 0.0)
+    nav.hold(0.5, "yielding to robot2")
+    t = 0.5
+    while t < 20.5:
+        nav.step(t)
+        robot.step(DT, t + DT)
+        t += DT
+    assert nav.state == "waiting"
+    nav.release(t)
+    for _ in range(20):  # a second of control cycles
+        nav.step(t)
+        robot.step(DT, t + DT)
+        t += DT
+    assert nav.state == "navigating"
+    assert not [e for e in nav.events if e.kind == "recovery"]

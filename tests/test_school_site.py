@@ -53,7 +53,7 @@ def test_school_matches_the_brief(school: Site) -> None:
     assert [(r.from_, r.to, r.raffle) for r in spec.routes] == [
         (a, b, [[z] for z in zs]) for a, b, zs in ROUTES
     ]
-    assert [r.id for r in spec.robots] == ["robot1"]
+    assert [r.id for r in spec.robots] == [f"robot{i}" for i in range(1, 11)]
     assert {n.sensor.type for n in spec.nodes} == {"pir", "ir_beam", "hcsr04"}
     watchers = [n.zone for n in spec.nodes]
     assert any(watchers.count(z) >= 2 for z in set(watchers))

@@ -14,7 +14,7 @@ from robot_agent import cli as robot_agent_cli
 from ros_bridge import cli as ros_bridge_cli
 from ros_bridge import robot_cli as ros_bridge_robot_cli
 from runtime.cli_support import CliError, Parser
-from wsnav import experiment_cli, plan_command, site_commands
+from wsnav import experiment_cli, fleet_cli, plan_command, site_commands
 from zone_sim import cli as zone_sim_cli
 
 Registrar = Callable[["argparse._SubParsersAction[Parser]"], None]
@@ -27,6 +27,7 @@ REGISTRARS: list[Registrar] = [
     firmware_cli.register,
     zone_sim_cli.register,
     experiment_cli.register,
+    fleet_cli.register,
     ros_bridge_cli.register,
     ros_bridge_robot_cli.register,
     console_cli.register,
