@@ -9,9 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from schemas.site_file import SiteFile
+from zone_sim.raffle import draw, run_stream
 
 
 @dataclass(frozen=True)
@@ -38,9 +37,9 @@ def plan_runs(spec: SiteFile, configs: list[str], runs: int, seed: int) -> list[
     """All runs, ordered config-major so a progress bar shows each configuration's share."""
     out: list[RunSpec] = []
     for r_index, route in enumerate(spec.routes):
-        draws = [np.random.default_rng([seed, r_index, i]) for i in range(runs)]
-        picks = [int(rng.integers(0, len(route.raffle))) for rng in draws]
-        seeds = [int(rng.integers(0, 2**31 - 1)) for rng in draws]
+        streams = [run_stream(seed, r_index, i) for i in range(runs)]
+        blocked = [draw(route, rng) for rng in streams]  # each stream's first number: the raffle
+        seeds = [int(rng.integers(0, 2**31 - 1)) for rng in streams]
         for config in configs:
             for i in range(runs):
                 out.append(
@@ -49,7 +48,7 @@ def plan_runs(spec: SiteFile, configs: list[str], runs: int, seed: int) -> list[
                         route=route_name(route.from_, route.to),
                         start=route.from_,
                         goal=route.to,
-                        blocked=tuple(route.raffle[picks[i]]),
+                        blocked=blocked[i],
                         run=i,
                         seed=seeds[i],
                     )

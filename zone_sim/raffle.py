@@ -1,8 +1,9 @@
 """The paper's per-route raffles: for run i of a route, which of its zone sets is blocked. Same seed, same draws.
 
-Each route has its own random stream (seeded by the base seed and the route's index in the site file), so the
-draws of one route do not depend on how many another route made; the stream is the one experiments/run_plan.py
-uses, so draw i here is the zone set of the experiment's run i.
+Run i of a route has its own random stream (seeded by the base seed, the route's index in the site file and i),
+so a draw depends on nothing another run or route made, and `--runs 20` draws exactly the first 20 of
+`--runs 50`; experiments/run_plan.py takes its runs' draws (and then their noise seeds) from the same streams, so
+draw i here is the zone set of the experiment's run i.
 """
 
 from __future__ import annotations
@@ -29,9 +30,17 @@ def find_route(spec: SiteFile, name: str) -> tuple[int, Route]:
     raise RaffleError(f"unknown route {name!r} (the site's routes: {known})")
 
 
+def run_stream(seed: int, route_index: int, run: int) -> np.random.Generator:
+    """Run `run` of the route at `route_index`: its raffle draw is this stream's first number."""
+    return np.random.default_rng([seed, route_index, run])
+
+
+def draw(route: Route, rng: np.random.Generator) -> tuple[str, ...]:
+    """The zone set a run's stream raffles for `route`."""
+    return tuple(route.raffle[int(rng.integers(0, len(route.raffle)))])
+
+
 def draws(spec: SiteFile, name: str, seed: int, count: int) -> list[tuple[str, ...]]:
     """The first `count` raffled zone sets of route `name` for `seed`."""
     index, route = find_route(spec, name)
-    rng = np.random.default_rng([seed, index])
-    picks = rng.integers(0, len(route.raffle), size=count)
-    return [tuple(route.raffle[int(p)]) for p in picks]
+    return [draw(route, run_stream(seed, index, i)) for i in range(count)]
