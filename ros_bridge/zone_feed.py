@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from robot_agent.inflation import FREE_SPACE, NO_INFORMATION
 from robot_agent.zone_geometry import Bounds, CellWindow, GridFrame
 from robot_agent.zone_intake import ZoneIntake
 from robot_agent.zone_layer import ZoneLayer
@@ -30,8 +31,10 @@ class ZoneFeed:
         self.frame = frame
         self.layer = ZoneLayer(spec, frame, spec.policy)
         self.intake = ZoneIntake(spec, self.layer)
-        self.costs: NDArray[np.uint8] = np.zeros((frame.height, frame.width), dtype=np.uint8)
-        """The zone layer's cost of every cell of the map, as last sent."""
+        self.costs: NDArray[np.uint8] = np.full((frame.height, frame.width), NO_INFORMATION, dtype=np.uint8)
+        """The zone layer's cost of every cell of the map, as last sent: NO_INFORMATION (-1 on the grid) outside
+        every zone and block, as the agent's own zone layer offers it, so costmap_2d's updateWithMax leaves the
+        map there as it is (a 0 would make the map's unknown space free in move_base's master)."""
 
     def subscriptions(self) -> list[str]:
         return self.intake.subscriptions()
@@ -44,10 +47,10 @@ class ZoneFeed:
         out: list[ZoneChange] = []
         for window in self.layer.take_changes():
             old = self.costs[window.rows, window.cols]
-            new = self.layer.paint(window)
+            new = self.layer.paint(window, outside=NO_INFORMATION)
             if np.array_equal(old, new):
                 continue
-            cheaper = bool((new < old).any())
+            cheaper = bool((_in_master(new) < _in_master(old)).any())
             self.costs[window.rows, window.cols] = new
             out.append(ZoneChange(window, cheaper))
         return out
@@ -58,6 +61,12 @@ class ZoneFeed:
         if not self.frame.contains_cell(row, col):
             return []
         return [area.name for area, window in self.layer.blocked_areas() if _in_window(window, row, col)]
+
+
+def _in_master(costs: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """What a cost adds to move_base's master under updateWithMax: NO_INFORMATION adds nothing (as a 0 would), so a
+    blocked cell turning unknown (a block lifted outside the zones, a zone gone stale) is a way that may open."""
+    return np.where(costs == NO_INFORMATION, np.uint8(FREE_SPACE), costs)
 
 
 def _in_window(window: CellWindow, row: int, col: int) -> bool:

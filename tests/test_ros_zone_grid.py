@@ -5,8 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robot_agent.zone_geometry import Bounds
+from robot_agent.inflation import static_layer
+from robot_agent.zone_geometry import Bounds, GridFrame
+from ros_bridge.zone_feed import ZoneFeed
 from ros_bridge.zone_grid import UnrepresentableCost, UpdateWindow, ZoneGridCodec
+from runtime.bus import Message
+from schemas import topics
+from schemas.messages import OperatorBlock
+from schemas.site import Site, load_site
+from tests.conftest import SITES
 from tests.costmap2d_model import LETHAL, NO_INFORMATION, StaticLayerModel, interpret_value
 
 
@@ -69,3 +76,42 @@ def test_walls_stay_walls_and_unknown_zones_change_nothing_in_the_master() -> No
     layer.incoming_map(4, 4, ZoneGridCodec().encode(zones).ravel().tolist())
     layer.update_master_with_max(master, walls)
     assert master[0, 0] == LETHAL and master[2, 2] == 200 and master[3, 3] == 0 and master[1, 1] == 0
+
+
+def _school_feed() -> tuple[Site, ZoneFeed]:
+    site = load_site(SITES / "school")
+    grid = site.grid
+    return site, ZoneFeed(
+        site.spec, GridFrame(grid.width, grid.height, grid.resolution, grid.origin[0], grid.origin[1])
+    )
+
+
+def test_the_zone_grid_leaves_the_maps_unknown_space_unknown_in_the_master() -> None:
+    """Outside every zone the grid says -1 (no information): with updateWithMax a 0 there would turn the map's
+    unknown cells (the school's surroundings) into free space in move_base's master, where a planner that keeps
+    out of unknown space would then plan."""
+    site = load_site(SITES / "school")
+    grid = site.grid
+    feed = ZoneFeed(
+        site.spec, GridFrame(grid.width, grid.height, grid.resolution, grid.origin[0], grid.origin[1])
+    )
+    walls = static_layer(grid)
+    layer, master = StaticLayerModel(), walls.copy()
+    layer.incoming_map(grid.width, grid.height, ZoneGridCodec().encode(feed.costs).ravel().tolist())
+    layer.update_master_with_max(master, walls)
+    unknown = walls == NO_INFORMATION
+    assert unknown.any()
+    assert np.array_equal(master[unknown], walls[unknown]), "the map's unknown space stays unknown"
+    assert np.array_equal(master, walls), "no zone is blocked yet: the master is the map"
+
+
+def test_a_lifted_block_outside_the_zones_is_a_way_that_may_open() -> None:
+    """Lifted, an operator block outside every zone goes back to no information (nothing added to the master):
+    the supervisor must hear that a way may have opened, so move_base replans through it."""
+    site, feed = _school_feed()
+    topic = topics.operator_block(site.name, "b1")
+    block = OperatorBlock(polygon=[(30.0, 6.5), (32.0, 6.5), (32.0, 7.5), (30.0, 7.5)])
+    placed = feed.take([Message(topic, block.to_payload(), True, 1.0)], 1.0)
+    assert placed and not any(c.cheaper for c in placed)
+    lifted = feed.take([Message(topic, b"", True, 2.0)], 2.0)
+    assert lifted and any(c.cheaper for c in lifted)
