@@ -21,8 +21,6 @@ import multiprocessing as mp
 import os
 import resource
 import shutil
-import socket
-import subprocess
 import tempfile
 import threading
 import time
@@ -33,7 +31,7 @@ from typing import Any
 
 import yaml
 
-from bench.bench_broker import fresh_broker
+from bench.bench_broker import fresh_broker, mosquitto_broker
 from bench.benchmarks_md import bench_parser, machine_note, write_section
 
 REPO = Path(__file__).resolve().parent.parent
@@ -240,35 +238,13 @@ def broker_at(kind: str, site_dir: Path, root: Path) -> Iterator[Endpoint]:
             yield Endpoint(proc.host, proc.port, proc.credentials_dir)
         return
     from broker.credentials import write_credentials
-    from broker.mosquitto import CONF, MosquittoOptions, write_mosquitto_config
     from schemas.site import load_site
 
     creds = root / "creds"
     spec = load_site(site_dir).spec
     write_credentials(spec, creds)
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    (root / "mq-data").mkdir()
-    options = MosquittoOptions(
-        bind=("127.0.0.1", port), data_dir=root / "mq-data", user="root" if os.geteuid() == 0 else None
-    )
-    write_mosquitto_config(spec, creds, root / "mq", options)
-    proc = subprocess.Popen(["mosquitto", "-c", str(root / "mq" / CONF)], stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=1).close()
-                break
-            except OSError:
-                if time.monotonic() > deadline or proc.poll() is not None:
-                    raise SystemExit("bench: Mosquitto did not start") from None
-                time.sleep(0.05)
-        yield Endpoint("127.0.0.1", port, creds)
-    finally:
-        proc.terminate()
-        proc.wait(30)
+    with mosquitto_broker(spec, creds, root) as mq:
+        yield Endpoint(mq.host, mq.port, creds)
 
 
 def main(argv: list[str] | None = None) -> int:
