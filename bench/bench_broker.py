@@ -5,17 +5,13 @@ benchmark owns (so a run never touches the repo's sites): `wsnav broker run` (am
 from __future__ import annotations
 
 import contextlib
-import os
-import socket
-import subprocess
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 from broker.credentials import write_credentials
 from broker.embedded import BrokerProcess
-from broker.mosquitto import CONF, MosquittoOptions, write_mosquitto_config
+from broker.mosquitto_process import MosquittoError, mosquitto_process
 from schemas.site import load_site
 from schemas.site_file import SiteFile
 
@@ -39,12 +35,6 @@ def fresh_broker(site: Path, root: Path) -> BrokerProcess:
     return BrokerProcess(site, creds, data_dir=root / "amqtt-data")
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def _pinned(args: list[str], cpus: str | None) -> list[str]:
     """`taskset -c CPUS` in front: the process and every thread it starts run on those CPUs only."""
     return args if cpus is None else ["taskset", "-c", cpus, *args]
@@ -56,31 +46,11 @@ def mosquitto_broker(
 ) -> Iterator[RunningBroker]:
     """Mosquitto on a free loopback port from the site's own configuration (`wsnav broker mosquitto-config`:
     the same passwords and per-id ACL as amqtt's), its files and persistence under `root`."""
-    port = free_port()
-    (root / "mq-data").mkdir()
-    options = MosquittoOptions(
-        bind=("127.0.0.1", port), data_dir=root / "mq-data", user="root" if os.geteuid() == 0 else None
-    )
-    write_mosquitto_config(spec, creds, root / "mq", options)
-    proc = subprocess.Popen(
-        _pinned(["mosquitto", "-c", str(root / "mq" / CONF)], cpus),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
     try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=1).close()
-                break
-            except OSError:
-                if time.monotonic() > deadline or proc.poll() is not None:
-                    raise SystemExit("mosquitto did not start") from None
-                time.sleep(0.1)
-        yield RunningBroker("127.0.0.1", port, proc.pid)
-    finally:
-        proc.terminate()
-        proc.wait(20)
+        with mosquitto_process(spec, creds, root, prefix=_pinned([], cpus)) as running:
+            yield RunningBroker(running.host, running.port, running.pid)
+    except MosquittoError as exc:
+        raise SystemExit(str(exc)) from None
 
 
 @contextlib.contextmanager

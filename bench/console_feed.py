@@ -28,10 +28,11 @@ import numpy as np
 import psutil
 import yaml
 
-from bench.bench_broker import free_port, mosquitto_broker
+from bench.bench_broker import mosquitto_broker
 from bench.benchmarks_md import bench_parser, machine_note, write_section
 from bench.zone_fanin import cpu_s, fanin_site, simulate, subscribe_all
 from broker.credentials import load_credentials, write_credentials
+from broker.mosquitto_process import free_port
 from runtime.mqtt_bus import connect_with_credentials
 from schemas import topics
 from schemas.messages import ROBOT_PATH_POINTS, RobotStatus

@@ -1,11 +1,14 @@
 """The whole experiment's wall time and real-time factor (target: 50 runs per route and configuration in
 <= 10 min, >= 100x real time), by configuration, on this machine's cores with one embedded broker per worker.
 
-    ./.venv/bin/python -m bench.experiment_wall [--runs N] [--workers K] [--no-write] [--out DIR]
+    ./.venv/bin/python -m bench.experiment_wall [--runs N] [--workers K] [--run-broker amqtt|mosquitto]
+                                                [--no-write] [--out DIR]
 
 With a smaller `--runs` the full experiment's wall time is extrapolated (runs scale linearly) and says so.
 With `--out` it also writes the experiment's table, report and figures there (what `wsnav experiment` writes),
-so one run of the whole experiment gives both its results and its speed.
+so one run of the whole experiment gives both its results and its speed. Each run starts its own broker:
+Mosquitto by default here (the rows are the same as with amqtt, the wall time lower), `--run-broker amqtt` for
+the embedded amqtt broker that `wsnav experiment` uses by default.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import numpy as np
 
 from bench.benchmarks_md import write_section
 from experiments.run_plan import plan_runs
-from experiments.runner import progress_line, report_header, run_experiment, write_outputs
+from experiments.runner import RUN_BROKERS, progress_line, report_header, run_experiment, write_outputs
 from schemas.site import load_site
 
 REPO = Path(__file__).resolve().parent.parent
@@ -33,18 +36,21 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=FULL_RUNS, help="runs per route and configuration")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--run-broker", choices=RUN_BROKERS, default="mosquitto")
     parser.add_argument("--no-write", action="store_true")
     parser.add_argument("--out", type=Path, default=None, help="also write the experiment's report here")
     args = parser.parse_args()
     site = load_site(REPO / "sites" / "school")
     specs = plan_runs(site.spec, CONFIGS, args.runs, args.seed)
     load = os.getloadavg()[0]
-    outcome = run_experiment(site.path, specs, workers=args.workers, progress=progress_line())
+    outcome = run_experiment(
+        site.path, specs, workers=args.workers, progress=progress_line(), run_broker=args.run_broker
+    )
     t = outcome.table
     sim_s = outcome.simulated_s
     lines = [
         f"school site, {len(specs)} runs ({args.runs} per route and configuration), {args.workers} workers, "
-        f"{os.cpu_count()} CPUs, load {load:.1f} at the start",
+        f"{os.cpu_count()} CPUs, a {args.run_broker} broker per run, load {load:.1f} at the start",
         f"wall {outcome.wall_s:.0f} s for {sim_s:.0f} s simulated: real-time factor {sim_s / outcome.wall_s:.0f}x; "
         f"{int(t['collisions'].to_numpy(dtype=np.int64).sum())} collisions, "
         f"{int(t['success'].to_numpy(dtype=bool).sum())}/{len(t)} arrived",
@@ -59,9 +65,11 @@ def main() -> None:
     )
     if args.seed != 1:
         cmd += f" --seed {args.seed}"
+    if args.run_broker != "mosquitto":
+        cmd += f" --run-broker {args.run_broker}"
     if args.out is not None:
         cmd += f" --out {args.out}"
-        where = "the embedded amqtt broker, one per worker"
+        where = f"{'a Mosquitto process' if args.run_broker == 'mosquitto' else 'an embedded amqtt broker'} of each run's own"
         header = report_header(site.name, CONFIGS, args.runs, args.seed, args.workers, where, outcome, cmd)
         lines.append(f"report: {write_outputs(site, outcome, args.out, header)}")
     if args.runs != FULL_RUNS:

@@ -73,11 +73,11 @@ def cluster_size(address: str) -> int:
         return worker_threads(client, address)
 
 
-def _task(site: Site, spec: RunSpec) -> tuple[RunSpec, RunResult]:
-    """One run on a Dask worker, on its own embedded broker."""
+def _task(site: Site, spec: RunSpec, run_broker: str) -> tuple[RunSpec, RunResult]:
+    """One run on a Dask worker, on its own broker (started on the worker's host)."""
     with _one_run_at_a_time:
         quiet_worker_logs()
-        return run_with_own_broker(site, spec)
+        return run_with_own_broker(site, spec, run_broker)
 
 
 def _the_site(site: Site) -> Site:
@@ -96,8 +96,10 @@ def run_on_cluster(
     site: Site,
     specs: list[RunSpec],
     on_result: Callable[[int], None] | None = None,
+    run_broker: str = "amqtt",
 ) -> dict[RunKey, tuple[RunSpec, RunResult]]:
-    """Every spec as one task; results as they arrive (`on_result(done)` after each), keyed by run identity."""
+    """Every spec as one task, each on its own `run_broker`; results as they arrive (`on_result(done)` after
+    each), keyed by run identity."""
     if len({run_key(s) for s in specs}) != len(specs):
         raise ValueError("two specs share a run identity (config, route, run)")
     from distributed import as_completed
@@ -113,6 +115,7 @@ def run_on_cluster(
                 _task,
                 shipped,
                 spec,
+                run_broker,
                 key=f"wsnav-run-{batch}-{spec.config}-{spec.route}-{spec.run}",
                 pure=False,
             ): spec

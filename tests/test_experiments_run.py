@@ -11,10 +11,10 @@ import pandas as pd
 import pytest
 
 from experiments.run_plan import plan_runs
-from experiments.runner import run_experiment, write_outputs
+from experiments.runner import run_experiment, run_with_own_broker, write_outputs
 from experiments.single_run import COLUMNS, NONDETERMINISTIC, peak_rss_mb, reset_peak_rss
 from schemas.site import load_site
-from tests.conftest import SITES
+from tests.conftest import SITES, require_tool
 from wsnav.cli import main
 
 SCHOOL = SITES / "school"
@@ -66,6 +66,10 @@ def test_one_run_per_route_and_config_arrives_without_collisions_and_repeats_wit
         ),
         (["experiment", "--runs", "1", "--broker", "127.0.0.1:1"], "--broker needs --credentials"),
         (["experiment", "--site", "/nonexistent/site", "--runs", "1"], "/nonexistent/site"),
+        (
+            ["experiment", "--runs", "1", "--run-broker", "mosquitto", "--broker", "127.0.0.1:1883"],
+            "--run-broker is the broker each run starts for itself: it does not go with --broker",
+        ),
     ],
 )
 def test_bad_experiment_arguments_are_one_line(
@@ -74,6 +78,19 @@ def test_bad_experiment_arguments_are_one_line(
     assert main([*argv, "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
+
+
+def test_a_run_on_its_own_mosquitto_gives_the_row_and_path_it_gives_on_amqtt() -> None:
+    """The broker a run starts for itself carries the messages and nothing else: the robot drives the same."""
+    require_tool("mosquitto")
+    site = load_site(SCHOOL)
+    spec = next(s for s in plan_runs(site.spec, ["full"], 1, 5) if s.route == "B->C")
+    _, on_amqtt = run_with_own_broker(site, spec, "amqtt")
+    _, on_mosquitto = run_with_own_broker(site, spec, "mosquitto")
+    deterministic = [c for c in COLUMNS if c not in NONDETERMINISTIC]
+    assert on_amqtt.row["success"] and int(on_amqtt.row["replans"]) >= 1
+    assert [on_mosquitto.row[c] for c in deterministic] == [on_amqtt.row[c] for c in deterministic]
+    assert np.array_equal(on_mosquitto.trajectory, on_amqtt.trajectory)
 
 
 def test_each_run_measures_its_own_memory_peak_not_the_workers_lifetime_peak() -> None:

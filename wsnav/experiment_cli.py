@@ -37,6 +37,13 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     exp.add_argument(
         "--workers", type=int, default=os.cpu_count() or 1, metavar="K", help="processes (default: the cores)"
     )
+    exp.add_argument(
+        "--run-broker",
+        choices=("amqtt", "mosquitto"),
+        default=None,
+        help="the broker each run starts for itself: amqtt in the worker (default) or a Mosquitto process "
+        "(same results, less wall time; needs mosquitto installed)",
+    )
     exp.add_argument("--broker", type=host_port, metavar="HOST:PORT", help="use this broker (one worker)")
     exp.add_argument("--credentials", type=Path, metavar="DIR", help="the site's credentials, with --broker")
     exp.add_argument(

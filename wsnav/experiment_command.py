@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import shutil
 from pathlib import Path
 
 import numpy as np
 
+from broker.mosquitto_process import MosquittoError
 from experiments.cluster import ClusterError
 from experiments.report import paths_figure
 from experiments.run_plan import RunSpec, plan_runs
@@ -62,6 +64,8 @@ def experiment(args: argparse.Namespace) -> int:
             load_agent_config(config)
         except AgentConfigError as exc:
             raise CliError(f"--configs: {exc}") from None
+    if args.broker is not None and args.run_broker is not None:
+        raise CliError("--run-broker is the broker each run starts for itself: it does not go with --broker")
     broker: BrokerAt | None = None
     if args.broker is not None:
         if args.credentials is None or not (args.credentials / "robot1.json").is_file():
@@ -73,14 +77,20 @@ def experiment(args: argparse.Namespace) -> int:
         raise CliError("--credentials goes with --broker")
     if broker is not None and args.scheduler is not None:
         raise CliError("--scheduler runs each run on its own embedded broker: it does not go with --broker")
+    run_broker: str = args.run_broker or "amqtt"
+    if run_broker == "mosquitto" and shutil.which("mosquitto") is None:
+        raise CliError(
+            "--run-broker mosquitto: mosquitto is not installed (Debian: apt-get install mosquitto)"
+        )
     site = _site(args.site)
     _writable(args.out)
     specs = _specs(site, configs, args.runs, args.seed)
     workers = 1 if broker is not None else min(args.workers, len(specs))
-    where = "the embedded amqtt broker, one per worker" if broker is None else f"{broker.host}:{broker.port}"
+    own = "a Mosquitto process" if run_broker == "mosquitto" else "an embedded amqtt broker"
+    where = f"{own} of each run's own" if broker is None else f"{broker.host}:{broker.port}"
     if args.scheduler is not None:
         workers = _cluster_size(args.scheduler)
-        where = f"the embedded amqtt broker, one per run, on the Dask cluster at {args.scheduler}"
+        where = f"{own} of each run's own, on the Dask cluster at {args.scheduler}"
         print(
             f"{len(specs)} runs ({args.runs} per route and configuration) on the Dask cluster at {args.scheduler}"
         )
@@ -94,12 +104,16 @@ def experiment(args: argparse.Namespace) -> int:
             broker=broker,
             progress=progress_line(),
             scheduler=args.scheduler,
+            run_broker=run_broker,
         )
     except ClusterError as exc:
         raise CliError(f"--scheduler {args.scheduler}: {exc}") from None
+    except MosquittoError as exc:
+        raise CliError(f"--run-broker mosquitto: {exc}") from None
     reproduce = (
         f"wsnav experiment --site {args.site} --runs {args.runs} --seed {args.seed} "
         f"--configs {','.join(configs)} --out {args.out}"
+        + (f" --run-broker {run_broker}" if run_broker != "amqtt" else "")
     )
     header = report_header(site.name, configs, args.runs, args.seed, workers, where, outcome, reproduce)
     report = write_outputs(site, outcome, args.out, header)
