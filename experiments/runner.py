@@ -28,6 +28,7 @@ from experiments.report import paths_figure, write_report
 from experiments.run_plan import RunSpec
 from experiments.single_run import COLUMNS, DT, BrokerAt, RunResult, run_once
 from schemas.site import Site, load_site
+from schemas.site_file import SiteFile
 
 Progress = Callable[[int, int], None]
 RUN_BROKERS = ("amqtt", "mosquitto")
@@ -78,15 +79,30 @@ def _work(spec: RunSpec) -> tuple[RunSpec, RunResult]:
     return run_with_own_broker(_site, spec, _run_broker)
 
 
+_credentials: dict[str, tuple[SiteFile, tempfile.TemporaryDirectory[str]]] = {}
+
+
+def _credentials_of(site: Site) -> Path:
+    """The site's credentials, written once per worker process: a run's broker is fresh (no retained message
+    of an earlier run), its passwords need not be (hashing them anew cost 75 ms a run)."""
+    known = _credentials.get(site.name)
+    if known is None or known[0] != site.spec:
+        known = (site.spec, tempfile.TemporaryDirectory(prefix="wsnav-credentials-"))
+        write_credentials(site.spec, Path(known[1].name))
+        _credentials[site.name] = known
+    return Path(known[1].name)
+
+
 def run_with_own_broker(site: Site, spec: RunSpec, kind: str = "amqtt") -> tuple[RunSpec, RunResult]:
     """One run on a fresh broker of its own (`kind`, one of RUN_BROKERS; credentials in a temporary folder):
     needs the parsed site only."""
     if kind == "mosquitto":
-        with tempfile.TemporaryDirectory(prefix="wsnav-run-") as tmp:
-            root = Path(tmp)
-            write_credentials(site.spec, root / "creds")
-            with mosquitto_process(site.spec, root / "creds", root) as mq:
-                return spec, run_once(site, spec, BrokerAt(mq.host, mq.port, root / "creds"))
+        creds = _credentials_of(site)
+        with (
+            tempfile.TemporaryDirectory(prefix="wsnav-run-") as tmp,
+            mosquitto_process(site.spec, creds, Path(tmp)) as mq,
+        ):
+            return spec, run_once(site, spec, BrokerAt(mq.host, mq.port, creds))
     with BrokerThread(site) as own:
         return spec, run_once(site, spec, BrokerAt(own.host, own.port, own.credentials_dir))
 
