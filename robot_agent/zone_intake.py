@@ -13,6 +13,10 @@ seq), or when its seq lies ahead of the last accepted one by at least 1 and at m
 across the counter's wrap from 2**30 - 1 to 0. Replays cannot be cycled: going round the seq space takes more
 than a thousand captured states of one boot spread over all of it (2**30 publications, centuries of heartbeats),
 where the old rule (any drop of more than 2**29 was a wrap) let two captured states alternate forever.
+
+A QoS 1 redelivery (the broker resending a state whose PUBACK it missed) repeats the last accepted state byte
+for byte: it is counted in `duplicates` and ignored, neither dropped nor logged (under load a broker resends
+hundreds a second). The same seq with other content is still an old seq.
 """
 
 from __future__ import annotations
@@ -68,6 +72,9 @@ class ZoneIntake:
         self._zones = {z.id for z in spec.zones}
         self._watches = {n.id: n.zone for n in spec.nodes}
         self._last_seq: dict[str, int] = {}
+        self._last_payload: dict[str, bytes] = {}
+        """Per node: the last accepted state as it came, to tell a QoS 1 redelivery from a replay."""
+        self.duplicates = 0
         self._reborn: set[str] = set()
         self.dropped: Counter[str] = Counter()
         self.accepted = 0
@@ -132,8 +139,12 @@ class ZoneIntake:
             return self._drop("mismatch", message, f"payload says zone {msg.zone!r} node {msg.node!r}")
         last = self._last_seq.get(node)
         if last is not None and node not in self._reborn and not seq_is_newer(msg.seq, last):
+            if msg.seq == last and message.payload == self._last_payload.get(node):
+                self.duplicates += 1
+                return False
             return self._drop("old_seq", message, f"seq {msg.seq} after {last}")
         self._last_seq[node] = msg.seq
+        self._last_payload[node] = bytes(message.payload)
         self._reborn.discard(node)
         self.accepted += 1
         return self.layer.on_zone_state(msg, message.received_at)
