@@ -89,19 +89,17 @@ def run_nodes(site_dir: str, creds: str, host: str, port: int, ready: Any, stop:
     """The emulated nodes (all but the probe), in real time until told to stop."""
     from runtime.clock import WallClock
     from schemas.site import load_site
-    from zone_sim.simulator import ZoneSimulator
+    from zone_sim.simulator import SimulatorError, ZoneSimulator
 
     site = load_site(site_dir)
     spec = site.spec.model_copy(update={"nodes": [n for n in site.spec.nodes if n.id != PROBE]})
     site = dataclasses.replace(site, spec=spec)
     sim = ZoneSimulator(site, Path(creds), (host, port), WallClock())
     sim.start()
-    started = time.monotonic()
-    while sim.online_count < len(sim.nodes):
-        sim.step(io_timeout_s=0.01)
-        if time.monotonic() - started > 600:
-            raise SystemExit(f"only {sim.online_count} nodes online after 600 s")
-    ready.put(time.monotonic() - started)
+    try:
+        ready.put(sim.wait_online(timeout_s=600))
+    except SimulatorError as exc:
+        raise SystemExit(str(exc)) from None
     while not stop.is_set():
         sim.step(io_timeout_s=0.01)
     sim.stop()

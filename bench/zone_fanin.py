@@ -90,7 +90,7 @@ def simulate(
     With WSNAV_FANIN_PROFILE=FILE set, the window runs under cProfile and the stats go to FILE."""
     from runtime.clock import WallClock
     from zone_sim.emulated_node import Sent
-    from zone_sim.simulator import ZoneSimulator
+    from zone_sim.simulator import SimulatorError, ZoneSimulator
 
     site = load_site(site_dir)
     emulated = [n.id for n in site.spec.nodes if n.id != PROBE]
@@ -103,12 +103,11 @@ def simulate(
 
     sim = ZoneSimulator(site, Path(creds), (host, port), WallClock(), on_sent=on_sent, nodes=emulated)
     sim.start()
-    started = time.monotonic()
-    while sim.online_count < len(sim.nodes):
-        sim.step(io_timeout_s=0.01)
-        if time.monotonic() - started > 300:
-            raise SystemExit(f"only {sim.online_count} nodes online after 300 s")
-    ready.put((sim.online_count, time.monotonic() - started))
+    try:
+        joined_s = sim.wait_online(timeout_s=300)
+    except SimulatorError as exc:
+        raise SystemExit(str(exc)) from None
+    ready.put((sim.online_count, joined_s))
     go.wait()
     profile_to = os.environ.get("WSNAV_FANIN_PROFILE")
     if profile_to:

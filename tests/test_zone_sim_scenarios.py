@@ -113,8 +113,7 @@ def run_raffle(
     sim.start()
     start = clock.now()
     # Connect in simulated time that does not move, so the run does not depend on how fast the broker answers.
-    while sim.online_count < 3:
-        sim.step(io_timeout_s=0.01)
+    sim.wait_online(3, timeout_s=30)
     drive(sim, clock, until=start + 18.0)
     sim.stop()
     # Per node in time order: nodes connect at t=0 in whatever order the broker answers, which does not matter.

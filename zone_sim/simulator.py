@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import random
 import resource
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -304,6 +305,17 @@ class ZoneSimulator:
         self._log(line)
 
     # -- status and shutdown -------------------------------------------------------------------------------
+    def wait_online(self, count: int | None = None, timeout_s: float = 300.0) -> float:
+        """Step until `count` nodes (all by default) hold a connection, without moving the clock; the real
+        seconds it took. SimulatorError after `timeout_s` real seconds."""
+        want = len(self.nodes) if count is None else count
+        started = time.monotonic()
+        while self.online_count < want:
+            self.step(io_timeout_s=0.01)
+            if time.monotonic() - started > timeout_s:
+                raise SimulatorError(f"only {self.online_count} nodes online after {timeout_s:.0f} s")
+        return time.monotonic() - started
+
     @property
     def online_count(self) -> int:
         return sum(1 for n in self.nodes.values() if n.online)
