@@ -50,8 +50,9 @@ _PREAUTHORIZED = "_wsnav_preauthorized"
 
 
 class _QuietAmqttNoise(logging.Filter):
-    """amqtt logs a traceback when a listener cannot bind (we report it in one line), and a warning plus an error
-    for every socket that ends before logging in: the gate and admission log those once, rate-limited."""
+    """amqtt logs a traceback when a listener cannot bind (we report it in one line), a warning plus an error
+    for every socket that ends before logging in (the gate and admission log those once, rate-limited), and a
+    traceback after the warning for every QoS 1 delivery left unacknowledged."""
 
     _NOISE = (
         "Broker startup failed",
@@ -61,7 +62,14 @@ class _QuietAmqttNoise(logging.Filter):
     )
 
     def filter(self, record: logging.LogRecord) -> bool:
-        return not record.getMessage().startswith(self._NOISE)
+        return not record.getMessage().startswith(self._NOISE) and not _puback_timeout(record)
+
+
+def _puback_timeout(record: logging.LogRecord) -> bool:
+    """The traceback amqtt logs again for a delivery whose subscriber never acknowledged (it left, or hangs):
+    the handler has already said so in one warning line."""
+    error = record.exc_info[1] if record.exc_info else None
+    return isinstance(error, TimeoutError) and str(error).startswith("Timeout waiting for PUBACK")
 
 
 logging.getLogger("amqtt.broker").addFilter(_QuietAmqttNoise())

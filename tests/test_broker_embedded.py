@@ -4,10 +4,13 @@ fix (docs/broker-amqtt.md): a node that goes silent gets its will published."""
 from __future__ import annotations
 
 import asyncio
+import logging
 import threading
+import time
 from pathlib import Path
 
 import paho.mqtt.client as mqtt
+import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
 from broker.embedded import BrokerThread, embedded_broker
@@ -78,3 +81,35 @@ def test_silent_client_is_dropped_and_its_will_published(tmp_path: Path) -> None
             sock = node.socket()
             if sock is not None:
                 sock.close()
+
+
+def test_a_subscriber_that_never_acknowledges_costs_one_warning_line_not_a_traceback(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """amqtt gives up on the delivery after 5 s; the operator reads one line, and the broker goes on serving."""
+    site = tiny_site(tmp_path / "site")
+    state = topics.zone_state(SITE, "z1", "n1")
+    caplog.set_level(logging.WARNING)
+    with BrokerThread(site) as broker:
+        ep = Endpoint("amqtt", broker.host, broker.port, broker.credentials_dir)
+        silent = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="robot1", manual_ack=True)
+        silent.username_pw_set("robot1", broker.credentials("robot1").password)
+        silent.connect(broker.host, broker.port)
+        silent.loop_start()
+        try:
+            subscribed = threading.Event()
+            silent.on_subscribe = lambda *_: subscribed.set()
+            silent.subscribe(topics.all_zone_states(SITE), qos=1)
+            assert subscribed.wait(TIMEOUT)
+            with client(ep, "n1") as node:
+                node.publish(state, b"blocked")
+                deadline = time.monotonic() + TIMEOUT
+                while "Timeout waiting for PUBACK" not in caplog.text and time.monotonic() < deadline:
+                    time.sleep(0.1)
+                node.publish(state, b"clear")  # still served
+        finally:
+            silent.loop_stop()
+            silent.disconnect()
+    timeouts = [r for r in caplog.records if "Timeout waiting for PUBACK" in r.getMessage()]
+    assert len(timeouts) == 1 and timeouts[0].levelno == logging.WARNING
+    assert [r.getMessage() for r in caplog.records if r.exc_info] == []
