@@ -60,7 +60,7 @@ window.EventSource = function (url) {
 
 
 def site_with_robots(directory: Path, nodes: int, robots: int) -> Path:
-    site = fanin_site(directory, nodes, per_zone=2)
+    site = fanin_site(directory, nodes, per_zone=2, probe=False)  # no node the page would show as silent
     spec = yaml.safe_load((site / "site.yaml").read_text())
     spec["robots"] = [{"id": f"robot{i + 1}"} for i in range(robots + 1)]  # robot1 is the baseline subscriber
     (site / "site.yaml").write_text(yaml.safe_dump(spec, sort_keys=False))

@@ -56,9 +56,9 @@ COLLAPSED_MS = 30_000.0
 PICTURE = Path(__file__).resolve().parent.parent / "docs" / "img" / "zone_fanin.png"
 
 
-def fanin_site(directory: Path, nodes: int, per_zone: int = 4) -> Path:
-    """A 20 x 20 m open map with nodes/per_zone small square zones on a grid, `per_zone` nodes in each, plus the
-    `probe` node in z0."""
+def fanin_site(directory: Path, nodes: int, per_zone: int = 4, probe: bool = True) -> Path:
+    """A 20 x 20 m open map with nodes/per_zone small square zones on a grid, `per_zone` nodes in each, plus (with
+    `probe`) the baseline publisher's `probe` node in z0."""
     directory.mkdir(parents=True, exist_ok=True)
     cells = 200
     (directory / "map.pgm").write_bytes(b"P5\n%d %d\n255\n" % (cells, cells) + bytes([254]) * cells * cells)
@@ -75,7 +75,8 @@ def fanin_site(directory: Path, nodes: int, per_zone: int = 4) -> Path:
         {"id": f"n{i}", "zone": f"z{i // per_zone}", "sensor": {"type": "pir", "pin": 5}}
         for i in range(nodes)
     ]
-    node_list.append({"id": PROBE, "zone": "z0", "sensor": {"type": "pir", "pin": 5}})
+    if probe:
+        node_list.append({"id": PROBE, "zone": "z0", "sensor": {"type": "pir", "pin": 5}})
     spec = {"name": SITE, "map": "map.yaml", "heartbeat_s": 1.0, "zones": zones, "nodes": node_list}
     spec["robots"] = [{"id": "robot1"}]
     (directory / "site.yaml").write_text(yaml.safe_dump(spec, sort_keys=False))
