@@ -41,6 +41,8 @@ SECTION = "## Firmware: free heap on a 38 KiB heap, .mpy size"
 COMMAND = "./.venv/bin/python -m bench.firmware_heap"
 SITE = Path(__file__).resolve().parent.parent / "sites" / "school"
 TARGET_FREE = 8000
+SETUP_TARGET = 8192
+"""Issue 19's floor for free heap after setup (both sensors), with the board sending its own diagnostics."""
 
 
 def node_config(
@@ -98,6 +100,20 @@ def bare_free() -> int:
     return int(subprocess.run(cmd, capture_output=True, text=True, check=True).stdout)
 
 
+def stubs_free(stubs: Path) -> int:
+    """Free heap with only the fake machine/network modules loaded: what the test stubs take, which the board
+    (those modules in ROM) never pays; counted in every after-setup row."""
+    cmd = [
+        micropython_exe(),
+        "-X",
+        f"heapsize={HEAP}",
+        "-c",
+        "import gc, machine, network; gc.collect(); print(gc.mem_free())",
+    ]
+    env = micropython_env(stubs, stubs)
+    return int(subprocess.run(cmd, capture_output=True, text=True, check=True, env=env).stdout)
+
+
 def longrun_lowest(device: Path, stubs: Path, config: Path, pins: Path, hours: int) -> dict[str, int]:
     proc = subprocess.run(
         micropython_cmd("longrun", str(config), str(hours * 3600)),
@@ -128,6 +144,7 @@ def main() -> None:
         pins = tmp / "pins"
         pins.mkdir()
         bare = bare_free()
+        with_stubs = stubs_free(stubs)
         pir = setup_free(device, stubs, node_config(creds, tmp / "pir.json", "127.0.0.1", 1), pins)
         sonar = {"type": "hcsr04", "trigger_pin": 12, "echo_pin": 14, "threshold_m": 1.0, "samples": 15}
         sonar_cfg = node_config(creds, tmp / "sonar.json", "127.0.0.1", 1, sonar)
@@ -145,6 +162,7 @@ def main() -> None:
     load = os.getloadavg()[0]
     rows = [
         ("bare interpreter (baseline)", bare, 1.0),
+        ("bare interpreter with the fake machine/network loaded", with_stubs, with_stubs / bare),
         ("PIR node after setup", pir, pir / bare),
         (f"PIR node after setup, {args.baseline}'s firmware", base_pir, base_pir / bare),
         ("HC-SR04 node (15 samples) after setup", hcsr04, hcsr04 / bare),
@@ -166,6 +184,7 @@ def main() -> None:
     sizes += [f"| {name} | {size} |" for name, size in {**mpy, **sources}.items()]
     sizes.append(f"| **total on the board** | **{sum(mpy.values()) + sum(sources.values())}** |")
     verdict = "met" if long["heap_lowest"] >= TARGET_FREE else "NOT MET"
+    setup_verdict = "met" if min(pir, hcsr04) >= SETUP_TARGET else "NOT MET"
     text = (
         "The built firmware on the MicroPython unix port, `-X heapsize=38k` (64-bit: objects about twice their "
         "ESP8266 size, and the fake machine/network modules are counted, so the board has more). After setup: "
@@ -173,7 +192,14 @@ def main() -> None:
         f"{long['publications']} publications, {long['connects']} connect. {machine_note()} "
         f"(the numbers do not depend on load). 0 B: the node could not set up (MemoryError). "
         f"Target: the lowest over the long run (how issue 19's 8.9 KB was measured) >= {TARGET_FREE} B: "
-        f"{verdict}. The after-setup rows include run_node's fake DNS and sensor files, hence lower.\n\n"
+        f"{verdict}. After setup, both sensors >= {SETUP_TARGET} B: {setup_verdict}. The after-setup rows count "
+        f"the fake machine/network modules ({bare - with_stubs} B here, the second row; the board has them in "
+        "ROM; measured alone, so it includes the qstr pool they grow) but no longer run_node's fake DNS (imported "
+        "after the measurement). The node now sends its own diagnostics (`nodes/<node>/info`, `diagnostics.py` "
+        "kept loaded) after each connect and every 5 min, in the long run too; and app.py now imports sensors.py "
+        "and wifi.py itself (one module at a time, against fragmentation), so the long run, which reads its "
+        "own fake sensor, pays for sensors.py and sensing.py as the board does (~2.5 KB here, not paid in "
+        "earlier long-run rows).\n\n"
         + "\n".join(table)
         + "\n\n.mpy sizes (mpy-cross, what `wsnav firmware deploy` copies; main.py and boot.py stay source):\n\n"
         + "\n".join(sizes)

@@ -85,9 +85,8 @@ def test_diagnostics_match_the_schema_model_byte_for_byte() -> None:
         error = rng.choice(errors)
         cause, connects = rng.randint(-1, 9), rng.randint(0, 5)
         now_ms, rssi, heap = rng.randint(0, 2**40), rng.choice([None, 31, -40, -90]), rng.choice([None, 9000])
-        topic, payload, retain, qos, due_ms = diagnostics.info(
-            logic, now_ms, connects, cause, rssi, heap, error
-        )
+        topic, text, retain, qos, due_ms = diagnostics.info(logic, now_ms, connects, cause, rssi, heap, error)
+        payload = text.encode()  # what the board's MQTT client sends (a str's UTF-8 bytes)
         info = parse_payload(NodeInfo, payload)
         assert info.to_payload() == payload and (topic, retain, qos) == (topics.node_info("s", node), True, 0)
         assert len(payload) <= 160 + len(node), payload
@@ -95,8 +94,30 @@ def test_diagnostics_match_the_schema_model_byte_for_byte() -> None:
         assert info.rssi == (None if rssi == 31 else rssi) and info.heap_free == heap
         assert info.uptime_s == now_ms // 1000 and info.reconnects == max(connects - 1, 0)
         assert (info.error is None) == (error is None) and (info.error is None or len(info.error) <= 32)
-        assert not diagnostics.due(due_ms, due_ms - 1) and diagnostics.due(due_ms, due_ms)
         assert due_ms == now_ms + diagnostics.INFO_PERIOD_MS
+
+
+def test_nodes_that_reconnect_together_do_not_heartbeat_in_step() -> None:
+    """After a broker restart every board reconnects within the same second; each one's first heartbeat comes
+    between half a period and a period later at its own offset, so the broker does not get them all at once,
+    and the period after that is the configured one."""
+    rng = random.Random(5)
+    heartbeat_ms = 10000
+    nodes = [
+        node_logic.NodeLogic("s", "z1", f"n{i}", 0, 0, heartbeat_ms, rng.getrandbits(20)) for i in range(200)
+    ]
+    for n in nodes:
+        n.on_connect(0)
+    first: list[int] = []
+    for n in nodes:
+        t = 0
+        while n.step(False, t) is None:
+            t += 50  # the board's loop period
+        first.append(t)
+        assert n.step(False, t + heartbeat_ms - 50) is None and n.step(False, t + heartbeat_ms) is not None
+    assert all(heartbeat_ms // 2 <= t <= heartbeat_ms for t in first), first
+    busiest = max(sum(1 for t in first if w <= t < w + 100) for w in range(0, heartbeat_ms, 50))
+    assert busiest <= len(nodes) // 10, busiest  # in step, all 200 would fall in one 100 ms window
 
 
 def test_the_only_modules_simulators_may_import_are_pure() -> None:

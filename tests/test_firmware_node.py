@@ -7,6 +7,7 @@ generous timeouts (a busy 2-core machine), never fixed sleeps that decide the ou
 
 from __future__ import annotations
 
+import itertools
 import json
 import threading
 import time
@@ -29,14 +30,16 @@ from firmware.testing import (
 )
 from schemas import topics
 from schemas.credentials import Credentials, NodeConfig
-from schemas.messages import NodeStatus, ZoneState, parse_payload
+from schemas.messages import NodeInfo, NodeStatus, ZoneState, parse_payload
 from tests.conftest import REPO
+from zone_sim.firmware_modules import diagnostics
 
 SITE_DIR = REPO / "sites" / "school"
 SITE = "school"
 NODE, ZONE, PIN = "n1", "z1", 5
 STATE_TOPIC = topics.zone_state(SITE, ZONE, NODE)
 STATUS_TOPIC = topics.node_status(SITE, NODE)
+INFO_TOPIC = topics.node_info(SITE, NODE)
 WAIT = 60.0
 
 
@@ -93,6 +96,19 @@ def state_of(m: Msg) -> ZoneState | None:
     zs = parse_payload(ZoneState, m.payload)
     assert zs.to_payload() == m.payload, m.payload
     return zs
+
+
+def info_of(m: Msg) -> NodeInfo | None:
+    """The node's validated diagnostics, its exact bytes checked against the model's own serialisation."""
+    if m.topic != INFO_TOPIC or not m.payload:
+        return None
+    info = parse_payload(NodeInfo, m.payload)
+    assert info.to_payload() == m.payload, m.payload
+    return info
+
+
+def is_info(pred: Callable[[NodeInfo], bool] = lambda _i: True) -> Callable[[Msg], bool]:
+    return lambda m: (i := info_of(m)) is not None and pred(i)
 
 
 def is_state(value: str) -> Callable[[Msg], bool]:
@@ -322,6 +338,45 @@ def test_broker_killed_and_restarted_node_reconnects_and_republishes(
     assert "MemoryError" not in node.output()
 
 
+def test_board_publishes_its_diagnostics_retained_and_again_after_a_reconnect(
+    broker: SiteBroker, creds: Path, subscriber: Subscriber, pins: Pins, start_node, tmp_path: Path
+) -> None:
+    """The board's own `nodes/<node>/info`: what it measured (reset cause, RSSI, free heap), retained for a
+    late subscriber, and sent again after the broker comes back, counting the reconnect and saying why the
+    link went down."""
+    pins.set("reset_cause", 1)  # the board last started from its watchdog
+    cfg = node_config(creds, broker, tmp_path / "config.json", heartbeat_s=60)
+    node = start_node(cfg)
+    first = info_of(subscriber.wait(is_info()))
+    assert first is not None
+    assert (first.node, first.fw, first.reset, first.rssi) == (
+        NODE,
+        diagnostics.FIRMWARE_VERSION,
+        "watchdog",
+        -58,
+    )
+    assert first.reconnects == 0 and first.error is None
+    assert first.heap_free is not None and 2048 < first.heap_free < 38 * 1024
+    late = Subscriber(broker, creds)
+    try:
+        assert late.wait(is_info()).retain
+    finally:
+        late.close()
+    assert node.wait_output("mqtt up 1", WAIT)
+    broker.kill()
+    assert node.wait_output("mqtt down:", WAIT), node.output()
+    broker.start()
+    after = Subscriber(broker, creds)
+    try:
+        assert node.wait_output("mqtt up 2", WAIT), node.output()
+        again = info_of(after.wait(is_info(lambda i: i.reconnects == 1)))
+    finally:
+        after.close()
+    assert again is not None and again.error and again.uptime_s >= first.uptime_s
+    out = node.output()
+    assert "MemoryError" not in out and "info: no heap" not in out and "Traceback" not in out, out
+
+
 def test_hours_of_simulated_time_on_a_38k_heap(
     broker: SiteBroker, creds: Path, subscriber: Subscriber, host_build: tuple[Path, Path], tmp_path: Path
 ) -> None:
@@ -344,7 +399,7 @@ def test_hours_of_simulated_time_on_a_38k_heap(
     assert "MemoryError" not in out and "Traceback" not in out, out
     stats = parse_stats(out)
     print(out)
-    assert stats["errors"] == 0 and stats["connects"] == 1, out
+    assert stats["errors"] == 0 and stats["connects"] == 1 and "info: no heap" not in out, out
     # 10 s heartbeats plus two changes per 97 s pattern period: at least the heartbeats.
     assert stats["publications"] >= hours * 360, out
     assert stats["heap_lowest"] > 2048, out  # free heap after GC never fell below 2 KiB
@@ -361,6 +416,12 @@ def test_hours_of_simulated_time_on_a_38k_heap(
     assert {s.state for s in states} == {"clear", "blocked"}
     seqs = [s.seq for s in states]
     assert seqs == sorted(seqs)
+    # The diagnostics, every 5 simulated minutes from the connect on, all of them sent and valid.
+    infos = [i for m in subscriber.snapshot() if (i := info_of(m)) is not None]
+    assert len(infos) >= hours * 3600 * 1000 // diagnostics.INFO_PERIOD_MS, len(infos)
+    gaps = {b.uptime_s - a.uptime_s for a, b in itertools.pairwise(infos)}
+    assert gaps <= {300, 301}, gaps
+    assert all(i.heap_free is not None and i.heap_free > 2048 and i.reconnects == 0 for i in infos)
 
 
 def test_wifi_lost_and_back_node_reconnects(

@@ -202,10 +202,10 @@ class EmulatedNode:
         connect and when the period diagnostics.info returns is up."""
         ms = self._ms(t)
         connects = self.connects - self._boot_connects
-        topic, payload, retain, qos, due_ms = diagnostics.info(
+        topic, text, retain, qos, due_ms = diagnostics.info(
             self.logic, ms, connects, POWER_ON_RESET, error=self._last_error
         )
-        self._send((topic, payload, retain, qos), t)
+        self._send((topic, text.encode(), retain, qos), t)
         self._info_due_t = t + (due_ms - ms) / 1000
 
     def _link_down(self, why: str) -> None:

@@ -11,10 +11,30 @@ import gc
 import random
 import time
 
-from backoff import Backoff
-from micropython import const
-from mqtt import MQTTClient
-from node_logic import NodeLogic
+for name in (
+    "machine",
+    "network",
+    "payloads",
+    "debounce",
+    "node_logic",
+    "backoff",
+    "mqtt",
+    "sensors",
+    "wifi",
+    "diagnostics",
+):
+    # One at a time, a collection after each: a module's loader temporaries are freed before the next one
+    # loads, so what stays is packed together. Imported as one batch, the same modules leave the 38 KiB heap
+    # cut into holes of a few blocks (bench.firmware_heap_blocks) and the node fails at setup.
+    __import__(name)
+    gc.collect()
+del name
+
+import diagnostics  # noqa: E402
+from backoff import Backoff  # noqa: E402
+from micropython import const  # noqa: E402
+from mqtt import MQTTClient  # noqa: E402
+from node_logic import NodeLogic  # noqa: E402
 
 # const() with a leading underscore: inlined by the compiler, no heap at run time.
 _LOOP_MS = const(50)
@@ -25,6 +45,8 @@ budget table in docs/firmware-esp8266.md)."""
 _WIFI_JOIN_TIMEOUT_MS = const(20000)
 _MAX_OFFLINE_MS = const(600000)
 """Ten minutes without the broker: stop feeding the watchdog and let it reset the board."""
+_INFO_RETRY_MS = const(60000)
+"""When the diagnostics could not be loaded (no heap), try again after this long, not every iteration."""
 _MAX_ERRORS = const(20)
 """Consecutive unexpected exceptions in the loop before it stops feeding the watchdog."""
 
@@ -56,10 +78,10 @@ def _rand16() -> int:
 
 
 class Node:
-    """A running node. `sensor` has `reading()` (a debounce level or a bool), `wifi` has `start()` and
-    `connected()` (or is None: wired)."""
+    """A running node. `sensor` has `reading()` (a debounce level or a bool), `wifi` has `start()`,
+    `connected()` and `rssi()` (or is None: wired); `reset_cause` is `machine.reset_cause()` at boot."""
 
-    def __init__(self, cfg, sensor, wifi=None, wdt=None, clock=None) -> None:
+    def __init__(self, cfg, sensor, wifi=None, wdt=None, clock=None, reset_cause=0) -> None:
         self.sensor = sensor
         self.wifi = wifi
         self.wdt = wdt
@@ -90,6 +112,9 @@ class Node:
         self.offline_since_ms = 0
         self.errors = 0
         self.connects = 0
+        self.reset_cause = reset_cause
+        self.last_error = None  # why the broker link last went down, for the diagnostics
+        self.info_due_ms = 0
 
     # -- health and watchdog -----------------------------------------------------------------------------
     def feed(self) -> None:
@@ -107,6 +132,7 @@ class Node:
             self.offline_since_ms = now_ms
         self.client.close()
         self.logic.on_disconnect()
+        self.last_error = str(why)
         wifi_up = self.wifi is None or self.wifi.connected()
         self.phase = _BROKER_WAIT if wifi_up else _OFFLINE
         self.next_attempt_ms = now_ms + self.broker_backoff.next_delay_ms()
@@ -126,6 +152,7 @@ class Node:
         self.broker_backoff.reset()
         self.phase = _ONLINE
         self.connects += 1
+        self.info_due_ms = now_ms  # diagnostics at once: the next iteration sends them
         print("mqtt up", self.connects)
 
     def _connection_step(self, now_ms: int) -> None:
@@ -171,12 +198,37 @@ class Node:
                     msg = self.logic.step(reading, now)
                     if msg is not None:
                         self.client.publish(msg[0], msg[1], msg[2], msg[3])
+                    elif now >= self.info_due_ms:  # not in the same pass as a state: one send per feed
+                        self._send_info(now)
                 self.client.poll()
                 self.client.maintain()
             except OSError as exc:
                 self._go_offline(now, exc)
         else:
             self.logic.step(reading, now)
+
+    def _send_info(self, now_ms: int) -> None:
+        """The retained diagnostics (diagnostics.info, kept loaded: ~1.3 KB on the unix port), a str the client
+        writes into its packet buffer without an `encode` copy. Free heap is measured after a collection, as the
+        model says. Should a MemoryError still come, the next try is a minute later, not every iteration (which
+        would count as loop errors and starve the watchdog)."""
+        gc.collect()
+        wifi = self.wifi
+        try:
+            topic, payload, retain, qos, self.info_due_ms = diagnostics.info(
+                self.logic,
+                now_ms,
+                self.connects,
+                self.reset_cause,
+                wifi.rssi() if wifi is not None else None,
+                gc.mem_free(),
+                self.last_error,
+            )
+        except MemoryError:
+            self.info_due_ms = now_ms + _INFO_RETRY_MS
+            print("info: no heap")
+            return
+        self.client.publish(topic, payload, retain, qos)
 
     def run(self, until_ms=-1) -> None:
         """Loop forever (or until the clock passes `until_ms`, for tests); feeds the watchdog when healthy."""
@@ -205,7 +257,14 @@ def main(cfg) -> None:
     import wifi
 
     wdt = machine.WDT()
-    node = Node(cfg, sensors.from_config(cfg), wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"]), wdt)
+    node = Node(
+        cfg,
+        sensors.from_config(cfg),
+        wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"]),
+        wdt,
+        None,
+        machine.reset_cause(),
+    )
     gc.collect()
     try:
         node.run()

@@ -62,6 +62,10 @@ def _fixed(first: int, length: int) -> bytes:
             return bytes(out)
 
 
+_PACKET = memoryview(bytearray(256))
+"""Where `publish` assembles each packet: the zone state (~110 B with its topic) and the diagnostics (~190 B)
+fit. Allocated once, when the module loads into a still unfragmented heap; the board has one client."""
+
 lookup = socket.getaddrinfo
 """A broker name's DNS lookup; test drivers put a fake DNS server here. (Not on the client: an 18th attribute
 would grow its dict, a few hundred bytes of the 38 KiB heap.)"""
@@ -113,11 +117,12 @@ class MQTTClient:
         sock.settimeout(ms / 1000)
         return sock
 
-    def _send(self, data: bytes) -> None:
+    def _send(self, data) -> None:
+        """All of `data` (bytes, or a str: MicroPython sends its UTF-8 bytes), each send bounded and fed."""
         sock = self._fed(_STEP_MS)
         mv = memoryview(data)
         sent = 0
-        while sent < len(data):
+        while sent < len(mv):
             n = sock.send(mv[sent:])
             if not n:
                 raise MQTTError("send failed")
@@ -259,17 +264,36 @@ class MQTTClient:
                 timer.deinit()
         return addr  # connect() feeds before its next step
 
-    def publish(self, topic: str, payload: bytes, retain: bool = False, qos: int = 0) -> None:
-        """Send a PUBLISH; with qos=1 wait (bounded) for the matching PUBACK. No retry: the caller reconnects."""
-        t = _str(topic)
-        first = _PUBLISH | (qos << 1) | (1 if retain else 0)
+    def publish(self, topic: str, payload, retain: bool = False, qos: int = 0) -> None:
+        """Send a PUBLISH; with qos=1 wait (bounded) for the matching PUBACK. No retry: the caller reconnects.
+
+        `payload` is bytes or a str (sent as its UTF-8 bytes, as diagnostics.info gives it). The packet is
+        assembled in the one buffer allocated at import (`_PACKET`), so a publish needs no new heap block on
+        the board's fragmented heap, and goes out in one send: separate small sends would each wait for the
+        broker's delayed ACK (Nagle), ~40 ms a message here. One that does not fit goes out in two sends."""
+        body = memoryview(payload)
+        n = len(topic)  # ids are ASCII: characters are bytes
+        head = _fixed(_PUBLISH | (qos << 1) | (1 if retain else 0), n + len(body) + (4 if qos else 2))
+        buf = _PACKET
+        i = len(head)
+        buf[:i] = head
+        buf[i] = n >> 8
+        buf[i + 1] = n & 0xFF
+        buf[i + 2 : i + 2 + n] = memoryview(topic)
+        i += 2 + n
         if qos:
-            self._pid = self._pid + 1 if self._pid < 0xFFFF else 1
-            pid = bytes((self._pid >> 8, self._pid & 0xFF))
-            self._send(_fixed(first, len(t) + 2 + len(payload)) + t + pid + payload)
-            self._wait_for(_PUBACK, pid)
+            self._pid = pid = self._pid + 1 if self._pid < 0xFFFF else 1
+            buf[i] = pid >> 8
+            buf[i + 1] = pid & 0xFF
+            i += 2
+        if i + len(body) <= len(buf):
+            buf[i : i + len(body)] = body
+            self._send(buf[: i + len(body)])
         else:
-            self._send(_fixed(first, len(t) + len(payload)) + t + payload)
+            self._send(buf[:i])
+            self._send(body)
+        if qos:
+            self._wait_for(_PUBACK, bytes((self._pid >> 8, self._pid & 0xFF)))
 
     def poll(self) -> None:
         """Handle whatever the broker sent, without blocking when nothing is waiting."""

@@ -9,6 +9,7 @@ Rules (docs/architecture.md, "The message contract"):
   so its arrival time tells the robot how fresh it is; it is `clear`, `blocked` or `caution` (a sensor that
   measures distance sees something in the zone that narrows the passage without closing it);
 - after every (re)connect: birth `online` (retained) and the current state, whatever happened while offline;
+  the heartbeat phase is then shifted by up to half a period, per node (`on_connect`);
 - the last will is `offline` (retained);
 - `seq` increases with every state publication, from a base the caller picks (random on the board, so a reboot
   does not replay old numbers exactly).
@@ -83,9 +84,15 @@ class NodeLogic:
         )
 
     def on_connect(self, now_ms: int) -> list:
-        """The transport just connected: birth, then the current state (republished after every reconnect)."""
+        """The transport just connected: birth, then the current state (republished after every reconnect).
+
+        The first heartbeat then comes between half a period and a period later, at an offset drawn from `seq`
+        (random per board at boot): boards that reconnect together after a broker restart do not heartbeat in
+        step from then on."""
         self.connected = True
-        return [self.birth(), self.state_message(now_ms)]
+        msgs = [self.birth(), self.state_message(now_ms)]
+        self.last_publish_ms = now_ms - self.seq % (self.heartbeat_ms // 2 + 1)
+        return msgs
 
     def on_disconnect(self) -> None:
         """The transport went down: changes are still tracked and sent by the next `on_connect`."""

@@ -5,16 +5,15 @@ plain attributes in the units the firmware uses (ms, mm), so a bad file fails at
 instead of deep in the main loop. The host validates the same file fully with pydantic before deploy.
 """
 
-DIGITAL = ("pir", "ir_beam")
-ULTRASONIC = "hcsr04"
-
-
 def valid_id(text) -> bool:
     """True if `text` is a contract id (a topic level without separators or wildcards)."""
     if not isinstance(text, str) or not 1 <= len(text) <= 32:
         return False
-    for c in text:
-        if not ("a" <= c <= "z" or "A" <= c <= "Z" or "0" <= c <= "9" or c == "_" or c == "-"):
+    for (
+        c
+    ) in text:  # by code point: one-letter literals would be interned on the board for good (diagnostics.py)
+        o = ord(c)
+        if not (97 <= o <= 122 or 65 <= o <= 90 or 48 <= o <= 57 or o == 95 or o == 45):
             return False
     return True
 
@@ -32,54 +31,56 @@ def _raw(d, key: str, default, where: str):
 
 
 def _bad(where: str, key: str, kind: str) -> ConfigError:
-    return ConfigError("config: " + where + key + " must be " + kind)
+    """`kind` says " must be ...": literals longer than 10 characters are not interned when the module loads,
+    so they leave the board's heap with it (diagnostics.py says why that counts)."""
+    return ConfigError("config: " + where + key + kind)
 
 
 def _str(d, key: str, default=None, where: str = "") -> str:
     v = _raw(d, key, default, where)
     if not isinstance(v, str):
-        raise _bad(where, key, "a string")
+        raise _bad(where, key, " must be a string")
     return v
 
 
 def _int(d, key: str, default=None, where: str = "") -> int:
     v = _raw(d, key, default, where)
     if not isinstance(v, int) or isinstance(v, bool):  # JSON true is not a number here
-        raise _bad(where, key, "an integer")
+        raise _bad(where, key, " must be an integer")
     return v
 
 
 def _num(d, key: str, default=None, where: str = "") -> float:
     v = _raw(d, key, default, where)
     if not isinstance(v, (int, float)) or isinstance(v, bool):
-        raise _bad(where, key, "a number")
+        raise _bad(where, key, " must be a number")
     return v
 
 
 def _bool(d, key: str, default=None, where: str = "") -> bool:
     v = _raw(d, key, default, where)
     if not isinstance(v, bool):
-        raise _bad(where, key, "true or false")
+        raise _bad(where, key, " must be true or false")
     return v
 
 
 def _dict(d, key: str, default=None, where: str = "") -> dict:
     v = _raw(d, key, default, where)
     if not isinstance(v, dict):
-        raise _bad(where, key, "an object")
+        raise _bad(where, key, " must be an object")
     return v
 
 
-_UNSAFE = (1, 3, 6, 7, 8, 9, 10, 11)
-"""The serial console (GPIO1, 3) and the SPI flash (GPIO6-11); inputs also avoid the boot-mode pins 0, 2, 15 and
-an IR receiver GPIO16 (no pull-up). One message for all: each extra string stays on the heap as an interned name
-after this module is dropped; `wsnav site check` (schemas/site_file.py `pin_problem`) names the exact problem."""
-
-
 def _pin(d, key: str, unsafe) -> int:
+    """Refuses the serial console (GPIO1, 3) and the SPI flash (GPIO6-11); inputs also avoid the boot-mode pins
+    0, 2, 15 and an IR receiver GPIO16 (no pull-up). One message for all, and no module-level names: each extra
+    string or name stays on the heap as an interned qstr after this module is dropped; `wsnav site check`
+    (schemas/site_file.py `pin_problem`) names the exact problem."""
     p = _int(d, key, where="sensor.")
-    if not 0 <= p <= 16 or p in _UNSAFE or p in unsafe:
-        raise ConfigError("config: sensor." + key + " must be a GPIO the sensor can use (wsnav site check says why)")
+    if not 0 <= p <= 16 or p in (1, 3, 6, 7, 8, 9, 10, 11) or p in unsafe:
+        raise ConfigError(
+            "config: sensor." + key + " must be a GPIO the sensor can use (wsnav site check says why)"
+        )
     return p
 
 
@@ -128,10 +129,10 @@ def parse(d) -> dict:
     c["threshold_mm"] = 1000
     c["caution_mm"] = 0
     c["samples"] = 5
-    if c["sensor_type"] in DIGITAL:
+    if c["sensor_type"] in ("pir", "ir_beam"):
         c["pin"] = _pin(sensor, "pin", (0, 2, 15, 16) if c["sensor_type"] == "ir_beam" else (0, 2, 15))
         c["invert"] = _bool(sensor, "invert", False, "sensor.")
-    elif c["sensor_type"] == ULTRASONIC:
+    elif c["sensor_type"] == "hcsr04":
         c["trigger_pin"] = _pin(sensor, "trigger_pin", ())
         c["echo_pin"] = _pin(sensor, "echo_pin", (0, 2, 15, c["trigger_pin"]))
         c["threshold_mm"] = int(_num(sensor, "threshold_m", 1.0, "sensor.") * 1000)

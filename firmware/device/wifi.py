@@ -33,3 +33,7 @@ class Wifi:
 
     def connected(self) -> bool:
         return self._sta.isconnected()
+
+    def rssi(self) -> int:
+        """The signal in dBm (the SDK says 31 without a link; diagnostics leaves that out)."""
+        return self._sta.status("rssi")

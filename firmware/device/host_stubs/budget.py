@@ -217,6 +217,9 @@ class FakeWifi:
     def connected(self) -> bool:
         return net.wifi_up
 
+    def rssi(self) -> int:
+        return -60
+
 
 class Watchdog:
     """Records the longest gap between two feeds, in simulated time."""

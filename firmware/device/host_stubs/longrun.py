@@ -45,25 +45,35 @@ class PatternSensor:
         return (t % 97000) < 20000 or (t % 13000) < 200
 
 
-clock = FastClock()
-node = app.Node(
-    CFG, PatternSensor(clock), wifi.Wifi(CFG["wifi_ssid"], CFG["wifi_password"]), machine.WDT(), clock
-)
-node.broker_backoff = Backoff(100, 1000, app._rand16)
-sim_ms = int(sys.argv[2]) * 1000
-gc.collect()
-start_free = gc.mem_free()
-lowest = start_free
-until = 60000
-while until <= sim_ms:
-    node.run(until)
+def main():
+    """In a function: its locals are not interned names (the qstr pool, firmware/device/diagnostics.py)."""
+    clock = FastClock()
+    node = app.Node(
+        CFG,
+        PatternSensor(clock),
+        wifi.Wifi(CFG["wifi_ssid"], CFG["wifi_password"]),
+        machine.WDT(),
+        clock,
+        machine.reset_cause(),
+    )
+    node.broker_backoff = Backoff(100, 1000, app._rand16)
+    sim_ms = int(sys.argv[2]) * 1000
     gc.collect()
-    free = gc.mem_free()
-    if free < lowest:
-        lowest = free
-    until += 60000
-print("stat heap_start", start_free, "heap_lowest", lowest, "heap_end", gc.mem_free())
-print("stat publications", node.logic.publications, "connects", node.connects, "errors", node.errors)
-print("stat pings", node.client.pings, "feeds", getattr(machine.WDT, "feeds", -1), "sim_s", clock.t // 1000)
-node.client._send(b"\xe0\x00")  # DISCONNECT: a clean end of the run (no will)
-node.client.close()
+    start_free = gc.mem_free()
+    lowest = start_free
+    until = 60000
+    while until <= sim_ms:
+        node.run(until)
+        gc.collect()
+        free = gc.mem_free()
+        if free < lowest:
+            lowest = free
+        until += 60000
+    print("stat heap_start", start_free, "heap_lowest", lowest, "heap_end", gc.mem_free())
+    print("stat publications", node.logic.publications, "connects", node.connects, "errors", node.errors)
+    print("stat pings", node.client.pings, "feeds", getattr(machine.WDT, "feeds", -1), "sim_s", clock.t // 1000)
+    node.client._send(b"\xe0\x00")  # DISCONNECT: a clean end of the run (no will)
+    node.client.close()
+
+
+main()

@@ -48,6 +48,10 @@ def time_pulse_us(pin, level, timeout_us=1000000):
     return _read(str(pin.id) + ".pulse", -1)
 
 
+def reset_cause():
+    return _read("reset_cause", 0)
+
+
 class WDT:
     feeds = 0
 

@@ -4,15 +4,6 @@ unless the file `$WSNAV_PINS/wifi_down` exists: then the access point is out of 
 
 import os
 
-_DOWN = (os.getenv("WSNAV_PINS") or "/tmp/wsnav-pins") + "/wifi_down"
-
-
-def _reachable():
-    try:
-        os.stat(_DOWN)
-        return False
-    except OSError:
-        return True
 
 STA_IF = 0
 AP_IF = 1
@@ -21,8 +12,8 @@ AP_IF = 1
 class WLAN:
     PM_NONE = 0
 
-    def __init__(self, interface=STA_IF):
-        self._active = interface == AP_IF
+    def __init__(self, id=STA_IF):  # few names: each is a qstr the board has in ROM (firmware/device/diagnostics.py)
+        self._active = id == AP_IF
 
     def config(self, pm):
         WLAN.pm = pm  # the radio's sleep type, global as on the ESP8266 (which boots in modem sleep, 2)
@@ -38,5 +29,12 @@ class WLAN:
     def disconnect(self):
         pass
 
+    def status(self, _):
+        return -58  # 'rssi', the only status the firmware asks for
+
     def isconnected(self):
-        return self._active and _reachable()
+        try:
+            os.stat((os.getenv("WSNAV_PINS") or "/tmp/wsnav-pins") + "/wifi_down")
+            return False
+        except OSError:
+            return self._active

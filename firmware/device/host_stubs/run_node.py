@@ -11,7 +11,6 @@ are what the tests wait for.
 
 import gc
 import sys
-import time
 
 import nodeconfig
 
@@ -22,32 +21,28 @@ gc.collect()
 
 import app  # noqa: E402
 import machine  # noqa: E402
-import mqtt  # noqa: E402
 import sensors  # noqa: E402
 import wifi  # noqa: E402
 from backoff import Backoff  # noqa: E402
 
 
-def fake_dns(host, port):
-    fault = machine._read("dns", 0)  # pyright: ignore[reportAttributeAccessIssue] (the host stub's)
-    if fault:
-        print("dns", "down" if fault == 1 else "hang", host)
-        import soft_timers
-
-        while fault == 2:
-            time.sleep_ms(20)
-            soft_timers._run_timers()  # lwIP's wait runs the soft timers
-        raise OSError("dns down")
-    return real_dns(host, port, 2)  # IPv4 only, as lwIP on the ESP8266
-
-
-real_dns = mqtt.lookup
-mqtt.lookup = fake_dns
-node = app.Node(CFG, sensors.from_config(CFG), wifi.Wifi(CFG["wifi_ssid"], CFG["wifi_password"]), machine.WDT())
+node = app.Node(
+    CFG,
+    sensors.from_config(CFG),
+    wifi.Wifi(CFG["wifi_ssid"], CFG["wifi_password"]),
+    machine.WDT(),
+    None,
+    machine.reset_cause(),
+)
 node.broker_backoff = Backoff(100, 1000, app._rand16)
 gc.collect()
 print("heap free", gc.mem_free())
-if not CFG["broker_host"][-1:].isdigit():  # a name: the client feeds from a machine.Timer while it looks it up
+import fake_dns  # noqa: E402  after the heap is measured: the board has no such thing
+
+fake_dns.install()
+if not CFG["broker_host"][
+    -1:
+].isdigit():  # a name: the client feeds from a machine.Timer while it looks it up
     import soft_timers  # after the heap is measured: the board has machine.Timer in ROM
 
     soft_timers.install()
