@@ -25,6 +25,7 @@ from robot_agent.inflation import (
     NO_INFORMATION,
     InflationParams,
     inflate,
+    inflation_reach,
     static_layer,
 )
 from robot_agent.zone_geometry import Bounds, GridFrame
@@ -232,14 +233,13 @@ class InflationLayer:
     """costmap_2d's inflation: master's lethal cells spread their cost over the robot's inflation radius.
 
     It holds no grid of its own; `grow` says how far a change in the merged layers reaches (its updateBounds),
-    and `update_costs` inflates a master window whose cells within `reach` of its edge are not exact (the stack
-    passes a window grown once more than the cells it keeps).
+    and `update_costs` recomputes master in a window from the merged layers around it.
     """
 
     def __init__(self, params: InflationParams, resolution: float) -> None:
         self.params = params
         self.resolution = resolution
-        self.reach = math.ceil(params.inflation_radius / resolution) + 1
+        self.reach = inflation_reach(resolution, params)
         """Cells beyond which a lethal cell cannot change a cell's inflated cost."""
 
     def take_bounds(self) -> list[Bounds]:
@@ -248,8 +248,11 @@ class InflationLayer:
     def grow(self, bounds: Bounds, frame: GridFrame) -> Bounds:
         return bounds.grow(self.reach, frame)
 
-    def update_costs(self, master: Costs, bounds: Bounds) -> None:
-        master[...] = inflate(master, self.resolution, self.params)
+    def update_costs(self, master: Costs, bounds: Bounds, merged: Costs) -> None:
+        """Set `master`'s cells in `bounds` to `merged` (the layers merged, whole map) with its inflation."""
+        master[bounds.rows, bounds.cols] = inflate(
+            merged, self.resolution, self.params, (bounds.rows, bounds.cols)
+        )
 
 
 @dataclass(frozen=True)
