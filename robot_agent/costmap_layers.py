@@ -94,8 +94,9 @@ class ObstacleLayer:
         return out
 
     def update_costs(self, master: Costs, bounds: Bounds) -> None:
-        marked = self.marked[bounds.rows, bounds.cols]
-        update_with_max(master, np.where(marked, np.uint8(LETHAL_OBSTACLE), np.uint8(NO_INFORMATION)))
+        """`update_with_max` of LETHAL where marked and NO_INFORMATION elsewhere, which comes down to writing
+        LETHAL into the marked cells (nothing in master is above it but NO_INFORMATION, which it overrides)."""
+        np.copyto(master, np.uint8(LETHAL_OBSTACLE), where=self.marked[bounds.rows, bounds.cols])
 
     def add_scan(self, scan: LaserScan, known: Sequence[tuple[float, float, float]] = ()) -> bool:
         """Clear and mark along the scan's beams; True if a cell changed (its window is then pending).

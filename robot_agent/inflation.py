@@ -126,19 +126,23 @@ def _inflate(
     lo_row, hi_row = max(row0 - reach, 0), min(row0 + rows + reach, height)
     lo_col, hi_col = max(col0 - reach, 0), min(col0 + cols + reach, width)
     n = hi_col - lo_col
-    # g2[r, c]: squared distance along column lo_col + c from row row0 + r to its nearest lethal cell.
+    # g2[r, c]: squared distance along column lo_col + c from row row0 + r to its nearest lethal cell, capped at
+    # reach; swept down, then up, a row at a time (master is row-major).
     g2 = np.empty((rows, n), dtype=np.int32)
-    for c in range(n):
-        d = reach
-        for r in range(lo_row, hi_row):
-            d = 0 if master[r, lo_col + c] == 254 else min(d + 1, reach)
-            if row0 <= r < row0 + rows:
-                g2[r - row0, c] = d
-        d = reach
-        for r in range(hi_row - 1, lo_row - 1, -1):
-            d = 0 if master[r, lo_col + c] == 254 else min(d + 1, reach)
-            if row0 <= r < row0 + rows:
-                g = min(g2[r - row0, c], d)
+    d = np.empty(n, dtype=np.int32)
+    d[:] = reach
+    for r in range(lo_row, hi_row):
+        for c in range(n):
+            d[c] = 0 if master[r, lo_col + c] == 254 else min(d[c] + 1, reach)
+        if row0 <= r < row0 + rows:
+            g2[r - row0] = d
+    d[:] = reach
+    for r in range(hi_row - 1, lo_row - 1, -1):
+        for c in range(n):
+            d[c] = 0 if master[r, lo_col + c] == 254 else min(d[c] + 1, reach)
+        if row0 <= r < row0 + rows:
+            for c in range(n):
+                g = min(g2[r - row0, c], d[c])
                 g2[r - row0, c] = g * g
     v = np.empty(n, dtype=np.int64)
     z = np.empty(n + 1, dtype=np.float64)
