@@ -104,27 +104,61 @@ def cast_ranges(
         return ranges
     crossings, rel = _samples(params, res)
     angles = rel + yaw
-    dx, dy = np.cos(angles), np.sin(angles)
-    # Rays leave the grid (and with it every occupied cell) at t_exit; look no further than that or range_max.
-    with np.errstate(divide="ignore"):
-        t_exit = np.minimum(_exit(u0, dx, width), _exit(v0, dy, height))
-    limit = np.minimum(t_exit, params.range_max / res)
-    flat = occupied.ravel()
-    # Every cell a ray enters, it enters across a vertical or a horizontal grid line: take both families.
-    t_x = _first_hit(flat, width, u0, v0, dx, dy, crossings, limit, True)
-    t_y = _first_hit(flat, width, v0, u0, dy, dx, crossings, limit, False)
-    first = np.minimum(t_x, t_y) * res
-    ranges[:] = np.where(first < params.range_min, -np.inf, first)
+    ranges[:] = _cast(
+        occupied.ravel(),
+        width,
+        height,
+        u0,
+        v0,
+        np.cos(angles),
+        np.sin(angles),
+        crossings,
+        params.range_max / res,
+        res,
+        params.range_min,
+    )
     return ranges
 
 
-def _exit(a0: float, da: NDArray[np.float64], size: int) -> NDArray[np.float64]:
-    """Ray parameter (cells) at which rays from a0 leave [0, size) on one axis."""
-    out = np.full(da.shape, np.inf)
-    up, down = da > 0, da < 0
-    out[up] = (size - a0) / da[up]
-    out[down] = -a0 / da[down]
-    return out
+@njit(error_model="numpy")
+def _cast(
+    flat: NDArray[np.bool_],
+    width: int,
+    height: int,
+    u0: float,
+    v0: float,
+    dx: NDArray[np.float64],
+    dy: NDArray[np.float64],
+    crossings: int,
+    range_max_cells: float,
+    res: float,
+    range_min: float,
+) -> NDArray[np.float32]:
+    """Each ray's range (metres, REP 117's -inf under range_min) from (u0, v0) in cells, along (dx, dy).
+
+    Compiled (numba), with the same float32/float64 operations in the same order as the array form it
+    replaced, so scans are bit for bit what they were.
+    """
+    ranges = np.empty(dx.shape[0], dtype=np.float32)
+    for i in range(dx.shape[0]):
+        # Rays leave the grid (and with it every occupied cell) at t_exit; look no further than it or range_max.
+        limit = min(min(_exit(u0, dx[i], width), _exit(v0, dy[i], height)), range_max_cells)
+        # Every cell a ray enters, it enters across a vertical or a horizontal grid line: take both families.
+        t_x = _first_hit(flat, width, u0, v0, dx[i], dy[i], crossings, limit, True)
+        t_y = _first_hit(flat, width, v0, u0, dy[i], dx[i], crossings, limit, False)
+        first = min(t_x, t_y) * res
+        ranges[i] = -np.inf if first < range_min else first
+    return ranges
+
+
+@njit(error_model="numpy")
+def _exit(a0: float, da: float, size: int) -> float:
+    """Ray parameter (cells) at which a ray from a0 leaves [0, size) on one axis."""
+    if da > 0:
+        return (size - a0) / da
+    if da < 0:
+        return -a0 / da
+    return np.inf
 
 
 @njit(error_model="numpy")
@@ -133,43 +167,38 @@ def _first_hit(
     width: int,
     a0: float,
     b0: float,
-    da: NDArray[np.float64],
-    db: NDArray[np.float64],
+    da: float,
+    db: float,
     crossings: int,
-    limit: NDArray[np.float64],
+    limit: float,
     vertical: bool,
-) -> NDArray[np.float64]:
-    """Smallest ray parameter (cells) at which each ray enters an occupied cell across a line of axis a.
+) -> float:
+    """Smallest ray parameter (cells) at which the ray enters an occupied cell across a line of axis a.
 
     Lines of axis a are crossed evenly, every 1/|da| along the ray, the first at floor(a0) + 1 going up
     (floor(a0) going down); the cell entered there is the line's neighbour on axis a and floor(b0 + t db) on
     axis b. `vertical`: axis a is x (columns), else y (rows). inf where no occupied cell is entered in range.
-    Compiled (numba): each ray walks its crossings only up to its first hit. The crossing parameters are
-    float32 (ranges stay well under a millimetre), computed in the same order with the same roundings as
-    the array form this replaced, so scans are bit for bit what they were.
+    The walk stops at the first hit. Crossing parameters are float32 (ranges stay well under a millimetre).
     """
-    out = np.full(da.shape[0], np.inf)
     base = math.floor(a0)
-    last = flat.shape[0] - 1
+    up = da > 0
+    first_line = base + 1.0 if up else float(base)
+    first_cell = base + 1 if up else base - 1
+    step = 1 if up else -1
+    # A ray parallel to these lines never crosses one: its t is inf or nan, and fails `t < lim`.
+    t0 = np.float32((first_line - a0) / da)
+    delta = np.float32(abs(1.0 / da))
+    lim = np.float32(limit)
     b0_32 = np.float32(b0)
-    for i in range(da.shape[0]):
-        up = da[i] > 0
-        first_line = base + 1.0 if up else float(base)
-        first_cell = base + 1 if up else base - 1
-        step = 1 if up else -1
-        # A ray parallel to these lines never crosses one: its t is inf or nan, and fails `t < lim`.
-        t0 = np.float32((first_line - a0) / da[i])
-        delta = np.float32(abs(1.0 / da[i]))
-        lim = np.float32(limit[i])
-        db_32 = np.float32(db[i])
-        for k in range(crossings):
-            t = t0 + np.float32(k) * delta
-            if not t < lim:
-                break
-            cell_b = np.int32(b0_32 + t * db_32)
-            cell_a = first_cell + k * step
-            index = cell_b * width + cell_a if vertical else cell_a * width + cell_b
-            if flat[min(max(index, 0), last)]:
-                out[i] = np.float64(t)
-                break
-    return out
+    db_32 = np.float32(db)
+    last = flat.shape[0] - 1
+    for k in range(crossings):
+        t = t0 + np.float32(k) * delta
+        if not t < lim:
+            break
+        cell_b = np.int32(b0_32 + t * db_32)
+        cell_a = first_cell + k * step
+        index = cell_b * width + cell_a if vertical else cell_a * width + cell_b
+        if flat[min(max(index, 0), last)]:
+            return np.float64(t)
+    return np.inf
