@@ -129,19 +129,17 @@ def _inflate(
     # g2[r, c]: squared distance along column lo_col + c from row row0 + r to its nearest lethal cell, capped at
     # reach; swept down, then up, a row at a time (master is row-major).
     g2 = np.empty((rows, n), dtype=np.int32)
-    d = np.empty(n, dtype=np.int32)
-    d[:] = reach
+    d = np.full(n, reach, dtype=np.int32)
     for r in range(lo_row, hi_row):
         for c in range(n):
             d[c] = 0 if master[r, lo_col + c] == 254 else min(d[c] + 1, reach)
-        if row0 <= r < row0 + rows:
-            g2[r - row0] = d
-    d[:] = reach
+            if row0 <= r < row0 + rows:
+                g2[r - row0, c] = d[c]
+    d = np.full(n, reach, dtype=np.int32)
     for r in range(hi_row - 1, lo_row - 1, -1):
         for c in range(n):
             d[c] = 0 if master[r, lo_col + c] == 254 else min(d[c] + 1, reach)
-        if row0 <= r < row0 + rows:
-            for c in range(n):
+            if row0 <= r < row0 + rows:
                 g = min(g2[r - row0, c], d[c])
                 g2[r - row0, c] = g * g
     v = np.empty(n, dtype=np.int64)
