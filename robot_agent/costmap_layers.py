@@ -121,22 +121,22 @@ class ObstacleLayer:
             hx, hy = x + np.cos(angles) * reach, y + np.sin(angles) * reach
             for kx, ky, kr in near:
                 hit &= np.hypot(hx - kx, hy - ky) > kr
-        clear_len = np.minimum(np.where(np.isfinite(ranges), ranges, np.inf), self.raytrace_range_m)
-        clear_len = np.where(usable, clear_len, 0.0)
         reach = math.ceil(max(self.raytrace_range_m, self.obstacle_range_m) / res) + 2
         row, col = frame.world_to_cell(x, y)
         window = Bounds(row - reach, col - reach, row + reach + 1, col + reach + 1).grow(0, frame)
         if window.empty:
             return False
         before = self.marked[window.rows, window.cols].copy()
-        frame_at = (frame.origin_x, frame.origin_y, res)
-        cos, sin = np.cos(angles), np.sin(angles)
-        # Clearing: sample each beam every half cell, stopping a cell short of its end.
-        step = res / 2.0
-        samples = math.ceil(self.raytrace_range_m / step) + 1
-        _clear_beams(self.marked, frame_at, x, y, cos, sin, clear_len - res, step, samples)
-        # Marking: the cell of each hit within the obstacle range.
-        self._set_cells(x + cos[hit] * ranges[hit], y + sin[hit] * ranges[hit], True)
+        _trace_beams(
+            self.marked,
+            (frame.origin_x, frame.origin_y, res),
+            (x, y),
+            (np.cos(angles), np.sin(angles)),
+            ranges,
+            usable,
+            hit,
+            self.raytrace_range_m,
+        )
         if np.array_equal(before, self.marked[window.rows, window.cols]):
             return False
         self._pending.append(window)
@@ -159,39 +159,47 @@ class ObstacleLayer:
         )
         return True
 
-    def _set_cells(self, xs: NDArray[np.float64], ys: NDArray[np.float64], value: bool) -> None:
-        rows, cols = self.frame.world_to_cells(xs, ys)
-        inside = (rows >= 0) & (rows < self.frame.height) & (cols >= 0) & (cols < self.frame.width)
-        self.marked[rows[inside], cols[inside]] = value
-
 
 @njit
-def _clear_beams(
+def _trace_beams(
     marked: NDArray[np.bool_],
     frame_at: tuple[float, float, float],
-    x: float,
-    y: float,
-    cos: NDArray[np.float64],
-    sin: NDArray[np.float64],
-    ends: NDArray[np.float64],
-    step: float,
-    samples: int,
+    at: tuple[float, float],
+    direction: tuple[NDArray[np.float64], NDArray[np.float64]],
+    ranges: NDArray[np.float64],
+    usable: NDArray[np.bool_],
+    hit: NDArray[np.bool_],
+    raytrace_range: float,
 ) -> None:
-    """Unmark the cell of every point `k * step` (k < samples) along each beam from (x, y) short of its end.
+    """Clear, then mark, the obstacle layer's cells along a scan's beams from `at`, heading along `direction`.
 
-    Compiled (numba): the (beams, samples) points this replaced were mostly beyond their beam's end. Each
-    point is computed with the same float64 operations in the same order, so the same cells clear."""
+    Clearing: each usable beam's points every half cell, while short of a cell before its end (its range, or
+    the raytrace range for a beam with no return). Marking: the cell of each `hit`. Compiled (numba): the
+    (beams, samples) points this replaced were mostly beyond their beam's end; each point is computed with the
+    same float64 operations in the same order, so the same cells change."""
     origin_x, origin_y, res = frame_at
+    x, y = at
+    cos, sin = direction
     height, width = marked.shape
+    step = res / 2.0
+    samples = math.ceil(raytrace_range / step) + 1
     for i in range(cos.shape[0]):
+        clear_len = min(ranges[i] if math.isfinite(ranges[i]) else np.inf, raytrace_range)
+        end = (clear_len if usable[i] else 0.0) - res
         for k in range(samples):
             s = k * step
-            if not s < ends[i]:
+            if not s < end:
                 break
             col = math.floor((x + cos[i] * s - origin_x) / res)
             row = math.floor((y + sin[i] * s - origin_y) / res)
             if 0 <= row < height and 0 <= col < width:
                 marked[row, col] = False
+    for i in range(cos.shape[0]):
+        if hit[i]:
+            col = math.floor((x + cos[i] * ranges[i] - origin_x) / res)
+            row = math.floor((y + sin[i] * ranges[i] - origin_y) / res)
+            if 0 <= row < height and 0 <= col < width:
+                marked[row, col] = True
 
 
 class ZoneCostLayer:
