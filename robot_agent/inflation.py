@@ -115,13 +115,15 @@ def _inflate(
     """`out` = master's window at (row0, col0) merged with its inflation (the rule of `inflate`).
 
     Squared distances to the nearest lethal cell, cut off at reach squared (lut's last entry: everything
-    farther costs the same), by the two passes of an exact Euclidean distance transform: per column the distance to
-    the nearest lethal cell of that column (capped at reach), then per row the lower envelope of the
+    farther costs the same), by the two passes of an exact Euclidean distance transform: per column the
+    distance to the nearest lethal cell of that column (capped at reach), then per row the lower envelope of the
     parabolas (c - c')^2 + g(c')^2 (Felzenszwalb and Huttenlocher). Compiled (numba): only the window's
     rows and the columns within reach of it are visited, and a capped distance cannot hide a nearer one.
     """
     height, width = master.shape
     rows, cols = out.shape
+    if rows == 0 or cols == 0:
+        return
     big = reach * reach
     lo_row, hi_row = max(row0 - reach, 0), min(row0 + rows + reach, height)
     lo_col, hi_col = max(col0 - reach, 0), min(col0 + cols + reach, width)
