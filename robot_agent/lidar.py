@@ -104,7 +104,7 @@ def cast_ranges(
         return ranges
     crossings, rel = _samples(params, res)
     angles = rel + yaw
-    ranges[:] = _cast(
+    return _cast(
         occupied.ravel(),
         width,
         height,
@@ -117,7 +117,6 @@ def cast_ranges(
         res,
         params.range_min,
     )
-    return ranges
 
 
 @njit(error_model="numpy")
