@@ -88,6 +88,19 @@ class ObstacleLayer:
         self.marked: NDArray[np.bool_] = np.zeros((frame.height, frame.width), dtype=bool)
         self._last_scan: LaserScan | None = None
         self._pending: list[Bounds] = []
+        # numba compiles the kernel on its first call: make that call now, with no beams, so the robot's first
+        # scan does not wait for it (and the experiment's agent CPU of a worker's first run does not carry it).
+        no_beams, no_flags = np.zeros(0), np.zeros(0, dtype=bool)
+        _trace_beams(
+            self.marked,
+            (frame.origin_x, frame.origin_y, frame.resolution),
+            (0.0, 0.0),
+            (no_beams, no_beams),
+            no_beams,
+            no_flags,
+            no_flags,
+            raytrace_range_m,
+        )
 
     def take_bounds(self) -> list[Bounds]:
         out, self._pending = self._pending, []
