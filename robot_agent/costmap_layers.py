@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from robot_agent.backend import LaserScan, Pose
@@ -24,6 +25,7 @@ from robot_agent.inflation import (
     NO_INFORMATION,
     InflationParams,
     inflate,
+    inflation_reach,
     static_layer,
 )
 from robot_agent.zone_geometry import Bounds, GridFrame
@@ -86,14 +88,28 @@ class ObstacleLayer:
         self.marked: NDArray[np.bool_] = np.zeros((frame.height, frame.width), dtype=bool)
         self._last_scan: LaserScan | None = None
         self._pending: list[Bounds] = []
+        # numba compiles the kernel on its first call: make that call now, with no beams, so the robot's first
+        # scan does not wait for it (and the experiment's agent CPU of a worker's first run does not carry it).
+        no_beams, no_flags = np.zeros(0), np.zeros(0, dtype=bool)
+        _trace_beams(
+            self.marked,
+            (frame.origin_x, frame.origin_y, frame.resolution),
+            (0.0, 0.0),
+            (no_beams, no_beams),
+            no_beams,
+            no_flags,
+            no_flags,
+            raytrace_range_m,
+        )
 
     def take_bounds(self) -> list[Bounds]:
         out, self._pending = self._pending, []
         return out
 
     def update_costs(self, master: Costs, bounds: Bounds) -> None:
-        marked = self.marked[bounds.rows, bounds.cols]
-        update_with_max(master, np.where(marked, np.uint8(LETHAL_OBSTACLE), np.uint8(NO_INFORMATION)))
+        """`update_with_max` of LETHAL where marked and NO_INFORMATION elsewhere, which comes down to writing
+        LETHAL into the marked cells (nothing in master is above it but NO_INFORMATION, which it overrides)."""
+        np.copyto(master, np.uint8(LETHAL_OBSTACLE), where=self.marked[bounds.rows, bounds.cols])
 
     def add_scan(self, scan: LaserScan, known: Sequence[tuple[float, float, float]] = ()) -> bool:
         """Clear and mark along the scan's beams; True if a cell changed (its window is then pending).
@@ -118,25 +134,22 @@ class ObstacleLayer:
             hx, hy = x + np.cos(angles) * reach, y + np.sin(angles) * reach
             for kx, ky, kr in near:
                 hit &= np.hypot(hx - kx, hy - ky) > kr
-        clear_len = np.minimum(np.where(np.isfinite(ranges), ranges, np.inf), self.raytrace_range_m)
-        clear_len = np.where(usable, clear_len, 0.0)
         reach = math.ceil(max(self.raytrace_range_m, self.obstacle_range_m) / res) + 2
         row, col = frame.world_to_cell(x, y)
         window = Bounds(row - reach, col - reach, row + reach + 1, col + reach + 1).grow(0, frame)
         if window.empty:
             return False
         before = self.marked[window.rows, window.cols].copy()
-        # Clearing: sample each beam every half cell, stopping a cell short of its end.
-        step = res / 2.0
-        n = math.ceil(self.raytrace_range_m / step) + 1
-        s = np.arange(n, dtype=np.float64) * step
-        cos, sin = np.cos(angles), np.sin(angles)
-        along = s[None, :] < (clear_len[:, None] - res)
-        px = x + cos[:, None] * s[None, :]
-        py = y + sin[:, None] * s[None, :]
-        self._set_cells(px[along], py[along], False)
-        # Marking: the cell of each hit within the obstacle range.
-        self._set_cells(x + cos[hit] * ranges[hit], y + sin[hit] * ranges[hit], True)
+        _trace_beams(
+            self.marked,
+            (frame.origin_x, frame.origin_y, res),
+            (x, y),
+            (np.cos(angles), np.sin(angles)),
+            ranges,
+            usable,
+            hit,
+            self.raytrace_range_m,
+        )
         if np.array_equal(before, self.marked[window.rows, window.cols]):
             return False
         self._pending.append(window)
@@ -159,10 +172,47 @@ class ObstacleLayer:
         )
         return True
 
-    def _set_cells(self, xs: NDArray[np.float64], ys: NDArray[np.float64], value: bool) -> None:
-        rows, cols = self.frame.world_to_cells(xs, ys)
-        inside = (rows >= 0) & (rows < self.frame.height) & (cols >= 0) & (cols < self.frame.width)
-        self.marked[rows[inside], cols[inside]] = value
+
+@njit
+def _trace_beams(
+    marked: NDArray[np.bool_],
+    frame_at: tuple[float, float, float],
+    at: tuple[float, float],
+    direction: tuple[NDArray[np.float64], NDArray[np.float64]],
+    ranges: NDArray[np.float64],
+    usable: NDArray[np.bool_],
+    hit: NDArray[np.bool_],
+    raytrace_range: float,
+) -> None:
+    """Clear, then mark, the obstacle layer's cells along a scan's beams from `at`, heading along `direction`.
+
+    Clearing: each usable beam's points every half cell, while short of a cell before its end (its range, or
+    the raytrace range for a beam with no return). Marking: the cell of each `hit`. Compiled (numba): the
+    (beams, samples) points this replaced were mostly beyond their beam's end; each point is computed with the
+    same float64 operations in the same order, so the same cells change."""
+    origin_x, origin_y, res = frame_at
+    x, y = at
+    cos, sin = direction
+    height, width = marked.shape
+    step = res / 2.0
+    samples = math.ceil(raytrace_range / step) + 1
+    for i in range(cos.shape[0]):
+        clear_len = min(ranges[i] if math.isfinite(ranges[i]) else np.inf, raytrace_range)
+        end = (clear_len if usable[i] else 0.0) - res
+        for k in range(samples):
+            s = k * step
+            if not s < end:
+                break
+            col = math.floor((x + cos[i] * s - origin_x) / res)
+            row = math.floor((y + sin[i] * s - origin_y) / res)
+            if 0 <= row < height and 0 <= col < width:
+                marked[row, col] = False
+    for i in range(cos.shape[0]):
+        if hit[i]:
+            col = math.floor((x + cos[i] * ranges[i] - origin_x) / res)
+            row = math.floor((y + sin[i] * ranges[i] - origin_y) / res)
+            if 0 <= row < height and 0 <= col < width:
+                marked[row, col] = True
 
 
 class ZoneCostLayer:
@@ -205,14 +255,13 @@ class InflationLayer:
     """costmap_2d's inflation: master's lethal cells spread their cost over the robot's inflation radius.
 
     It holds no grid of its own; `grow` says how far a change in the merged layers reaches (its updateBounds),
-    and `update_costs` inflates a master window whose cells within `reach` of its edge are not exact (the stack
-    passes a window grown once more than the cells it keeps).
+    and `update_costs` recomputes master in a window from the merged layers around it.
     """
 
     def __init__(self, params: InflationParams, resolution: float) -> None:
         self.params = params
         self.resolution = resolution
-        self.reach = math.ceil(params.inflation_radius / resolution) + 1
+        self.reach = inflation_reach(resolution, params)
         """Cells beyond which a lethal cell cannot change a cell's inflated cost."""
 
     def take_bounds(self) -> list[Bounds]:
@@ -221,8 +270,11 @@ class InflationLayer:
     def grow(self, bounds: Bounds, frame: GridFrame) -> Bounds:
         return bounds.grow(self.reach, frame)
 
-    def update_costs(self, master: Costs, bounds: Bounds) -> None:
-        master[...] = inflate(master, self.resolution, self.params)
+    def update_costs(self, master: Costs, bounds: Bounds, merged: Costs) -> None:
+        """Set `master`'s cells in `bounds` to `merged` (the layers merged, whole map) with its inflation."""
+        master[bounds.rows, bounds.cols] = inflate(
+            merged, self.resolution, self.params, (bounds.rows, bounds.cols)
+        )
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ The layers (robot_agent.costmap_layers) are merged in order, each by its own rul
 layer overwrites, the others by updateWithMax, where a layer's NO_INFORMATION never hides a known cost), then
 inflated with costmap_2d's formula (robot_agent.inflation). Every
 update touches only the bounds that changed: the cells whose merged cost a layer changed are merged again, and
-the inflation layer's reach around them re-inflated, computing distances on a window grown once more (a lethal
+the inflation layer's reach around them re-inflated from the merged cells within reach of them (a lethal
 cell farther than the radius cannot change a cell's cost), so the result is cell for cell what a whole-map
 recomputation gives (`rebuild`), at a fraction of the cost on big maps.
 """
@@ -104,8 +104,8 @@ class LayeredCostmap:
         for layer in self.layers:
             layer.take_bounds()
         self.merged = self.merge(whole)
-        self.master = self.merged.copy()
-        self.inflation.update_costs(self.master, whole)
+        self.master = np.empty_like(self.merged)
+        self.inflation.update_costs(self.master, whole, self.merged)
         self._changed(whole)
 
     def update_zones(self, now: float) -> Bounds | None:
@@ -148,10 +148,7 @@ class LayeredCostmap:
         out: Bounds | None = None
         for w in changed:
             touched = self.inflation.grow(w, self.frame)
-            source = self.inflation.grow(touched, self.frame)
-            window = self.merged[source.rows, source.cols].copy()
-            self.inflation.update_costs(window, source)
-            self.master[touched.rows, touched.cols] = window[touched.within(source)]
+            self.inflation.update_costs(self.master, touched, self.merged)
             out = touched.union(out)
         assert out is not None
         self._changed(out)

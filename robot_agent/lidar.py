@@ -1,9 +1,9 @@
-"""A simulated 2-D lidar (LDS-01-like: 360 beams, 3.5 m) cast against an occupancy grid with NumPy.
+"""A simulated 2-D lidar (LDS-01-like: 360 beams, 3.5 m) cast against an occupancy grid (a numba kernel).
 
-All beams are traced at once, exactly (an array form of Amanatides-Woo grid traversal): every cell a ray
-enters, it enters across a vertical or a horizontal grid line, and the crossings of each family are evenly
-spaced along the ray, so both families are computed in closed form; the range is the smallest crossing
-that enters an occupied cell. No corner is skipped and ranges are exact to the grid. Ranges follow REP 117: +inf when nothing lies
+Beams are traced exactly (Amanatides-Woo grid traversal): every cell a ray enters, it enters across a
+vertical or a horizontal grid line, and the crossings of each family are evenly spaced along the ray, so
+both families are walked in closed form, each up to its first occupied cell; the range is the smaller of
+the two. No corner is skipped and ranges are exact to the grid. Ranges follow REP 117: +inf when nothing lies
 within `range_max`, -inf when something is closer than `range_min` (too close to measure).
 """
 
@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from robot_agent.backend import LaserScan, Pose
@@ -51,13 +52,10 @@ class LidarParams:
 
 
 @lru_cache(maxsize=16)
-def _samples(
-    params: LidarParams, resolution: float
-) -> tuple[NDArray[np.float32], NDArray[np.int32], NDArray[np.float64]]:
-    """Indices of the grid lines a ray may cross on one axis within range, and the beams' relative angles."""
-    lines = np.arange(math.ceil(params.range_max / resolution) + 2, dtype=np.int32)
+def _samples(params: LidarParams, resolution: float) -> tuple[int, NDArray[np.float64]]:
+    """How many grid lines a ray may cross on one axis within range, and the beams' relative angles."""
     angles = params.angle_min + np.arange(params.beams, dtype=np.float64) * params.angle_increment
-    return lines.astype(np.float32), lines, angles
+    return math.ceil(params.range_max / resolution) + 2, angles
 
 
 def cast_scan(
@@ -104,68 +102,102 @@ def cast_ranges(
     if occupied[math.floor(v0), math.floor(u0)]:
         ranges[:] = -np.inf  # the sensor sits inside an obstacle
         return ranges
-    k, k_int, rel = _samples(params, res)
+    crossings, rel = _samples(params, res)
     angles = rel + yaw
-    dx, dy = np.cos(angles), np.sin(angles)
-    # Rays leave the grid (and with it every occupied cell) at t_exit; look no further than that or range_max.
-    with np.errstate(divide="ignore"):
-        t_exit = np.minimum(_exit(u0, dx, width), _exit(v0, dy, height))
-    limit = np.minimum(t_exit, params.range_max / res)
-    flat = occupied.ravel()
-    # Every cell a ray enters, it enters across a vertical or a horizontal grid line: take both families.
-    t_x = _first_hit(flat, width, u0, v0, dx, dy, k, k_int, limit, vertical=True)
-    t_y = _first_hit(flat, width, v0, u0, dy, dx, k, k_int, limit, vertical=False)
-    first = np.minimum(t_x, t_y) * res
-    ranges[:] = np.where(first < params.range_min, -np.inf, first)
+    return _cast(
+        occupied.ravel(),
+        width,
+        height,
+        u0,
+        v0,
+        np.cos(angles),
+        np.sin(angles),
+        crossings,
+        params.range_max / res,
+        res,
+        params.range_min,
+    )
+
+
+@njit(error_model="numpy")
+def _cast(
+    flat: NDArray[np.bool_],
+    width: int,
+    height: int,
+    u0: float,
+    v0: float,
+    dx: NDArray[np.float64],
+    dy: NDArray[np.float64],
+    crossings: int,
+    range_max_cells: float,
+    res: float,
+    range_min: float,
+) -> NDArray[np.float32]:
+    """Each ray's range (metres, REP 117's -inf under range_min) from (u0, v0) in cells, along (dx, dy).
+
+    Compiled (numba), with the same float32/float64 operations in the same order as the array form it
+    replaced, so scans are bit for bit what they were.
+    """
+    ranges = np.empty(dx.shape[0], dtype=np.float32)
+    for i in range(dx.shape[0]):
+        # Rays leave the grid (and with it every occupied cell) at t_exit; look no further than it or range_max.
+        limit = min(min(_exit(u0, dx[i], width), _exit(v0, dy[i], height)), range_max_cells)
+        # Every cell a ray enters, it enters across a vertical or a horizontal grid line: take both families.
+        t_x = _first_hit(flat, width, u0, v0, dx[i], dy[i], crossings, limit, True)
+        t_y = _first_hit(flat, width, v0, u0, dy[i], dx[i], crossings, limit, False)
+        first = min(t_x, t_y) * res
+        ranges[i] = -np.inf if first < range_min else first
     return ranges
 
 
-def _exit(a0: float, da: NDArray[np.float64], size: int) -> NDArray[np.float64]:
-    """Ray parameter (cells) at which rays from a0 leave [0, size) on one axis."""
-    out = np.full(da.shape, np.inf)
-    up, down = da > 0, da < 0
-    out[up] = (size - a0) / da[up]
-    out[down] = -a0 / da[down]
-    return out
+@njit(error_model="numpy")
+def _exit(a0: float, da: float, size: int) -> float:
+    """Ray parameter (cells) at which a ray from a0 leaves [0, size) on one axis."""
+    if da > 0:
+        return (size - a0) / da
+    if da < 0:
+        return -a0 / da
+    return np.inf
 
 
+@njit(error_model="numpy")
 def _first_hit(
     flat: NDArray[np.bool_],
     width: int,
     a0: float,
     b0: float,
-    da: NDArray[np.float64],
-    db: NDArray[np.float64],
-    k: NDArray[np.float32],
-    k_int: NDArray[np.int32],
-    limit: NDArray[np.float64],
-    *,
+    da: float,
+    db: float,
+    crossings: int,
+    limit: float,
     vertical: bool,
-) -> NDArray[np.float64]:
-    """Smallest ray parameter (cells) at which each ray enters an occupied cell across a line of axis a.
+) -> float:
+    """Smallest ray parameter (cells) at which the ray enters an occupied cell across a line of axis a.
 
     Lines of axis a are crossed evenly, every 1/|da| along the ray, the first at floor(a0) + 1 going up
     (floor(a0) going down); the cell entered there is the line's neighbour on axis a and floor(b0 + t db) on
     axis b. `vertical`: axis a is x (columns), else y (rows). inf where no occupied cell is entered in range.
-    Works in float32 and int32 so the (beams, crossings) arrays stay small (under malloc's mmap threshold,
-    which otherwise costs page faults on every scan); float32 keeps ranges well under a millimetre.
+    The walk stops at the first hit. Crossing parameters are float32 (ranges stay well under a millimetre).
     """
     base = math.floor(a0)
     up = da > 0
-    first_line = np.where(up, base + 1.0, float(base))
-    first_cell = np.where(up, base + 1, base - 1).astype(np.int32)
-    step = np.where(up, 1, -1).astype(np.int32)
-    # A ray parallel to these lines never crosses one: its t is inf or nan, and `valid` drops it.
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        t0 = ((first_line - a0) / da).astype(np.float32)
-        delta = np.abs(1.0 / da).astype(np.float32)
-        t = t0[:, None] + k[None, :] * delta[:, None]
-        valid = t < limit.astype(np.float32)[:, None]
-        cell_b = (np.float32(b0) + t * db.astype(np.float32)[:, None]).astype(np.int32)
-    cell_a = first_cell[:, None] + k_int[None, :] * step[:, None]
-    index = cell_b * np.int32(width) + cell_a if vertical else cell_a * np.int32(width) + cell_b
-    hit = flat.take(index, mode="clip")
-    hit &= valid
-    j = hit.argmax(axis=1)
-    rows = np.arange(len(j))
-    return np.where(hit[rows, j], t[rows, j].astype(np.float64), np.inf)
+    first_line = base + 1.0 if up else float(base)
+    first_cell = base + 1 if up else base - 1
+    step = 1 if up else -1
+    # A ray parallel to these lines never crosses one: its t is inf or nan, and fails `t < lim`.
+    t0 = np.float32((first_line - a0) / da)
+    delta = np.float32(abs(1.0 / da))
+    lim = np.float32(limit)
+    b0_32 = np.float32(b0)
+    db_32 = np.float32(db)
+    last = flat.shape[0] - 1
+    for k in range(crossings):
+        t = t0 + np.float32(k) * delta
+        if not t < lim:
+            break
+        cell_b = np.int32(b0_32 + t * db_32)
+        cell_a = first_cell + k * step
+        index = cell_b * width + cell_a if vertical else cell_a * width + cell_b
+        if flat[min(max(index, 0), last)]:
+            return np.float64(t)
+    return np.inf

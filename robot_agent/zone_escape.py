@@ -118,7 +118,7 @@ class ZoneEscape:
         source = bounds.grow(reach, frame)
         merged = costmap.merge(source, [layer_ for layer_ in costmap.layers if layer_ is not zones])
         zones.update_costs_without(merged, source, key)
-        without = inflate(merged, frame.resolution, costmap.inflation.params)[bounds.within(source)]
+        without = inflate(merged, frame.resolution, costmap.inflation.params, bounds.within(source))
         costs = costmap.master[bounds.rows, bounds.cols].copy()
         relax = (costs >= INSCRIBED_INFLATED_OBSTACLE) & (without < INSCRIBED_INFLATED_OBSTACLE)
         costs[relax] = np.maximum(without[relax], np.uint8(ESCAPE_COST))

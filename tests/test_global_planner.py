@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.ndimage import distance_transform_edt
 
 from robot_agent.global_planner import (
     PlannerParams,
@@ -58,6 +59,42 @@ def test_inflation_leaves_unknown_unknown_unless_inscribed() -> None:
     assert out[13, 0] == NO_INFORMATION
     assert 0 < out[4, 0] < INSCRIBED_INFLATED_OBSTACLE  # known free cell 0.3 m away gets inflated
     assert np.all(inflate(np.zeros((5, 5), dtype=np.uint8), RES, INFL) == 0)
+
+
+def reference_inflation(master: np.ndarray, params: InflationParams) -> np.ndarray:
+    """costmap_2d's rule the plain way: scipy's exact EDT, the formula per cell, unknown kept unless inscribed."""
+    lethal = master == LETHAL_OBSTACLE
+    if not lethal.any():
+        inflated = np.zeros(master.shape)
+    else:
+        d = np.asarray(distance_transform_edt(~lethal), dtype=np.float64) * RES
+        inflated = np.floor(252 * np.exp(-params.cost_scaling_factor * (d - params.inscribed_radius)))
+        inflated = inflated.clip(0, 252)
+        inflated[d <= params.inscribed_radius] = INSCRIBED_INFLATED_OBSTACLE
+        inflated[d > params.inflation_radius] = 0
+        inflated[lethal] = LETHAL_OBSTACLE
+    out = np.maximum(master, inflated)
+    unknown = master == NO_INFORMATION
+    out[unknown] = np.where(
+        inflated[unknown] >= INSCRIBED_INFLATED_OBSTACLE, inflated[unknown], NO_INFORMATION
+    )
+    return out.astype(np.uint8)
+
+
+def test_inflation_of_a_real_map_and_of_windows_equals_the_exact_distance_transform() -> None:
+    master = static_layer(load_site(SITES / "school").grid)
+    rng = np.random.default_rng(5)
+    master[rng.random(master.shape) < 0.002] = LETHAL_OBSTACLE  # scattered lidar marks
+    master[rng.random(master.shape) < 0.002] = 120  # zone costs between free and inscribed
+    params = InflationParams(inscribed_radius=0.105, inflation_radius=0.5, cost_scaling_factor=3.0)
+    expected = reference_inflation(master, params)
+    assert np.array_equal(inflate(master, RES, params), expected)
+    height, width = master.shape
+    for _ in range(50):
+        r0, r1 = sorted(rng.integers(0, height + 1, size=2).tolist())
+        c0, c1 = sorted(rng.integers(0, width + 1, size=2).tolist())
+        window = inflate(master, RES, params, (slice(r0, r1), slice(c0, c1)))
+        assert np.array_equal(window, expected[r0:r1, c0:c1]), "a window is cut from the whole map"
 
 
 def test_static_layer_of_a_real_map() -> None:

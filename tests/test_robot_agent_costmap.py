@@ -298,6 +298,29 @@ def test_a_scan_marks_an_obstacle_and_a_later_scan_through_it_clears_it(tiny: Si
     assert costmap.update_scan(scan_from(pose, {})) is None
 
 
+def test_a_beam_clears_up_to_a_cell_short_of_its_hit_and_leaves_marks_beyond_it(tiny: Site) -> None:
+    costmap = LayeredCostmap(tiny.grid, INFLATION)
+    layer = costmap.obstacles
+    assert layer is not None
+    frame = costmap.frame
+    row, first = frame.world_to_cell(2.0, 1.25)
+    _, last = frame.world_to_cell(4.0, 1.25)
+    layer.marked[row, first : last + 1] = True  # marks left along the beam by earlier scans
+    # Beam 0 from x 2.0 returns at 1.5 m (the others read nothing usable): points every half cell along it
+    # are cleared while short of 1.45 m.
+    assert layer.add_scan(scan_from((2.0, 1.25, 0.0), {0: 1.5} | {i: math.nan for i in range(1, 360)}))
+
+    def marked(x: float) -> bool:
+        r, c = frame.world_to_cell(x, 1.25)
+        return bool(layer.marked[r, c])
+
+    assert not any(marked(x) for x in np.arange(2.0, 3.425, 0.025)), "cleared along the beam"
+    assert marked(3.47), "the last cell before the hit is not cleared"
+    assert marked(3.5), "the hit is marked"
+    assert marked(3.6) and marked(4.0), "nothing beyond the hit is cleared"
+    assert not layer.marked[row + 1].any() and not layer.marked[row - 1].any()
+
+
 def test_clearing_never_erases_the_static_map_and_far_hits_are_not_marked(tiny: Site) -> None:
     costmap = LayeredCostmap(tiny.grid, INFLATION, obstacle_range_m=2.0)
     static = costmap.master.copy()

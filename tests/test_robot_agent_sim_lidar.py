@@ -166,3 +166,16 @@ def test_range_proportional_noise_grows_with_distance_like_the_lds01(school: Sim
     spread_far = float((scans[:, far] - exact[far]).std())
     assert spread_far > 1.8 * spread_near
     assert 0.01 < spread_far / float(exact[far].mean()) < 0.025
+
+
+def test_rays_that_leave_the_map_read_nothing_beyond_its_edge() -> None:
+    # A 2 x 2 m grid walled only along its west edge (column 0); the sensor stands 0.1 m from the east edge.
+    occupied = np.zeros((40, 40), dtype=bool)
+    occupied[:, 0] = True
+    frame = GridFrame(40, 40, CELL, 0.0, 0.0)
+    params = LidarParams()
+    scan = cast_scan(occupied, frame, (1.9, 1.0, 0.0), params, stamp=0.0)
+    angles = np.arange(params.beams) * params.angle_increment
+    east = np.cos(angles) > 0.5  # beams that leave through the east edge
+    assert np.all(scan.ranges[east] == np.inf), "nothing lies east of the map (no wrap into the next row)"
+    assert scan.ranges[180] == pytest.approx(1.9 - CELL, abs=1e-4), "the west wall, 1.85 m away"
