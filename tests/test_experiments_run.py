@@ -88,7 +88,7 @@ def test_a_run_on_its_own_mosquitto_gives_the_row_and_path_it_gives_on_amqtt() -
     _, on_amqtt = run_with_own_broker(site, spec, "amqtt")
     _, on_mosquitto = run_with_own_broker(site, spec, "mosquitto")
     deterministic = [c for c in COLUMNS if c not in NONDETERMINISTIC]
-    assert on_amqtt.row["success"] and int(on_amqtt.row["replans"]) >= 1
+    assert on_amqtt.row["success"] and on_amqtt.row["replans"] not in (0, None)
     assert [on_mosquitto.row[c] for c in deterministic] == [on_amqtt.row[c] for c in deterministic]
     assert np.array_equal(on_mosquitto.trajectory, on_amqtt.trajectory)
 
