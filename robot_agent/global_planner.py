@@ -114,11 +114,13 @@ def plan_path(
     goal: XY,
     params: PlannerParams | None = None,
     weights: NDArray[np.float32] | None = None,
+    coarse: NDArray[np.float32] | None = None,
 ) -> Plan:
     """Plan from `start` to `goal` (world metres) over `costs`; never raises for unreachable goals.
 
     `origin` is the world position of cell (0, 0)'s corner (x, y[, yaw]; yaw must be 0, as map_server's).
-    Pass `weights` (from weights_for) to reuse them across several plans on the same costmap.
+    Pass `weights` (from weights_for) to reuse them across several plans on the same costmap, and with them
+    `coarse` (their `coarse_weights`) when the grid is searched coarse to fine (`searched_coarse`).
     """
     p = params or PlannerParams()
     t0 = time.perf_counter()
@@ -138,10 +140,11 @@ def plan_path(
         w = _step_off_inscribed_start(costs, w, s, resolution, p)
         if w is None:
             return Plan(False, "start_blocked", plan_ms=_ms(t0))
+        coarse = None  # the weights changed around the start: their block grid is made anew
     if s == g:
         path = np.array([start, goal], dtype=np.float64)
         return Plan(True, "ok", path, np.array([s], dtype=np.intp), _length(path), _ms(t0))
-    raw = _search(w, s, g, p)
+    raw = _search(w, s, g, p, coarse)
     if raw is None or len(raw) == 0:
         return Plan(False, "no_path", plan_ms=_ms(t0))
     cells = np.asarray(raw, dtype=np.intp)
@@ -282,12 +285,54 @@ def _astar(
     return _PYASTAR.astar(flat, height, width, s[0] * width + s[1], g[0] * width + g[1], diagonal, 0)
 
 
+def searched_coarse(shape: tuple[int, int], p: PlannerParams) -> bool:
+    """Whether a grid of this shape is searched coarse to fine (PlannerParams.coarse_above_cells)."""
+    return bool(p.coarse_above_cells) and shape[0] * shape[1] > p.coarse_above_cells and p.coarse_factor > 1
+
+
+def coarse_weights(
+    w: NDArray[np.float32],
+    f: int,
+    out: NDArray[np.float32] | None = None,
+    changed: Bounds | None = None,
+) -> NDArray[np.float32]:
+    """The block grid the coarse search runs on: each f x f block's mean weight, dyadic (inf if any cell is;
+    blocks past the grid's edge are padded with impassable cells).
+
+    Given the grid `out` made earlier and the fine cells that `changed` since, only the blocks holding them
+    are computed again, in place: each block depends on its own cells alone, so the result is the same as
+    made anew, and a planner at 5 Hz does not average the whole map for every plan.
+    """
+    height, width = w.shape
+    hc, wc = -(-height // f), -(-width // f)
+    if out is None or changed is None:
+        out = np.empty((hc, wc), dtype=np.float32)
+        blocks = Bounds(0, 0, hc, wc)
+    else:
+        blocks = Bounds(changed.row0 // f, changed.col0 // f, -(-changed.row1 // f), -(-changed.col1 // f))
+    if blocks.empty:
+        return out
+    r0, c0, r1, c1 = blocks.row0 * f, blocks.col0 * f, blocks.row1 * f, blocks.col1 * f
+    if r1 <= height and c1 <= width:
+        cells = w[r0:r1, c0:c1]
+    else:
+        cells = np.full((r1 - r0, c1 - c0), np.inf, dtype=np.float32)
+        cells[: min(r1, height) - r0, : min(c1, width) - c0] = w[r0:r1, c0:c1]
+    out[blocks.rows, blocks.cols] = dyadic(_block_means(cells, f).astype(np.float64))
+    return out
+
+
 def _search(
-    w: NDArray[np.float32], s: tuple[int, int], g: tuple[int, int], p: PlannerParams
+    w: NDArray[np.float32],
+    s: tuple[int, int],
+    g: tuple[int, int],
+    p: PlannerParams,
+    coarse: NDArray[np.float32] | None = None,
 ) -> NDArray[np.int32] | None:
-    """A* over `w`, coarse to fine on big grids (PlannerParams.coarse_above_cells), recursively."""
-    if p.coarse_above_cells and w.size > p.coarse_above_cells and p.coarse_factor > 1:
-        band = _coarse_band(w, s, g, p)
+    """A* over `w`, coarse to fine on big grids (PlannerParams.coarse_above_cells), recursively; `coarse` is
+    `w`'s block grid when the caller keeps one."""
+    if searched_coarse(w.shape, p):
+        band = _coarse_band(w, coarse if coarse is not None else coarse_weights(w, p.coarse_factor), s, g, p)
         if band is not None:
             area, mask = band
             restricted = np.full(mask.shape, np.inf, dtype=np.float32)
@@ -305,23 +350,26 @@ def _search(
 
 
 def _coarse_band(
-    w: NDArray[np.float32], s: tuple[int, int], g: tuple[int, int], p: PlannerParams
+    w: NDArray[np.float32],
+    coarse: NDArray[np.float32],
+    s: tuple[int, int],
+    g: tuple[int, int],
+    p: PlannerParams,
 ) -> tuple[Bounds, NDArray[np.bool_]] | None:
-    """The cells within `coarse_margin` blocks of the route found on the block grid, as a mask over the
-    smallest window holding them; None if the block grid has no route."""
+    """The cells within `coarse_margin` blocks of the route found on the block grid `coarse`, as a mask over
+    the smallest window holding them; None if the block grid has no route."""
     f = p.coarse_factor
     height, width = w.shape
-    hc, wc = -(-height // f), -(-width // f)
-    if (hc * f, wc * f) == (height, width):
-        padded = w
-    else:
-        padded = np.full((hc * f, wc * f), np.inf, dtype=np.float32)
-        padded[:height, :width] = w
-    coarse = dyadic(_block_means(padded, f).astype(np.float64)).astype(np.float32)
+    hc, wc = coarse.shape
     sc, gc = (s[0] // f, s[1] // f), (g[0] // f, g[1] // f)
+    own = False
     for cell in (sc, gc):
         if not np.isfinite(coarse[cell]):
-            block = padded[cell[0] * f : (cell[0] + 1) * f, cell[1] * f : (cell[1] + 1) * f]
+            # The robot or goal in a block with an impassable cell: that block alone gets its passable mean
+            # (on a copy: the caller's grid stays the weights' own).
+            if not own:
+                coarse, own = coarse.copy(), True
+            block = w[cell[0] * f : (cell[0] + 1) * f, cell[1] * f : (cell[1] + 1) * f]
             coarse[cell] = np.float32(dyadic(np.array(block[np.isfinite(block)].mean())))
     route = _search(np.ascontiguousarray(coarse), sc, gc, p)
     if route is None or len(route) == 0:
