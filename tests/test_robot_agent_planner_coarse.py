@@ -139,3 +139,12 @@ def test_a_start_beside_a_wall_leaves_the_kept_block_grid_as_it_was() -> None:
     assert plan.reachable
     assert np.array_equal(kept, before, equal_nan=True)
     assert np.array_equal(plan.cells, plan_path(costs, 0.05, (0.0, 0.0), start, goal, COARSE).cells)
+
+
+def test_coarse_to_fine_reaches_the_last_partial_blocks_of_a_grid_not_a_multiple_of_the_block() -> None:
+    costs = corridor_grid(600)[:599, :597]  # the last row and column of blocks are partial
+    start, goal = (1.0, 1.0), (29.82, 29.93)  # the goal in the last, partial block of both axes
+    whole = plan_path(costs, 0.05, (0.0, 0.0), start, goal, WHOLE)
+    coarse = plan_path(costs, 0.05, (0.0, 0.0), start, goal, COARSE)
+    assert coarse.reachable and tuple(coarse.cells[-1]) == (598, 596)
+    assert coarse.length_m <= whole.length_m * 1.03
