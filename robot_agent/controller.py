@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robot_agent.backend import DriveLimits, Pose, Velocity
-from robot_agent.global_planner import densify
+from robot_agent.global_planner import densify, steps_to
 from robot_agent.inflation import FREE_SPACE, INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
 from robot_agent.zone_geometry import GridFrame
 
@@ -310,9 +310,7 @@ class PathFollower:
         if travel <= 0:
             return False
         n = max(1, math.ceil(travel / frame.resolution))
-        # np.linspace(0, horizon, n + 1)[1:] made the way it does (k * step, the end exact), without its cost.
-        t = np.arange(1, n + 1) * (np.float64(p.collision_horizon_s) / n)
-        t[-1] = p.collision_horizon_s
+        t = steps_to(p.collision_horizon_s, n)
         x, y, yaw = pose
         if abs(angular) < 1e-9:
             px = x + linear * t * math.cos(yaw)

@@ -213,14 +213,21 @@ def plan_exit(
     return cells[keep]
 
 
+def steps_to(stop: float, n: int) -> NDArray[np.float64]:
+    """`np.linspace(0, stop, n + 1)[1:]` bit for bit (k * (stop / n), the last exactly `stop`), at a fifth of
+    its cost: the controller samples with it 20 times a second."""
+    t = np.arange(1, n + 1) * (np.float64(stop) / n)
+    t[-1] = stop
+    return t
+
+
 def densify(path: NDArray[np.float64], step_m: float) -> NDArray[np.float64]:
     if len(path) < 2:
         return path.copy()
     out = [path[:1]]
     for a, b in itertools.pairwise(path):
         n = max(1, int(np.ceil(float(np.hypot(*(b - a))) / step_m)))
-        t = np.linspace(0.0, 1.0, n + 1)[1:, None]
-        out.append(a + (b - a) * t)
+        out.append(a + (b - a) * steps_to(1.0, n)[:, None])
     return np.vstack(out)
 
 
