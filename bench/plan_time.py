@@ -3,7 +3,7 @@
 Two routes per map on bench/synthetic_building.py's floor (corridors every 12.5 m, rooms with doors): `across`,
 corner to corner (the worst case for A* on a corridor grid: the straight-line heuristic is far below the real
 way round the blocks), and `along`, down one corridor. Reported: `plan_path` with the costmap's cached weights
-(what the agent does), the parts of a plan (building the weights from the costmap, compiled A* over the whole
+and block grid (what the agent does), the parts of a plan (building the weights from the costmap, compiled A* over the whole
 grid, path smoothing), and skimage's `MCP_Geometric` (Dijkstra over the whole map, then traceback). Writes its
 section of BENCHMARKS.md unless --no-write. Target: <= 100 ms at 2000 x 2000.
 """
@@ -48,8 +48,10 @@ def measure(cells: int, route: str, runs: int, dijkstra_runs: int) -> dict[str, 
     start = ((s[1] + 0.5) * res, (s[0] + 0.5) * res)
     goal = ((g[1] + 0.5) * res, (g[0] + 0.5) * res)
     params = PlannerParams()
-    weights = PlannerWeights(params).of(costmap)
-    plan = plan_path(costmap.master, res, grid.origin, start, goal, params, weights)
+    cache = PlannerWeights(params)
+    weights = cache.of(costmap)
+    coarse = cache.coarse
+    plan = plan_path(costmap.master, res, grid.origin, start, goal, params, weights, coarse)
     if not plan.reachable:
         raise SystemExit(f"bench: {route} on {cells} x {cells} unreachable ({plan.reason})")
     whole = plan_path(
@@ -59,7 +61,7 @@ def measure(cells: int, route: str, runs: int, dijkstra_runs: int) -> dict[str, 
         "length_m": plan.length_m,
         "whole_length_m": whole.length_m,
         "plan": median_ms(
-            lambda: plan_path(costmap.master, res, grid.origin, start, goal, params, weights), runs
+            lambda: plan_path(costmap.master, res, grid.origin, start, goal, params, weights, coarse), runs
         ),
         "plan_uncached": median_ms(
             lambda: plan_path(costmap.master, res, grid.origin, start, goal, params), runs
@@ -107,8 +109,9 @@ def main() -> None:
         f"```\n{COMMAND}\n```\n\n"
         "Plans on a synthetic building floor (bench/synthetic_building.py: 0.05 m cells, corridors every 12.5 m, "
         "rooms with doors, inflation radius 1 m): `across` corner to corner, `along` one corridor. Columns: "
-        "`plan_path` given the costmap's cached weights (`costmap_planner.PlannerWeights`, updated in changed "
-        "bounds only: what the agent does), the same building the weights itself, building the weights alone, "
+        "`plan_path` given the costmap's cached weights and their block grid (`costmap_planner.PlannerWeights`, "
+        "both updated in changed bounds only: what the agent does), the same building both itself, building the "
+        "weights alone, "
         "pyastar2d over the whole grid (no hierarchy), and skimage 0.26 `MCP_Geometric` (whole-map Dijkstra, "
         f"8-connected, then traceback). Median of {args.runs} runs ({args.dijkstra_runs} for Dijkstra), "
         f"{machine_note()}:\n\n"
@@ -119,7 +122,8 @@ def main() -> None:
         "is half the real way round the blocks of a corridor grid, so A* expands almost every free cell before "
         "it reaches the goal; weights and smoothing are a few ms. The planner therefore searches big grids "
         "(over 250k cells) coarse to fine: A* on 4 x 4 blocks (mean weight, impassable if any cell is; "
-        "recursively while the block grid is still big), then A* on the full grid restricted to a band two "
+        "recursively while the block grid is still big; the agent keeps the block grid up to date with the "
+        "weights rather than averaging the map for each plan), then A* on the full grid restricted to a band two "
         "blocks wide around that route (falling back to the whole grid when the band holds no path, e.g. a "
         "passage narrower than a block). Paths are as long as the whole-grid ones here (the benchmark prints "
         "both lengths). It also calls the compiled A* without pyastar2d's wrapper, which copied and scanned the "

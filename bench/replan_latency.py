@@ -6,7 +6,7 @@ The broker runs as its own process (`wsnav broker run`, full security model); th
 (`RobotAgent.run` with a WallClock, asleep on the bus, the simulated TurtleBot3 stepped in the same loop as
 `wsnav robot --sim` does) driving A -> B. Node n5 publishes z4 (on the robot's route) alternately `blocked`
 and `clear`, QoS 1, one change at a time; each is timed from just before `publish()` to the moment the
-agent's navigator had its new plan (both clocks are time.monotonic in this one process). Printed per planner
+agent's navigator had its new plan (all three read the agent's WallClock in this one process). Printed per planner
 grid: p50/p99/max of the whole, of its delivery part, and of the A* time. Writes its BENCHMARKS.md section.
 """
 
@@ -89,11 +89,11 @@ def measure(host: str, port: int, creds_dir: Path, downsample: int, changes: int
             plans = agent.navigator.plans
             state = "blocked" if i % 2 == 0 else "clear"
             payload = ZoneState(zone="z4", node="n5", state=state, seq=seq0 + i).to_payload()
-            t_pub = time.monotonic()
+            t_pub = clock.now()  # the clock the bus stamps arrivals and the agent its reactions with
             node.publish(topic, payload, qos=1, retain=True)
             deadline = t_pub + 5.0
             while len(agent.zone_reactions) == seen:
-                if time.monotonic() > deadline:
+                if clock.now() > deadline:
                     raise SystemExit(f"bench: change {i} ({state}) got no reaction within 5 s")
                 time.sleep(0.002)  # coarse: the agent stamps done_at itself; this only spares the GIL
             reaction = agent.zone_reactions[seen]
@@ -160,10 +160,10 @@ the way through it ~31 m). Measured {time.strftime("%Y-%m-%d")}, load {os.getloa
 Target p99 <= 15 ms: {"met" if pct(full.total_ms, 99) <= 15.0 else "NOT met"} with the `full` configuration,
 which plans on a grid {full.downsample} times coarser than the map, each coarse cell taking the highest cost of
 the cells it covers, so no path comes nearer a wall or a zone than at full resolution (on the sites in `sites/`
-the same points stay reachable and lengths stay within a few per cent). A* on the map's own 0.05 m grid takes
-~11 ms (the way through z4) to ~25 ms (the detour) on an idle machine: that is the second row, and why
-planning at full resolution, as the stock configuration does, would miss the target. On a loaded machine
-(other jobs on both cores) the tail doubles; rerun rather than trust these numbers.
+the same points stay reachable and lengths stay within a few per cent). The second row plans on the map's own
+0.05 m grid, as the stock configuration does: coarse to fine (A* on 4 x 4 blocks kept up to date with the
+costmap, then at full resolution in a band round that route; see bench.plan_time). On a loaded machine (other
+jobs on both cores) the tail grows, mostly in delivery; rerun rather than trust these numbers.
 """
     if not args.no_write:
         write_section(SECTION, text)

@@ -57,8 +57,9 @@ def path_ahead(path: NDArray[np.float64], x: float, y: float) -> list[tuple[floa
     if len(path) == 0:
         return None
     ahead = path[int(np.argmin(np.hypot(path[:, 0] - x, path[:, 1] - y))) :]
-    keep = np.unique(np.linspace(0, len(ahead) - 1, min(len(ahead), ROBOT_PATH_POINTS)).round().astype(int))
-    return [(round(float(px), 2), round(float(py), 2)) for px, py in ahead[keep]]
+    if len(ahead) > ROBOT_PATH_POINTS:  # (a plan's vertices are mostly fewer: then all of them, as they are)
+        ahead = ahead[np.unique(np.linspace(0, len(ahead) - 1, ROBOT_PATH_POINTS).round().astype(int))]
+    return [(round(px, 2), round(py, 2)) for px, py in ahead.tolist()]
 
 
 class SimWorldSink(Protocol):

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robot_agent.backend import DriveLimits, Pose, Velocity
-from robot_agent.global_planner import densify
+from robot_agent.global_planner import densify, steps_to
 from robot_agent.inflation import FREE_SPACE, INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
 from robot_agent.zone_geometry import GridFrame
 
@@ -206,19 +206,29 @@ class PathFollower:
         return min(max(abs(odom.linear) * p.lookahead_time, p.min_lookahead), p.max_lookahead)
 
     def _carrot(self, x: float, y: float, lookahead: float) -> NDArray[np.float64]:
-        """First path point at least `lookahead` from the robot (interpolated on the circle), else the goal."""
+        """First path point at least `lookahead` from the robot (interpolated on the circle), else the goal.
+
+        The path ahead is measured in growing stretches from the robot on, not whole: the carrot is a few
+        dozen points ahead of thousands."""
         ahead = self._path[self._progress :]
-        d = np.hypot(ahead[:, 0] - x, ahead[:, 1] - y)
-        beyond = np.flatnonzero(d >= lookahead)
-        if len(beyond) == 0:
-            return self._path[-1]
-        i = int(beyond[0])
-        if i == 0:
-            return ahead[0]
-        a, b = ahead[i - 1], ahead[i]
-        da, db = d[i - 1], d[i]
-        t = (lookahead - da) / (db - da) if db > da else 1.0
-        return a + (b - a) * t
+        start, size = 0, 64
+        before = np.float64(0.0)
+        while start < len(ahead):
+            part = ahead[start : start + size]
+            d = np.hypot(part[:, 0] - x, part[:, 1] - y)
+            beyond = np.flatnonzero(d >= lookahead)
+            if len(beyond) > 0:
+                k = int(beyond[0])
+                i = start + k
+                if i == 0:
+                    return ahead[0]
+                a, b = ahead[i - 1], ahead[i]
+                da, db = (d[k - 1] if k > 0 else before), d[k]
+                t = (lookahead - da) / (db - da) if db > da else 1.0
+                return a + (b - a) * t
+            before = d[-1]
+            start, size = start + size, 2 * size
+        return self._path[-1]
 
     def _approach(self, goal_dist: float) -> float:
         p = self.params
@@ -300,7 +310,7 @@ class PathFollower:
         if travel <= 0:
             return False
         n = max(1, math.ceil(travel / frame.resolution))
-        t = np.linspace(0.0, p.collision_horizon_s, n + 1)[1:]
+        t = steps_to(p.collision_horizon_s, n)
         x, y, yaw = pose
         if abs(angular) < 1e-9:
             px = x + linear * t * math.cos(yaw)

@@ -13,7 +13,15 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from robot_agent.global_planner import XY, Plan, PlannerParams, plan_path, weight_lut
+from robot_agent.global_planner import (
+    XY,
+    Plan,
+    PlannerParams,
+    coarse_weights,
+    plan_path,
+    searched_coarse,
+    weight_lut,
+)
 from robot_agent.inflation import NO_INFORMATION
 from robot_agent.zone_geometry import Bounds, GridFrame
 
@@ -52,15 +60,18 @@ class PlanningCostmap(Protocol):
 
 
 class PlannerWeights:
-    """A* weights of a costmap's master, kept up to date in the bounds that changed since the last plan.
+    """A* weights of a costmap's master, and their block grid on big maps, kept up to date in the bounds that
+    changed since the last plan.
 
-    A planner replanning at 5 Hz must not convert the whole map each time; the costmap tells which bounds
-    changed (`changes_since`), and only those are converted again.
+    A planner replanning at 5 Hz must not convert (nor average, for the coarse search) the whole map each
+    time; the costmap tells which bounds changed (`changes_since`), and only those are converted again.
     """
 
     def __init__(self, params: PlannerParams) -> None:
+        self._params = params
         self._lut = weight_lut(params)
         self._weights: NDArray[np.float32] | None = None
+        self._coarse: NDArray[np.float32] | None = None
         self._source: PlanningCostmap | None = None
         self._version = -1
 
@@ -68,13 +79,23 @@ class PlannerWeights:
         """The weights of `costmap`'s master now (the array is reused and updated in place)."""
         changes = costmap.changes_since(self._version) if costmap is self._source else None
         self._source = costmap
+        coarse = searched_coarse(costmap.master.shape, self._params)
+        f = self._params.coarse_factor
         if changes is None or self._weights is None:
             self._weights = self._lut[costmap.master]
+            self._coarse = coarse_weights(self._weights, f) if coarse else None
         else:
             for b in changes:
                 self._weights[b.rows, b.cols] = self._lut[costmap.master[b.rows, b.cols]]
+                if self._coarse is not None:
+                    coarse_weights(self._weights, f, self._coarse, b)
         self._version = costmap.version
         return self._weights
+
+    @property
+    def coarse(self) -> NDArray[np.float32] | None:
+        """The block grid (`coarse_weights`) of the weights `of` last returned; None on a grid searched whole."""
+        return self._coarse
 
 
 @dataclass
@@ -88,7 +109,8 @@ class GlobalPlanner:
     def plan(self, costmap: PlanningCostmap, start: XY, goal: XY) -> Plan:
         """A path from `start` to `goal` (world metres) over the costmap; never raises for unreachable goals.
 
-        At full resolution the A* weights are kept up to date in the bounds that changed (PlannerWeights).
+        At full resolution the A* weights (and their block grid) are kept up to date in the bounds that changed
+        (PlannerWeights).
         """
         frame = costmap.frame
         origin = (frame.origin_x, frame.origin_y)
@@ -96,7 +118,16 @@ class GlobalPlanner:
             if self._weights is None:
                 self._weights = PlannerWeights(self.params)
             weights = self._weights.of(costmap)
-            return plan_path(costmap.master, frame.resolution, origin, start, goal, self.params, weights)
+            return plan_path(
+                costmap.master,
+                frame.resolution,
+                origin,
+                start,
+                goal,
+                self.params,
+                weights,
+                self._weights.coarse,
+            )
         if self._pooled is None or self._pooled[0] != costmap.version:
             self._pooled = (costmap.version, pool_max(costmap.master, self.downsample))
         grid = self._pooled[1]

@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import importlib
 import itertools
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse import csr_matrix
@@ -114,11 +116,13 @@ def plan_path(
     goal: XY,
     params: PlannerParams | None = None,
     weights: NDArray[np.float32] | None = None,
+    coarse: NDArray[np.float32] | None = None,
 ) -> Plan:
     """Plan from `start` to `goal` (world metres) over `costs`; never raises for unreachable goals.
 
     `origin` is the world position of cell (0, 0)'s corner (x, y[, yaw]; yaw must be 0, as map_server's).
-    Pass `weights` (from weights_for) to reuse them across several plans on the same costmap.
+    Pass `weights` (from weights_for) to reuse them across several plans on the same costmap, and with them
+    `coarse` (their `coarse_weights`) when the grid is searched coarse to fine (`searched_coarse`).
     """
     p = params or PlannerParams()
     t0 = time.perf_counter()
@@ -138,10 +142,11 @@ def plan_path(
         w = _step_off_inscribed_start(costs, w, s, resolution, p)
         if w is None:
             return Plan(False, "start_blocked", plan_ms=_ms(t0))
+        coarse = None  # the weights changed around the start: their block grid is made anew
     if s == g:
         path = np.array([start, goal], dtype=np.float64)
         return Plan(True, "ok", path, np.array([s], dtype=np.intp), _length(path), _ms(t0))
-    raw = _search(w, s, g, p)
+    raw = _search(w, s, g, p, coarse)
     if raw is None or len(raw) == 0:
         return Plan(False, "no_path", plan_ms=_ms(t0))
     cells = np.asarray(raw, dtype=np.intp)
@@ -208,14 +213,21 @@ def plan_exit(
     return cells[keep]
 
 
+def steps_to(stop: float, n: int) -> NDArray[np.float64]:
+    """`np.linspace(0, stop, n + 1)[1:]` bit for bit (k * (stop / n), the last exactly `stop`), at a fifth of
+    its cost: the controller samples with it 20 times a second."""
+    t = np.arange(1, n + 1) * (np.float64(stop) / n)
+    t[-1] = stop
+    return t
+
+
 def densify(path: NDArray[np.float64], step_m: float) -> NDArray[np.float64]:
     if len(path) < 2:
         return path.copy()
     out = [path[:1]]
     for a, b in itertools.pairwise(path):
         n = max(1, int(np.ceil(float(np.hypot(*(b - a))) / step_m)))
-        t = np.linspace(0.0, 1.0, n + 1)[1:, None]
-        out.append(a + (b - a) * t)
+        out.append(a + (b - a) * steps_to(1.0, n)[:, None])
     return np.vstack(out)
 
 
@@ -282,16 +294,56 @@ def _astar(
     return _PYASTAR.astar(flat, height, width, s[0] * width + s[1], g[0] * width + g[1], diagonal, 0)
 
 
+def searched_coarse(shape: tuple[int, int], p: PlannerParams) -> bool:
+    """Whether a grid of this shape is searched coarse to fine (PlannerParams.coarse_above_cells)."""
+    return bool(p.coarse_above_cells) and shape[0] * shape[1] > p.coarse_above_cells and p.coarse_factor > 1
+
+
+def coarse_weights(
+    w: NDArray[np.float32],
+    f: int,
+    out: NDArray[np.float32] | None = None,
+    changed: Bounds | None = None,
+) -> NDArray[np.float32]:
+    """The block grid the coarse search runs on: each f x f block's mean weight, dyadic (inf if any cell is;
+    blocks past the grid's edge are padded with impassable cells).
+
+    Given the grid `out` made earlier and the fine cells that `changed` since, only the blocks holding them
+    are computed again, in place: each block depends on its own cells alone, so the result is the same as
+    made anew, and a planner at 5 Hz does not average the whole map for every plan.
+    """
+    height, width = w.shape
+    hc, wc = -(-height // f), -(-width // f)
+    if out is None or changed is None:
+        out = np.empty((hc, wc), dtype=np.float32)
+        blocks = Bounds(0, 0, hc, wc)
+    else:
+        blocks = Bounds(changed.row0 // f, changed.col0 // f, -(-changed.row1 // f), -(-changed.col1 // f))
+    if blocks.empty:
+        return out
+    r0, c0, r1, c1 = blocks.row0 * f, blocks.col0 * f, blocks.row1 * f, blocks.col1 * f
+    if r1 <= height and c1 <= width:
+        cells = w[r0:r1, c0:c1]
+    else:
+        cells = np.full((r1 - r0, c1 - c0), np.inf, dtype=np.float32)
+        cells[: min(r1, height) - r0, : min(c1, width) - c0] = w[r0:r1, c0:c1]
+    out[blocks.rows, blocks.cols] = dyadic(_block_means(cells, f).astype(np.float64))
+    return out
+
+
 def _search(
-    w: NDArray[np.float32], s: tuple[int, int], g: tuple[int, int], p: PlannerParams
+    w: NDArray[np.float32],
+    s: tuple[int, int],
+    g: tuple[int, int],
+    p: PlannerParams,
+    coarse: NDArray[np.float32] | None = None,
 ) -> NDArray[np.int32] | None:
-    """A* over `w`, coarse to fine on big grids (PlannerParams.coarse_above_cells), recursively."""
-    if p.coarse_above_cells and w.size > p.coarse_above_cells and p.coarse_factor > 1:
-        band = _coarse_band(w, s, g, p)
+    """A* over `w`, coarse to fine on big grids (PlannerParams.coarse_above_cells), recursively; `coarse` is
+    `w`'s block grid when the caller keeps one."""
+    if searched_coarse(w.shape, p):
+        band = _coarse_band(w, coarse if coarse is not None else coarse_weights(w, p.coarse_factor), s, g, p)
         if band is not None:
-            area, mask = band
-            restricted = np.full(mask.shape, np.inf, dtype=np.float32)
-            np.copyto(restricted, w[area.rows, area.cols], where=mask)
+            area, restricted = _band_weights(w, *band, p.coarse_factor)
             offset = np.array([area.row0, area.col0], dtype=np.int32)
             raw = _astar(
                 restricted,
@@ -305,23 +357,25 @@ def _search(
 
 
 def _coarse_band(
-    w: NDArray[np.float32], s: tuple[int, int], g: tuple[int, int], p: PlannerParams
+    w: NDArray[np.float32],
+    coarse: NDArray[np.float32],
+    s: tuple[int, int],
+    g: tuple[int, int],
+    p: PlannerParams,
 ) -> tuple[Bounds, NDArray[np.bool_]] | None:
-    """The cells within `coarse_margin` blocks of the route found on the block grid, as a mask over the
-    smallest window holding them; None if the block grid has no route."""
+    """The blocks within `coarse_margin` of the route found on the block grid `coarse`, as a mask over the
+    smallest window of blocks holding them; None if the block grid has no route."""
     f = p.coarse_factor
-    height, width = w.shape
-    hc, wc = -(-height // f), -(-width // f)
-    if (hc * f, wc * f) == (height, width):
-        padded = w
-    else:
-        padded = np.full((hc * f, wc * f), np.inf, dtype=np.float32)
-        padded[:height, :width] = w
-    coarse = dyadic(_block_means(padded, f).astype(np.float64)).astype(np.float32)
+    hc, wc = coarse.shape
     sc, gc = (s[0] // f, s[1] // f), (g[0] // f, g[1] // f)
+    own = False
     for cell in (sc, gc):
         if not np.isfinite(coarse[cell]):
-            block = padded[cell[0] * f : (cell[0] + 1) * f, cell[1] * f : (cell[1] + 1) * f]
+            # The robot or goal in a block with an impassable cell: that block alone gets its passable mean
+            # (on a copy: the caller's grid stays the weights' own).
+            if not own:
+                coarse, own = coarse.copy(), True
+            block = w[cell[0] * f : (cell[0] + 1) * f, cell[1] * f : (cell[1] + 1) * f]
             coarse[cell] = np.float32(dyadic(np.array(block[np.isfinite(block)].mean())))
     route = _search(np.ascontiguousarray(coarse), sc, gc, p)
     if route is None or len(route) == 0:
@@ -329,15 +383,42 @@ def _coarse_band(
     m = p.coarse_margin
     r0, c0 = max(int(route[:, 0].min()) - m, 0), max(int(route[:, 1].min()) - m, 0)
     r1, c1 = min(int(route[:, 0].max()) + m + 1, hc), min(int(route[:, 1].max()) + m + 1, wc)
-    mask = np.zeros((r1 - r0 + 2 * m, c1 - c0 + 2 * m), dtype=bool)
-    rows, cols = route[:, 0] - r0, route[:, 1] - c0
-    for dr in range(2 * m + 1):
-        for dc in range(2 * m + 1):
-            mask[rows + dr, cols + dc] = True
-    mask = mask[m : m + r1 - r0, m : m + c1 - c0]
-    area = Bounds(r0 * f, c0 * f, min(r1 * f, height), min(c1 * f, width))
-    fine = np.repeat(np.repeat(mask, f, axis=0), f, axis=1)[: area.row1 - area.row0, : area.col1 - area.col0]
-    return area, fine
+    # The route's blocks grown by m on every side (a square dilation, row-wise then column-wise), on a window
+    # with m spare blocks on each side, then cut to the blocks of the grid.
+    on = np.zeros((r1 - r0 + 2 * m, c1 - c0 + 2 * m), dtype=bool)
+    on[route[:, 0] - r0 + m, route[:, 1] - c0 + m] = True
+    tall = on.copy()
+    for d in range(1, m + 1):
+        tall[d:] |= on[:-d]
+        tall[:-d] |= on[d:]
+    mask = tall.copy()
+    for d in range(1, m + 1):
+        mask[:, d:] |= tall[:, :-d]
+        mask[:, :-d] |= tall[:, d:]
+    return Bounds(r0, c0, r1, c1), mask[m : m + r1 - r0, m : m + c1 - c0]
+
+
+def _band_weights(
+    w: NDArray[np.float32], blocks: Bounds, mask: NDArray[np.bool_], f: int
+) -> tuple[Bounds, NDArray[np.float32]]:
+    """The fine cells under `blocks` (block coordinates) and their weights where `mask` marks the block, inf
+    elsewhere: what the fine search runs on."""
+    height, width = w.shape
+    nr, nc = mask.shape
+    area = Bounds(blocks.row0 * f, blocks.col0 * f, min(blocks.row1 * f, height), min(blocks.col1 * f, width))
+    cells = w[area.rows, area.cols]
+    if cells.shape != (nr * f, nc * f):  # blocks past the grid's edge: padded as impassable
+        cells = np.full((nr * f, nc * f), np.inf, dtype=np.float32)
+        cells[: area.row1 - area.row0, : area.col1 - area.col0] = w[area.rows, area.cols]
+    restricted = np.full((nr * f, nc * f), np.inf, dtype=np.float32)
+    # Rows of blocks as (block row, row within it, column): the mask repeated along columns only, broadcast
+    # over the f rows of each block, copies about twice as fast as a mask repeated along both axes.
+    np.copyto(
+        restricted.reshape(nr, f, nc * f),
+        cells.reshape(nr, f, nc * f),
+        where=np.repeat(mask, f, axis=1)[:, None, :],
+    )
+    return area, restricted[: area.row1 - area.row0, : area.col1 - area.col0]
 
 
 def _block_means(w: NDArray[np.float32], f: int) -> NDArray[np.float32]:
@@ -353,37 +434,54 @@ def _block_means(w: NDArray[np.float32], f: int) -> NDArray[np.float32]:
     return out
 
 
-def _line_cells(a: NDArray[np.intp], b: NDArray[np.intp]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """Cells a straight line between two cell centres passes through, sampled at a quarter cell."""
-    n = 4 * max(abs(int(b[0] - a[0])), abs(int(b[1] - a[1]))) + 1
-    t = np.arange(n + 1, dtype=np.float64) / n
-    rows = np.floor(a[0] + 0.5 + (b[0] - a[0]) * t).astype(np.intp)
-    cols = np.floor(a[1] + 0.5 + (b[1] - a[1]) * t).astype(np.intp)
-    return rows, cols
-
-
 def _shortcut(
     cells: NDArray[np.intp], costs: NDArray[np.uint8], w: NDArray[np.float32], p: PlannerParams
 ) -> NDArray[np.intp]:
     """Indices of the raw path kept after greedy line-of-sight shortcutting (exponential then binary search)."""
-    path_cost = costs[cells[:, 0], cells[:, 1]]
-    n = len(cells)
+    return _shortcut_kernel(cells, costs, w, p.smooth_cost)
 
-    def visible(i: int, j: int) -> bool:
-        rows, cols = _line_cells(cells[i], cells[j])
-        if not bool(np.isfinite(w[rows, cols]).all()):
+
+@numba.njit("boolean(intp[:, :], uint8[:, :], float32[:, :], int64, intp, intp)", nogil=True)
+def _visible(
+    cells: NDArray[np.intp], costs: NDArray[np.uint8], w: NDArray[np.float32], limit: int, i: int, j: int
+) -> bool:
+    """Whether the straight line between the centres of path cells i and j, sampled at a quarter cell, crosses
+    only passable cells of cost <= `limit`."""
+    a0, a1 = cells[i, 0], cells[i, 1]
+    d0, d1 = cells[j, 0] - a0, cells[j, 1] - a1
+    n = 4 * max(abs(d0), abs(d1)) + 1
+    for k in range(n + 1):
+        t = k / n
+        row = math.floor(a0 + 0.5 + d0 * t)
+        col = math.floor(a1 + 0.5 + d1 * t)
+        if not math.isfinite(w[row, col]) or costs[row, col] > limit:
             return False
-        limit = max(p.smooth_cost, int(path_cost[i : j + 1].max()))
-        return int(costs[rows, cols].max()) <= limit
+    return True
 
-    keep = [0]
+
+@numba.njit("intp[:](intp[:, :], uint8[:, :], float32[:, :], int64)", nogil=True)
+def _shortcut_kernel(
+    cells: NDArray[np.intp], costs: NDArray[np.uint8], w: NDArray[np.float32], smooth_cost: int
+) -> NDArray[np.intp]:
+    """`_shortcut` compiled: its ~20 line-of-sight tests per plan cost 20 us each as numpy calls. A shortcut may
+    cross cells up to `smooth_cost` or up to the highest cost of the stretch it replaces.
+
+    Compiled when the module is imported (its signature given: ~0.9 s CPU once per process), so that no run's
+    measured agent CPU includes the compilation."""
+    n = len(cells)
+    path_cost = np.empty(n, dtype=np.int64)
+    for k in range(n):
+        path_cost[k] = costs[cells[k, 0], cells[k, 1]]
+    keep = np.empty(n, dtype=np.intp)
+    keep[0] = 0
+    kept = 1
     i = 0
     while i < n - 1:
         good, step = i + 1, 1
         bad = n
         while good < n - 1:
             j = min(i + 2 * step, n - 1)
-            if visible(i, j):
+            if _visible(cells, costs, w, max(smooth_cost, path_cost[i : j + 1].max()), i, j):
                 good, step = j, 2 * step
                 if j == n - 1:
                     break
@@ -392,10 +490,11 @@ def _shortcut(
                 break
         while bad - good > 1:
             mid = (good + bad) // 2
-            if visible(i, mid):
+            if _visible(cells, costs, w, max(smooth_cost, path_cost[i : mid + 1].max()), i, mid):
                 good = mid
             else:
                 bad = mid
-        keep.append(good)
+        keep[kept] = good
+        kept += 1
         i = good
-    return np.asarray(keep, dtype=np.intp)
+    return keep[:kept].copy()

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from robot_agent.backend import LaserScan, Velocity
-from robot_agent.controller import ControlResult, PathFollower
+from robot_agent.controller import ControllerParams, ControlResult, PathFollower
 from robot_agent.global_planner import plan_path
 from robot_agent.inflation import InflationParams
 from robot_agent.layered_costmap import LayeredCostmap
@@ -171,3 +171,19 @@ def test_without_a_path_it_is_idle_and_still() -> None:
     follower.clear()
     again = follower.compute((0.2, 0.2, 0.0), Velocity(0.0, 0.0), np.zeros((10, 10), np.uint8), frame)
     assert again.status == "idle"
+
+
+def test_the_carrot_is_where_the_path_leaves_the_lookahead_circle_after_winding_long_around_the_robot() -> (
+    None
+):
+    # 64 points (the first stretch the carrot search measures) on a 0.1 m circle around the robot, then out.
+    angles = np.linspace(0.0, 3.0 * math.pi, 64)
+    circle = np.column_stack([2.5 + 0.1 * np.cos(angles), 2.5 + 0.1 * np.sin(angles)])
+    out = np.array([[2.5, 3.0], [2.5, 3.3], [2.5, 3.6]])
+    follower = PathFollower(ControllerParams(path_step=1.0))  # keeps these points as they are
+    follower.set_path(np.vstack([circle, out]))
+    carrot = follower._carrot(2.5, 2.5, 0.3)
+    # between the circle's last point (0.1 m away) and (2.5, 3.0) (0.5 m away), where the distance is 0.3 m
+    assert carrot == pytest.approx(circle[-1] + (out[0] - circle[-1]) * 0.5)
+    further = follower._carrot(2.5, 2.5, 0.65)  # between (2.5, 3.0) and (2.5, 3.3)
+    assert further == pytest.approx([2.5, 3.15])
