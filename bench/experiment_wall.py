@@ -50,7 +50,7 @@ def main() -> None:
     sim_s = outcome.simulated_s
     lines = [
         f"school site, {len(specs)} runs ({args.runs} per route and configuration), {args.workers} workers, "
-        f"{os.cpu_count()} CPUs, a {args.run_broker} broker per run, load {load:.1f} at the start",
+        f"{os.cpu_count()} CPUs, one {args.run_broker} broker per run, load {load:.1f} at the start",
         f"wall {outcome.wall_s:.0f} s for {sim_s:.0f} s simulated: real-time factor {sim_s / outcome.wall_s:.0f}x; "
         f"{int(t['collisions'].to_numpy(dtype=np.int64).sum())} collisions, "
         f"{int(t['success'].to_numpy(dtype=bool).sum())}/{len(t)} arrived",
