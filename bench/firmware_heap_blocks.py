@@ -36,8 +36,8 @@ interned strings sit just under 300 dynamic qstrs, where MicroPython allocates i
 once): `diagnostics.py` kept loaded pushed it over, which was the MemoryError at setup the last session saw.
 The config parser's short messages (interned for good although the module is dropped) and diagnostics' reset
 names are now longer literals or one string. With that, the board keeps `diagnostics` loaded and sends its own
-`nodes/<node>/info` (one `%`-formatted str of ~150 B, written to the socket after header and topic without a
-packet copy). Block sizes: 32 B per GC block on this 64-bit port (16 B on the ESP8266).
+`nodes/<node>/info` (one `%`-formatted str of ~150 B, copied with header and topic into one 256 B buffer
+allocated at import and sent in one write). Block sizes: 32 B per GC block on this 64-bit port (16 B on the ESP8266).
 """
 PROBE = """
 import gc, sys, micropython
