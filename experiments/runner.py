@@ -193,7 +193,7 @@ def report_header(
             "- The obstacle is placed when the route starts and cleared when the robot stops.",
             "- Agent CPU: thread CPU time inside the agent's step, per simulated second of the run. "
             "Peak memory: the worker process's resident-set peak during the run (Linux VmHWM, reset as the run "
-            "starts; it includes the worker's embedded broker and zone simulator).",
+            "starts; it includes the worker's zone simulator, and the broker when it is the embedded amqtt).",
             f"- Wall time {o.wall_s:.0f} s on {workers} worker(s) ({os.cpu_count()} cores, "
             f"{platform.processor() or platform.machine()}, load {os.getloadavg()[0]:.1f} at the end) for "
             f"{o.simulated_s:.0f} s simulated: {o.simulated_s / max(o.wall_s, 1e-9):.0f}x real time.",
