@@ -14,7 +14,7 @@ from experiments.run_plan import plan_runs
 from experiments.runner import run_experiment, run_with_own_broker, write_outputs
 from experiments.single_run import COLUMNS, NONDETERMINISTIC, peak_rss_mb, reset_peak_rss
 from schemas.site import load_site
-from tests.conftest import SITES, require_tool
+from tests.conftest import REPO, SITES, require_tool
 from wsnav.cli import main
 
 SCHOOL = SITES / "school"
@@ -123,3 +123,22 @@ def test_each_step_of_the_ablation_changes_only_what_the_report_attributes_to_it
         "planner.downsample",
     }
     assert default["recovery.enabled"] and zones["recovery.enabled"] and full["recovery.enabled"]
+
+
+@pytest.mark.parametrize(("config", "route", "run"), [("default", "C->D", 1), ("full", "B->C", 3)])
+def test_a_row_of_the_published_experiment_comes_out_again_to_the_digit(
+    config: str, route: str, run: int
+) -> None:
+    """docs/experiment is what the code does: a change to what a run does must come with the experiment rerun
+    (a `default` run that move_base's rules abort after its recoveries, and a `full` run)."""
+    published = pd.read_csv(REPO / "docs" / "experiment" / "runs.csv", keep_default_na=False)
+    row = published[
+        (published["config"] == config) & (published["route"] == route) & (published["run"] == run)
+    ]
+    site = load_site(SCHOOL)
+    spec = next(s for s in plan_runs(site.spec, [config], run + 1, 1) if s.route == route and s.run == run)
+    _, result = run_with_own_broker(site, spec)
+    fresh = pd.DataFrame([result.row], columns=list(COLUMNS)).astype(published.dtypes.to_dict())
+    deterministic = [c for c in COLUMNS if c not in NONDETERMINISTIC]
+    assert len(row) == 1
+    assert {c: fresh.iloc[0][c] for c in deterministic} == {c: row.iloc[0][c] for c in deterministic}
