@@ -1,7 +1,7 @@
 """The watchdog budget: the board's main loop never goes more than 1.5 s between two watchdog feeds (half the
 ESP8266 SDK's ~3.2 s software watchdog), whatever the network and the sensor do.
 
-The firmware's own app/mqtt/sensors modules run on the MicroPython unix port in simulated time
+The firmware's own app/mqtt/ultrasonic modules run on the MicroPython unix port in simulated time
 (`host_stubs/budget.py`): only the radio and the pins are fakes (socket, select, DNS, Wi-Fi, time_pulse_us), and
 time passes only where the board blocks, so the bound is a property of the code, not of this machine's speed.
 The HC-SR04 hears no echo in every scenario (15 samples, its slowest read).

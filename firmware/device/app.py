@@ -19,7 +19,7 @@ for name in (
     "node_logic",
     "backoff",
     "mqtt",
-    "sensors",
+    "sensing",
     "wifi",
     "diagnostics",
 ):
@@ -249,17 +249,31 @@ class Node:
             clock.sleep_ms(_LOOP_MS)
 
 
+def sensor_from_config(cfg):
+    """The sensor described by a parsed config (nodeconfig.parse), with only that sensor's driver loaded."""
+    if cfg["sensor_type"] == "hcsr04":
+        from ultrasonic import Ultrasonic
+
+        return Ultrasonic(
+            cfg["trigger_pin"], cfg["echo_pin"], cfg["threshold_mm"], cfg["samples"], cfg["caution_mm"]
+        )
+    from digital_sensor import DigitalSensor
+
+    return DigitalSensor(cfg["pin"], cfg["invert"], cfg["sensor_type"] == "ir_beam")
+
+
 def main(cfg) -> None:
     """Board entry point (main.py loads the config first): start the watchdog and loop forever."""
     import machine
 
-    import sensors
     import wifi
 
     wdt = machine.WDT()
+    sensor = sensor_from_config(cfg)  # loads that sensor's driver only
+    gc.collect()
     node = Node(
         cfg,
-        sensors.from_config(cfg),
+        sensor,
         wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"]),
         wdt,
         None,

@@ -1,4 +1,4 @@
-"""Test driver: the watchdog budget. The board's main loop (app.Node, mqtt, sensors) in simulated time, with fakes
+"""Test driver: the watchdog budget. The board's main loop (app.Node, mqtt, ultrasonic) in simulated time, with fakes
 only where the board meets the radio and the pins (socket, select, DNS, Wi-Fi, time_pulse_us), and the longest
 gap between two watchdog feeds recorded.
 
@@ -26,7 +26,7 @@ import time
 import app
 import mqtt
 import network
-import sensors
+import ultrasonic
 import soft_timers
 import wifi
 
@@ -52,7 +52,7 @@ class Sim:
             self.t = min(end, self.t + 10)
             soft_timers._run_timers()
 
-    # what sensors.py and app.Clock use of `time`
+    # what ultrasonic.py and app.Clock use of `time`
     def now_ms(self) -> int:
         return self.t
 
@@ -249,8 +249,8 @@ mqtt.socket = FakeSocketModule()  # pyright: ignore[reportAttributeAccessIssue]
 mqtt.select = FakeSelect()  # pyright: ignore[reportAttributeAccessIssue]
 mqtt.ticks_ms = sim.ticks_ms  # pyright: ignore[reportAttributeAccessIssue]
 mqtt.lookup = fake_lookup
-sensors.time = sim  # pyright: ignore[reportAttributeAccessIssue]
-sensors.time_pulse_us = pulse_without_echo  # pyright: ignore[reportAttributeAccessIssue]
+ultrasonic.time = sim  # pyright: ignore[reportAttributeAccessIssue]
+ultrasonic.time_pulse_us = pulse_without_echo  # pyright: ignore[reportAttributeAccessIssue]
 random.seed(19)
 
 radio = wifi.Wifi("site", "secret")
@@ -271,7 +271,7 @@ cfg = {
     "keepalive_s": 30,
 }
 wdt = Watchdog()
-node = app.Node(cfg, sensors.Ultrasonic(12, 14, 1000, 15, 0), FakeWifi(), wdt, sim)
+node = app.Node(cfg, ultrasonic.Ultrasonic(12, 14, 1000, 15, 0), FakeWifi(), wdt, sim)
 
 
 def at(t_ms: int) -> None:

@@ -48,6 +48,7 @@ class PatternSensor:
 def main():
     """In a function: its locals are not interned names (the qstr pool, firmware/device/diagnostics.py)."""
     clock = FastClock()
+    app.sensor_from_config(CFG)  # its driver module stays loaded, as on the board; the run reads the pattern
     node = app.Node(
         CFG,
         PatternSensor(clock),

@@ -21,14 +21,13 @@ gc.collect()
 
 import app  # noqa: E402
 import machine  # noqa: E402
-import sensors  # noqa: E402
 import wifi  # noqa: E402
 from backoff import Backoff  # noqa: E402
 
 
 node = app.Node(
     CFG,
-    sensors.from_config(CFG),
+    app.sensor_from_config(CFG),
     wifi.Wifi(CFG["wifi_ssid"], CFG["wifi_password"]),
     machine.WDT(),
     None,

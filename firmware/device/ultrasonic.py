@@ -1,32 +1,18 @@
-"""Board I/O for the zone sensors: machine.Pin and machine.time_pulse_us. Decisions live in sensing.py.
+"""Board I/O for the HC-SR04 distance sensor: machine.Pin and machine.time_pulse_us. Decisions live in sensing.py.
 
-Each sensor object has one method, `reading()`, the raw (undebounced) level: a bool (occupied or not) for the
-digital sensors, debounce.CLEAR / BLOCKED / CAUTION for the HC-SR04.
+`reading()` gives the raw (undebounced) level: debounce.CLEAR, BLOCKED or CAUTION.
 """
 
 import time
 
 from machine import Pin, time_pulse_us
 
-from sensing import digital_occupied, ultrasonic_level
+from sensing import ultrasonic_level
 
 ECHO_TIMEOUT_US = 30000
 """~5 m round trip: beyond the HC-SR04's range, and short enough that N pings fit well inside the watchdog."""
 PING_GAP_MS = 25
 """Let the previous ping's echoes die out before the next one (cross-talk from the walls of a corridor)."""
-
-
-class DigitalSensor:
-    """PIR (high while motion) or IR break-beam receiver; `invert` for active-low modules. `pull` turns on the
-    pin's internal pull-up: an IR receiver's open-collector output needs one (GPIO16 has none: the config refuses
-    it for an IR beam)."""
-
-    def __init__(self, pin: int, invert: bool = False, pull: bool = False) -> None:
-        self._pin = Pin(pin, Pin.IN, Pin.PULL_UP) if pull else Pin(pin, Pin.IN)
-        self.invert = invert
-
-    def reading(self) -> bool:
-        return digital_occupied(self._pin.value(), self.invert)
 
 
 class Ultrasonic:
@@ -59,12 +45,3 @@ class Ultrasonic:
                 time.sleep_ms(PING_GAP_MS)
             pulses[i] = self.ping_us()
         return ultrasonic_level(pulses, self.threshold_mm, self.caution_mm)
-
-
-def from_config(cfg):
-    """The sensor described by a parsed config (nodeconfig.parse)."""
-    if cfg["sensor_type"] == "hcsr04":
-        return Ultrasonic(
-            cfg["trigger_pin"], cfg["echo_pin"], cfg["threshold_mm"], cfg["samples"], cfg["caution_mm"]
-        )
-    return DigitalSensor(cfg["pin"], cfg["invert"], cfg["sensor_type"] == "ir_beam")
