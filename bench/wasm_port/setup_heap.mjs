@@ -1,0 +1,100 @@
+// The zone node set up on a 32-bit MicroPython with a 38 KiB heap: MicroPython's WebAssembly port (same release
+// as the unix port the tests use), whose objects have the ESP8266's sizes (4-byte pointers, 16-byte GC blocks),
+// where the 64-bit unix port's are larger.
+//
+//     node setup_heap.mjs BUILD_DIR CONFIG_JSON
+//
+// machine, network, socket and select are JavaScript modules: like the board's, which are in ROM, they take
+// (almost) nothing from the heap; each object the firmware keeps from them (a Pin, a WLAN) is one small proxy
+// object, as on the board. Then main.py's sequence: parse the config, drop the parser, import app (which
+// imports the rest one module at a time), build the Node. Prints one line, "heap used U free F total T bare B"
+// (bytes, after gc.collect(); bare: used before anything is imported), or "error ..." when the node does not
+// set up. The port's heap would grow by itself past 38 KiB; a total other than the first one is reported as
+// an error, so a number is always what a 38 KiB heap holds.
+import { loadMicroPython } from "@micropython/micropython-webassembly-pyscript/micropython.mjs";
+import fs from "node:fs";
+
+const [buildDir, configPath] = process.argv.slice(2);
+let out = "";
+const mp = await loadMicroPython({
+  heapsize: 38 * 1024,
+  stdout: (text) => { out += text + "\n"; },
+  stderr: (text) => { out += text + "\n"; },
+});
+
+const pin = () => ({ value: (v) => (v === undefined ? 0 : undefined) });
+pin.IN = 0;
+pin.OUT = 1;
+pin.PULL_UP = 1;
+mp.registerJsModule("machine", {
+  Pin: pin,
+  time_pulse_us: () => -1,
+  reset_cause: () => 0,
+  WDT: () => ({ feed: () => undefined }),
+});
+const wlan = (id) => {
+  let active = id === 1; // the ESP8266 starts its access point, not its station
+  return {
+    PM_NONE: 0,
+    active: (on) => { if (on !== undefined) active = Boolean(on); return active; },
+    isconnected: () => false,
+    status: () => 31,
+    connect: () => undefined,
+    disconnect: () => undefined,
+    config: () => undefined,
+  };
+};
+mp.registerJsModule("network", { STA_IF: 0, AP_IF: 1, WLAN: wlan });
+mp.registerJsModule("socket", { getaddrinfo: () => [], socket: () => ({}) });
+mp.registerJsModule("select", { POLLIN: 1, POLLHUP: 16, POLLERR: 8, poll: () => ({}) });
+
+mp.FS.mkdirTree("/lib");
+for (const name of fs.readdirSync(buildDir)) {
+  if (name.endsWith(".mpy")) mp.FS.writeFile("/lib/" + name, fs.readFileSync(buildDir + "/" + name));
+}
+mp.FS.writeFile("/config.json", fs.readFileSync(configPath));
+
+mp.runPython(`
+import gc
+import micropython
+gc.collect()
+_bare = gc.mem_alloc()
+micropython.mem_info()
+`);
+const total = Number(/GC: total: (\d+)/.exec(out)[1]);
+out = "";
+try {
+  mp.runPython(`
+import sys
+import nodeconfig
+CFG = nodeconfig.load("/config.json")
+del nodeconfig
+del sys.modules["nodeconfig"]
+gc.collect()
+import app
+import machine
+import wifi
+node = app.Node(
+    CFG,
+    app.sensor_from_config(CFG),
+    wifi.Wifi(CFG["wifi_ssid"], CFG["wifi_password"]),
+    machine.WDT(),
+    None,
+    machine.reset_cause(),
+)
+gc.collect()
+_used = gc.mem_alloc()
+micropython.mem_info()
+print("heap used", _used, "bare", _bare)
+`);
+} catch (err) {
+  console.log("error " + String(err.message || err).trim().split("\n").pop());
+  process.exit(0);
+}
+const now = Number(/GC: total: (\d+)/.exec(out)[1]);
+const used = /heap used (\d+) bare (\d+)/.exec(out);
+if (now !== total) {
+  console.log(`error the heap grew past ${total} bytes (to ${now}): the node does not fit`);
+} else {
+  console.log(`heap used ${used[1]} free ${total - Number(used[1])} total ${total} bare ${used[2]}`);
+}
