@@ -40,7 +40,7 @@ def run_budget(build: tuple[Path, Path], scenario: str) -> dict[str, int]:
 
 
 @pytest.mark.parametrize(
-    "scenario", ["slow_broker", "silent_broker", "trickle_broker", "wifi_drop", "dns_slow"]
+    "scenario", ["slow_broker", "eagain_broker", "silent_broker", "trickle_broker", "wifi_drop", "dns_slow"]
 )
 def test_longest_gap_between_feeds_is_within_the_budget(host_build: tuple[Path, Path], scenario: str) -> None:
     stats = run_budget(host_build, scenario)
@@ -48,7 +48,7 @@ def test_longest_gap_between_feeds_is_within_the_budget(host_build: tuple[Path, 
     assert stats["since_last_feed_ms"] <= BUDGET_MS, stats
     assert stats["errors"] == 0, stats
     assert stats["pm"] == 0, stats  # Wi-Fi modem sleep off (network.WLAN.PM_NONE) once the radio starts
-    if scenario == "slow_broker":  # answers 1.4 s late: the node stays online and keeps publishing
+    if scenario in ("slow_broker", "eagain_broker"):  # answers 1.4 s late: the node stays online, publishing
         assert stats["connects"] == 1 and stats["publications"] >= SIM_S // 3, stats
     elif scenario in ("silent_broker", "trickle_broker"):
         # A CONNACK trickling in a byte every 600 ms takes 1.8 s: past the 1.5 s wait, checked within the packet.

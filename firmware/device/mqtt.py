@@ -33,6 +33,9 @@ _PINGRESP = const(0xD0)
 _STEP_MS = const(1000)
 """The longest any one socket operation blocks (connect, a send, a read): the watchdog is fed between them."""
 _ETIMEDOUT = const(110)
+_EAGAIN = const(11)
+"""What a read that found nothing says on a non-blocking socket (lwIP's answer; a soak run on the unix port saw it
+once too): silence, like a timeout, not a dead link; the wait's deadline still bounds it."""
 _MAX_UNSOLICITED = const(16)
 """Packets handled per `poll` call, so a flood of retained messages cannot starve the main loop."""
 _LOOKUP_FEED_MS = const(500)
@@ -139,7 +142,7 @@ class MQTTClient:
             try:
                 more = self._fed(left if left < _STEP_MS else _STEP_MS).recv(n - len(data))
             except OSError as exc:
-                if exc.errno == _ETIMEDOUT:
+                if exc.errno == _ETIMEDOUT or exc.errno == _EAGAIN:
                     continue  # one step's worth of silence: feed, then wait for what is left
                 raise
             if not more:

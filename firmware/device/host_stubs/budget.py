@@ -10,6 +10,8 @@ in every wait). Scenarios (the HC-SR04 hears no echo at all, 15 samples: its slo
 - `slow_broker`: the broker answers every packet 1.4 s late (within the 1.5 s wait, over one 1 s read); the
   node publishes every second;
 - `silent_broker`: TCP accepts, nothing ever comes back;
+- `eagain_broker`: as slow_broker, but a read that times out says EAGAIN (as a non-blocking lwIP socket does)
+  rather than ETIMEDOUT: silence all the same;
 - `trickle_broker`: every answer comes a byte every 600 ms: a CONNACK takes 1.8 s, past the 1.5 s wait (which
   must end at its deadline, not a packet later);
 - `wifi_drop`: online, then the access point goes for 20 s, then comes back;
@@ -33,6 +35,7 @@ import wifi
 SCENARIO = sys.argv[1]
 SIM_MS = int(sys.argv[2]) * 1000
 ETIMEDOUT = 110
+EAGAIN = 11
 FOREVER_MS = 600000
 """What a socket without a timeout waits for a peer that never answers: far past any watchdog."""
 
@@ -78,6 +81,7 @@ class Net:
         self.wifi_up = True
         self.lookup_ms = 0  # how long a DNS lookup takes; FOREVER_MS: never returns
         self.lookup_fails = False
+        self.timeout_errno = ETIMEDOUT  # what a read that times out raises
 
     def reachable(self) -> bool:
         return self.wifi_up and not self.silent
@@ -142,10 +146,10 @@ class FakeSocket:
     def recv(self, n: int) -> bytes:
         if not self.inbox or not net.reachable():
             self._block(sim.t + FOREVER_MS)
-            raise OSError(ETIMEDOUT)
+            raise OSError(net.timeout_errno)
         ready, data = self.inbox[0]
         if not self._block(ready):
-            raise OSError(ETIMEDOUT)
+            raise OSError(net.timeout_errno)
         if len(data) <= n:
             self.inbox.pop(0)
             return data
@@ -281,6 +285,10 @@ def at(t_ms: int) -> None:
 
 if SCENARIO == "slow_broker":
     net.delay_ms = 1400
+    at(SIM_MS)
+elif SCENARIO == "eagain_broker":
+    net.delay_ms = 1400
+    net.timeout_errno = EAGAIN
     at(SIM_MS)
 elif SCENARIO == "trickle_broker":
     net.trickle_ms = 600
