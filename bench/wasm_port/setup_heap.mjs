@@ -82,6 +82,7 @@ node = app.Node(
     None,
     machine.reset_cause(),
 )
+CFG.clear()  # as app.main does
 gc.collect()
 _used = gc.mem_alloc()
 micropython.mem_info()

@@ -279,6 +279,7 @@ def main(cfg) -> None:
         None,
         machine.reset_cause(),
     )
+    cfg.clear()  # the node keeps what it needs; the dict's table is heap the loop can use
     gc.collect()
     try:
         node.run()

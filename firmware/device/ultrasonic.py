@@ -6,12 +6,13 @@
 import time
 
 from machine import Pin, time_pulse_us
+from micropython import const
 
 from sensing import ultrasonic_level
 
-ECHO_TIMEOUT_US = 30000
+_ECHO_TIMEOUT_US = const(30000)
 """~5 m round trip: beyond the HC-SR04's range, and short enough that N pings fit well inside the watchdog."""
-PING_GAP_MS = 25
+_PING_GAP_MS = const(25)
 """Let the previous ping's echoes die out before the next one (cross-talk from the walls of a corridor)."""
 
 
@@ -29,19 +30,19 @@ class Ultrasonic:
         self.caution_mm = caution_mm
         self._pulses = [0] * samples
 
-    def ping_us(self) -> int:
-        """One measurement: echo pulse length in us, negative on timeout (no echo)."""
-        self._trig.value(0)
-        time.sleep_us(2)
-        self._trig.value(1)
-        time.sleep_us(10)
-        self._trig.value(0)
-        return time_pulse_us(self._echo, 1, ECHO_TIMEOUT_US)
-
     def reading(self) -> int:
+        """`samples` pings (10 us trigger pulse, then the echo's length in us, negative on timeout: no echo), one
+        function rather than a method per ping: each function is bytecode kept on the 38 KiB heap."""
+        trig = self._trig
+        echo = self._echo
         pulses = self._pulses
         for i in range(len(pulses)):
             if i:
-                time.sleep_ms(PING_GAP_MS)
-            pulses[i] = self.ping_us()
+                time.sleep_ms(_PING_GAP_MS)
+            trig.value(0)
+            time.sleep_us(2)
+            trig.value(1)
+            time.sleep_us(10)
+            trig.value(0)
+            pulses[i] = time_pulse_us(echo, 1, _ECHO_TIMEOUT_US)
         return ultrasonic_level(pulses, self.threshold_mm, self.caution_mm)

@@ -34,14 +34,13 @@ node = app.Node(
     machine.reset_cause(),
 )
 node.broker_backoff = Backoff(100, 1000, app._rand16)
+CFG.clear()  # as app.main does
 gc.collect()
 print("heap free", gc.mem_free())
 import fake_dns  # noqa: E402  after the heap is measured: the board has no such thing
 
 fake_dns.install()
-if not CFG["broker_host"][
-    -1:
-].isdigit():  # a name: the client feeds from a machine.Timer while it looks it up
+if not node.client.host[-1:].isdigit():  # a name: the client feeds from a machine.Timer while it looks it up
     import soft_timers  # after the heap is measured: the board has machine.Timer in ROM
 
     soft_timers.install()
