@@ -7,9 +7,9 @@
 // machine, network, socket and select are JavaScript modules: like the board's, which are in ROM, they take
 // (almost) nothing from the heap; each object the firmware keeps from them (a Pin, a WLAN) is one small proxy
 // object, as on the board. Then main.py's sequence: parse the config, drop the parser, import app (which
-// imports the rest one module at a time), build the Node. Prints one line, "heap used U free F total T bare B"
-// (bytes, after gc.collect(); bare: used before anything is imported), or "error ..." when the node does not
-// set up. The port's heap would grow by itself past 38 KiB; a total other than the first one is reported as
+// imports the rest one module at a time), and app.setup builds the node as app.main does. Prints one line,
+// "heap used U free F total T bare B" (bytes, after gc.collect(); bare: used before anything is imported), or
+// "error ..." when the node does not set up. The port's heap would grow by itself past 38 KiB; a total other than the first one is reported as
 // an error, so a number is always what a 38 KiB heap holds.
 import { loadMicroPython } from "@micropython/micropython-webassembly-pyscript/micropython.mjs";
 import fs from "node:fs";
@@ -72,17 +72,7 @@ del nodeconfig
 del sys.modules["nodeconfig"]
 gc.collect()
 import app
-import machine
-import wifi
-node = app.Node(
-    CFG,
-    app.sensor_from_config(CFG),
-    wifi.Wifi(CFG["wifi_ssid"], CFG["wifi_password"]),
-    machine.WDT(),
-    None,
-    machine.reset_cause(),
-)
-CFG.clear()  # as app.main does
+node = app.setup(CFG)
 gc.collect()
 _used = gc.mem_alloc()
 micropython.mem_info()

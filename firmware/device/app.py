@@ -262,8 +262,10 @@ def sensor_from_config(cfg):
     return DigitalSensor(cfg["pin"], cfg["invert"], cfg["sensor_type"] == "ir_beam")
 
 
-def main(cfg) -> None:
-    """Board entry point (main.py loads the config first): start the watchdog and loop forever."""
+def setup(cfg) -> Node:
+    """The board's node from its parsed config (main.py loads it first): the watchdog started, the sensor's
+    driver loaded, the config dict emptied (the node keeps what it needs; the dict's table is heap the loop can
+    use). The test drivers and the heap benchmark build the node with this too."""
     import machine
 
     import wifi
@@ -279,12 +281,20 @@ def main(cfg) -> None:
         None,
         machine.reset_cause(),
     )
-    cfg.clear()  # the node keeps what it needs; the dict's table is heap the loop can use
+    cfg.clear()
     gc.collect()
+    return node
+
+
+def main(cfg) -> None:
+    """Board entry point: set the node up and loop forever."""
+    node = setup(cfg)
     try:
         node.run()
     except KeyboardInterrupt:
         # Ctrl-C from mpremote: one last feed gives the host a whole watchdog period to start maintenance mode
         # (firmware/deploy.py); after that nothing feeds, and a node left at the REPL resets by itself.
-        wdt.feed()
+        wdt = node.wdt
+        if wdt is not None:
+            wdt.feed()
         raise

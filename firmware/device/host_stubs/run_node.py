@@ -20,21 +20,10 @@ del sys.modules["nodeconfig"]
 gc.collect()
 
 import app  # noqa: E402
-import machine  # noqa: E402
-import wifi  # noqa: E402
 from backoff import Backoff  # noqa: E402
 
-
-node = app.Node(
-    CFG,
-    app.sensor_from_config(CFG),
-    wifi.Wifi(CFG["wifi_ssid"], CFG["wifi_password"]),
-    machine.WDT(),
-    None,
-    machine.reset_cause(),
-)
+node = app.setup(CFG)  # as app.main does
 node.broker_backoff = Backoff(100, 1000, app._rand16)
-CFG.clear()  # as app.main does
 gc.collect()
 print("heap free", gc.mem_free())
 import fake_dns  # noqa: E402  after the heap is measured: the board has no such thing
