@@ -10,6 +10,7 @@ import pytest
 
 from broker.credentials import write_credentials
 from broker.embedded import BrokerThread
+from broker.server import BrokerStartError
 from runtime.bus import Message, Will
 from runtime.clock import Clock, SimClock
 from runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
@@ -59,6 +60,23 @@ def test_messages_are_queued_in_order_and_stamped_with_the_bus_clock(tmp_path: P
         robot.close()
 
 
+def restarted(site: Path, creds: Path, data: Path, port: int, timeout_s: float = 20.0) -> BrokerThread:
+    """The broker started again on `port`. The port came from the ephemeral range (port=0), so in the moment it
+    was free any outgoing connection on the machine may have been given it as its own: wait for it to be let go
+    (a CI run once lost this race), as a restarted service would be retried."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        broker = BrokerThread(site, creds, data_dir=data, port=port)
+        try:
+            broker.start()
+            return broker
+        except BrokerStartError as exc:
+            broker.stop()
+            if "address already in use" not in str(exc) or time.monotonic() > deadline:
+                raise
+            time.sleep(0.5)
+
+
 def test_abort_publishes_the_will_and_a_restarted_broker_gets_the_subscriptions_again(tmp_path: Path) -> None:
     site = tiny_site(tmp_path / "site")
     status = topics.node_status(SITE, "n1")
@@ -72,7 +90,7 @@ def test_abort_publishes_the_will_and_a_restarted_broker_gets_the_subscriptions_
         assert [m.payload for m in receive(robot, 1)] == [b"online"]
         node.abort()
         assert [m.payload for m in receive(robot, 1)] == [b"offline"]
-    with BrokerThread(site, creds, data_dir=tmp_path / "data", port=port) as broker:
+    with restarted(site, creds, tmp_path / "data", port):
         assert robot.wait_connected(30.0)
         got = receive(robot, 1)  # the retained `offline`, through the subscription renewed on reconnect
         assert [(m.payload, m.retain) for m in got] == [(b"offline", True)]
