@@ -260,31 +260,34 @@ class UnixBoard:
                 data = os.read(master, 4096)
             except OSError:
                 return
-            for b in data:
-                if b == 0x03:  # Ctrl-C: interrupt whatever runs
-                    code.clear()
-                    with contextlib.suppress(BoardError):
-                        self._session()
-                elif b == 0x01:  # Ctrl-A: raw REPL
-                    raw = True
-                    code.clear()
-                    os.write(master, b"raw REPL; CTRL-B to exit\r\n>")
-                elif b == 0x02:  # Ctrl-B: back to the friendly REPL
-                    raw = False
-                    os.write(master, b"\r\n>>> ")
-                elif raw and b == 0x04 and not code:  # Ctrl-D on an empty command: soft reset
-                    os.write(master, b"OK\r\nMPY: soft reboot\r\n")
-                    self._serve_command(SOFT_RESET)
-                    os.write(master, b"raw REPL; CTRL-B to exit\r\n>")
-                elif raw and b == 0x04:  # Ctrl-D: run the command
-                    os.write(master, b"OK")
-                    os.write(master, self._serve_command(bytes(code)))
-                    code.clear()
-                elif raw:
-                    code.append(b)
-                    if code.endswith(b"\x05A\x01"):  # raw-paste mode: understood, not supported
-                        del code[-3:]
-                        os.write(master, b"R\x00")
+            try:
+                for b in data:
+                    if b == 0x03:  # Ctrl-C: interrupt whatever runs
+                        code.clear()
+                        with contextlib.suppress(BoardError):
+                            self._session()
+                    elif b == 0x01:  # Ctrl-A: raw REPL
+                        raw = True
+                        code.clear()
+                        os.write(master, b"raw REPL; CTRL-B to exit\r\n>")
+                    elif b == 0x02:  # Ctrl-B: back to the friendly REPL
+                        raw = False
+                        os.write(master, b"\r\n>>> ")
+                    elif raw and b == 0x04 and not code:  # Ctrl-D on an empty command: soft reset
+                        os.write(master, b"OK\r\nMPY: soft reboot\r\n")
+                        self._serve_command(SOFT_RESET)
+                        os.write(master, b"raw REPL; CTRL-B to exit\r\n>")
+                    elif raw and b == 0x04:  # Ctrl-D: run the command
+                        os.write(master, b"OK")
+                        os.write(master, self._serve_command(bytes(code)))
+                        code.clear()
+                    elif raw:
+                        code.append(b)
+                        if code.endswith(b"\x05A\x01"):  # raw-paste mode: understood, not supported
+                            del code[-3:]
+                            os.write(master, b"R\x00")
+            except OSError:  # the pty was closed (the board shut down) while a command ran
+                return
 
     def _serve_command(self, code: bytes) -> bytes:
         boot = self._boot
