@@ -33,7 +33,7 @@ pytest: $(STAMP)
 test: lint typecheck pytest
 
 schemas: $(STAMP)
-	$(BIN)/python -m schemas.export
+	$(BIN)/python -m wsnav.schemas.export
 
 school: $(STAMP)
 	$(BIN)/python sites/school/generate.py

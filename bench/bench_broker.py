@@ -9,11 +9,11 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from broker.credentials import write_credentials
-from broker.embedded import BrokerProcess
-from broker.mosquitto_process import MosquittoError, mosquitto_process
-from schemas.site import load_site
-from schemas.site_file import SiteFile
+from wsnav.broker.credentials import write_credentials
+from wsnav.broker.embedded import BrokerProcess
+from wsnav.broker.mosquitto_process import MosquittoError, mosquitto_process
+from wsnav.schemas.site import load_site
+from wsnav.schemas.site_file import SiteFile
 
 BROKERS = ("amqtt", "mosquitto")
 

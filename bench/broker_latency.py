@@ -26,9 +26,9 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
 from bench.bench_broker import fresh_broker, mosquitto_broker
-from broker.credentials import load_credentials
-from schemas import topics
-from schemas.site import load_site
+from wsnav.broker.credentials import load_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.site import load_site
 
 SITE_YAML = """name: bench
 map: map.yaml

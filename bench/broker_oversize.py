@@ -21,9 +21,9 @@ from pathlib import Path
 import psutil
 
 from bench.bench_broker import fresh_broker
-from broker.credentials import load_credentials
-from schemas import topics
 from tests.site_fixtures import tiny_site
+from wsnav.broker.credentials import load_credentials
+from wsnav.schemas import topics
 
 
 def _field(data: bytes) -> bytes:

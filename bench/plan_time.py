@@ -20,10 +20,10 @@ from skimage.graph import MCP_Geometric
 
 from bench.benchmarks_md import bench_parser, machine_note, write_section
 from bench.synthetic_building import BLOCK, building_grid
-from robot_agent.costmap_planner import PlannerWeights
-from robot_agent.global_planner import PlannerParams, plan_path, weights_for
-from robot_agent.inflation import InflationParams
-from robot_agent.layered_costmap import LayeredCostmap
+from wsnav.navigation.costmap.inflation import InflationParams
+from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
+from wsnav.navigation.planning.costmap_planner import PlannerWeights
+from wsnav.navigation.planning.global_planner import PlannerParams, plan_path, weights_for
 
 SECTION = "## Global planner: plan time vs whole-map Dijkstra"
 COMMAND = "./.venv/bin/python -m bench.plan_time"

@@ -21,15 +21,15 @@ from pathlib import Path
 
 from bench.bench_broker import fresh_broker
 from bench.benchmarks_md import bench_parser, write_section
-from robot_agent.agent import RobotAgent
-from robot_agent.agent_config import load_agent_config
-from robot_agent.sim_turtlebot3 import SimTurtleBot3
-from robot_agent.sim_world_grid import SimWorldGrid
-from runtime.clock import WallClock
-from runtime.mqtt_bus import connect_with_credentials
-from schemas import topics
-from schemas.messages import ZoneState
-from schemas.site import load_site
+from wsnav.robot_agent.agent import RobotAgent
+from wsnav.robot_agent.agent_config import load_agent_config
+from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
+from wsnav.robot_agent.sim.world_grid import SimWorldGrid
+from wsnav.runtime.clock import WallClock
+from wsnav.runtime.mqtt_bus import connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.messages import ZoneState
+from wsnav.schemas.site import load_site
 
 REPO = Path(__file__).resolve().parent.parent
 SCHOOL = REPO / "sites" / "school"
@@ -54,7 +54,7 @@ def pct(values: list[float], q: float) -> float:
 
 def measure(host: str, port: int, creds_dir: Path, downsample: int, changes: int, seq0: int) -> Result:
     """One agent on a fresh connection; `seq0` lies above every seq the node published before."""
-    from broker.credentials import load_credentials
+    from wsnav.broker.credentials import load_credentials
 
     site = load_site(SCHOOL)
     clock = WallClock()

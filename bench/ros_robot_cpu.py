@@ -20,8 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.benchmarks_md import bench_parser, machine_note, write_section
-from broker.embedded import BrokerThread
-from ros_bridge.ros_env import LocalRosCore
+from wsnav.broker.embedded import BrokerThread
+from wsnav.ros_bridge.ros_env import LocalRosCore
 
 REPO = Path(__file__).resolve().parent.parent
 SCHOOL = REPO / "sites" / "school"

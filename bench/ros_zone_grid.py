@@ -27,13 +27,13 @@ from typing import Any
 import numpy as np
 
 from bench.benchmarks_md import bench_parser, machine_note, write_section
-from broker.embedded import BrokerThread
-from ros_bridge.ros_env import LocalRosCore, stop_process_group
-from runtime.clock import WallClock
-from runtime.mqtt_bus import connect_with_credentials
-from schemas import topics
-from schemas.messages import ZoneState
-from schemas.site import load_site
+from wsnav.broker.embedded import BrokerThread
+from wsnav.ros_bridge.ros_env import LocalRosCore, stop_process_group
+from wsnav.runtime.clock import WallClock
+from wsnav.runtime.mqtt_bus import connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.messages import ZoneState
+from wsnav.schemas.site import load_site
 
 REPO = Path(__file__).resolve().parent.parent
 SITES = {"school": REPO / "sites" / "school", "warehouse": REPO / "sites" / "warehouse"}

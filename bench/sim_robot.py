@@ -23,14 +23,14 @@ from pathlib import Path
 import numpy as np
 
 from bench.benchmarks_md import write_section
-from robot_agent.controller import PathFollower
-from robot_agent.global_planner import plan_path
-from robot_agent.inflation import InflationParams
-from robot_agent.layered_costmap import LayeredCostmap
-from robot_agent.lidar import LidarParams, cast_scan
-from robot_agent.sim_turtlebot3 import SimTurtleBot3
-from robot_agent.sim_world_grid import SimWorldGrid
-from schemas.site import load_site
+from wsnav.navigation.control.controller import PathFollower
+from wsnav.navigation.costmap.inflation import InflationParams
+from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
+from wsnav.navigation.planning.global_planner import plan_path
+from wsnav.robot_agent.sim.lidar import LidarParams, cast_scan
+from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
+from wsnav.robot_agent.sim.world_grid import SimWorldGrid
+from wsnav.schemas.site import load_site
 
 REPO = Path(__file__).resolve().parent.parent
 SECTION = "## Simulated robot: lidar, controller, real-time factor"

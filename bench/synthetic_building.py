@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas.ros_map import FREE, OCCUPIED, OccupancyGrid
-from schemas.site_file import SiteFile
+from wsnav.schemas.ros_map import FREE, OCCUPIED, OccupancyGrid
+from wsnav.schemas.site_file import SiteFile
 
 RESOLUTION = 0.05
 BLOCK = 250

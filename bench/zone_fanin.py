@@ -39,10 +39,10 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from bench.bench_broker import BROKERS, site_broker
 from bench.benchmarks_md import write_section
-from broker.credentials import load_credentials, write_credentials
-from schemas import topics
-from schemas.messages import ZoneState
-from schemas.site import load_site
+from wsnav.broker.credentials import load_credentials, write_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.messages import ZoneState
+from wsnav.schemas.site import load_site
 
 SITE = "fanin"
 PROBE = "probe"
@@ -89,9 +89,9 @@ def simulate(
     """The simulator process: connect every node, say so, run the window, then dump (node, seq, sent_at).
 
     With WSNAV_FANIN_PROFILE=FILE set, the window runs under cProfile and the stats go to FILE."""
-    from runtime.clock import WallClock
-    from zone_sim.emulated_node import Sent
-    from zone_sim.simulator import SimulatorError, ZoneSimulator
+    from wsnav.runtime.clock import WallClock
+    from wsnav.zone_sim.emulated_node import Sent
+    from wsnav.zone_sim.simulator import SimulatorError, ZoneSimulator
 
     site = load_site(site_dir)
     emulated = [n.id for n in site.spec.nodes if n.id != PROBE]

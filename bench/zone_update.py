@@ -15,11 +15,11 @@ import numpy as np
 
 from bench.benchmarks_md import bench_parser, machine_note, write_section
 from bench.synthetic_building import building_grid, corridor_zones
-from robot_agent.inflation import InflationParams
-from robot_agent.layered_costmap import LayeredCostmap
-from robot_agent.zone_geometry import GridFrame
-from robot_agent.zone_layer import ZoneLayer
-from schemas.messages import ZoneState
+from wsnav.navigation.costmap.inflation import InflationParams
+from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
+from wsnav.schemas.messages import ZoneState
+from wsnav.zones.geometry import GridFrame
+from wsnav.zones.zone_layer import ZoneLayer
 
 SECTION = "## Costmap: zone change, bounded vs whole map"
 COMMAND = "./.venv/bin/python -m bench.zone_update"
@@ -97,7 +97,7 @@ def main() -> None:
         "(bench/synthetic_building.py, 0.05 m cells, 20 zones, inflation radius 1 m): one sample is the zone layer "
         "taking the message plus `LayeredCostmap.update_zones` (repaint the zone's window, merge the layers "
         "there, re-inflate the window grown by the inflation radius from the lethal cells within reach of it, "
-        "robot_agent.inflation's numba distance transform). "
+        "wsnav.navigation.costmap.inflation's numba distance transform). "
         "The baseline is `rebuild()`, the whole map merged and inflated. Both give the same map, cell for cell "
         f"(the benchmark checks). {args.changes} changes, {args.rebuilds} rebuilds, {machine_note()}:\n\n"
         "| map | bounded p50 | bounded p99 | whole map p50 | whole map p99 | speed-up (p50) |\n"

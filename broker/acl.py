@@ -19,9 +19,9 @@ from amqtt.contexts import Action, BaseContext
 from amqtt.plugins.base import BaseTopicPlugin
 from amqtt.session import Session
 
-from broker.credentials import OPERATOR
-from schemas import topics
-from schemas.site_file import SiteFile
+from wsnav.broker.credentials import OPERATOR
+from wsnav.schemas import topics
+from wsnav.schemas.site_file import SiteFile
 
 HA_DISCOVERY = "homeassistant/#"
 """Home Assistant's default discovery prefix: the operator publishes the site's configs there."""

@@ -12,10 +12,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from broker.acl import site_rules
-from broker.credentials import PASSWORD_FILE, site_ids
-from broker.packet_gate import MAX_PACKET_BYTES
-from schemas.site_file import SiteFile
+from wsnav.broker.acl import site_rules
+from wsnav.broker.credentials import PASSWORD_FILE, site_ids
+from wsnav.broker.packet_gate import MAX_PACKET_BYTES
+from wsnav.schemas.site_file import SiteFile
 
 
 @dataclass(frozen=True)
@@ -75,15 +75,15 @@ def amqtt_config(spec: SiteFile, credentials_dir: Path, options: BrokerOptions) 
             tls["cafile"] = str(options.tls.cafile)
         listeners["tls"] = tls
     plugins: dict[str, Any] = {
-        "broker.auth.WsnavAuthPlugin": {
+        "wsnav.broker.auth.WsnavAuthPlugin": {
             "password_file": str(credentials_dir / PASSWORD_FILE),
             "publish": rules.publish,
             "reserved_client_ids": site_ids(spec),
         },
-        "broker.acl.WsnavAclPlugin": {"publish": rules.publish, "subscribe": rules.subscribe},
+        "wsnav.broker.acl.WsnavAclPlugin": {"publish": rules.publish, "subscribe": rules.subscribe},
     }
     if options.data_dir is not None:
-        plugins["broker.retained_store.RetainedStorePlugin"] = {
+        plugins["wsnav.broker.retained_store.RetainedStorePlugin"] = {
             "data_dir": str(options.data_dir),
             "flush_interval_s": options.flush_interval_s,
             "synchronous": options.synchronous,

@@ -26,8 +26,8 @@ from amqtt.contexts import BaseContext
 from amqtt.plugins.base import BaseAuthPlugin
 from amqtt.session import Session
 
-from broker.acl import AclRules
-from broker.credentials import read_password_file, verify_password
+from wsnav.broker.acl import AclRules
+from wsnav.broker.credentials import read_password_file, verify_password
 
 
 class WsnavAuthPlugin(BaseAuthPlugin):

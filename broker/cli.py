@@ -9,11 +9,11 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from runtime.cli_support import CliError, host_port
+from wsnav.runtime.cli_support import CliError, host_port
 
 if TYPE_CHECKING:
-    from runtime.cli_support import Parser
-    from schemas.site import Site
+    from wsnav.runtime.cli_support import Parser
+    from wsnav.schemas.site import Site
 
 # The broker modules (and amqtt) are imported inside the commands: every `wsnav` call builds this parser.
 
@@ -122,7 +122,7 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
 
 
 def _site(path: Path) -> Site:
-    from schemas.site import SiteError, load_site
+    from wsnav.schemas.site import SiteError, load_site
 
     try:
         return load_site(path)
@@ -131,8 +131,8 @@ def _site(path: Path) -> Site:
 
 
 def run_command(args: argparse.Namespace) -> int:
-    from broker.amqtt_config import BrokerOptions, TlsListener
-    from broker.server import BrokerStartError, RunningBroker, serve
+    from wsnav.broker.amqtt_config import BrokerOptions, TlsListener
+    from wsnav.broker.server import BrokerStartError, RunningBroker, serve
 
     site = _site(args.site)
     tls = None
@@ -190,7 +190,7 @@ def run_command(args: argparse.Namespace) -> int:
 
 
 def _ids_without_password(site: Site, credentials: Path) -> list[str]:
-    from broker.credentials import PASSWORD_FILE, CredentialsError, read_password_file, site_ids
+    from wsnav.broker.credentials import PASSWORD_FILE, CredentialsError, read_password_file, site_ids
 
     try:
         users = read_password_file(credentials / PASSWORD_FILE)
@@ -200,7 +200,7 @@ def _ids_without_password(site: Site, credentials: Path) -> list[str]:
 
 
 def credentials_command(args: argparse.Namespace) -> int:
-    from broker.credentials import CredentialsError, write_credentials
+    from wsnav.broker.credentials import CredentialsError, write_credentials
 
     site = _site(args.site)
     try:
@@ -220,8 +220,8 @@ def credentials_command(args: argparse.Namespace) -> int:
 
 
 def mosquitto_command(args: argparse.Namespace) -> int:
-    from broker.credentials import CredentialsError
-    from broker.mosquitto import MosquittoOptions, write_mosquitto_config
+    from wsnav.broker.credentials import CredentialsError
+    from wsnav.broker.mosquitto import MosquittoOptions, write_mosquitto_config
 
     site = _site(args.site)
     options = MosquittoOptions(
@@ -241,7 +241,7 @@ def mosquitto_command(args: argparse.Namespace) -> int:
 
 
 def ha_discovery_command(args: argparse.Namespace) -> int:
-    from broker.ha_discovery import discovery_messages
+    from wsnav.broker.ha_discovery import discovery_messages
 
     site = _site(args.site)
     if not args.prefix or any(c in args.prefix for c in "+#") or args.prefix.strip("/") != args.prefix:
@@ -253,8 +253,8 @@ def ha_discovery_command(args: argparse.Namespace) -> int:
         return 0
     import time
 
-    from broker.credentials import CredentialsError, load_credentials
-    from runtime.mqtt_bus import BusError, connect_with_credentials
+    from wsnav.broker.credentials import CredentialsError, load_credentials
+    from wsnav.runtime.mqtt_bus import BusError, connect_with_credentials
 
     host, port = args.broker
     try:

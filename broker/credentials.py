@@ -20,10 +20,10 @@ from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatchError
 from pydantic import ValidationError
 
-from schemas.credentials import BrokerAddress, Credentials, NodeConfig, WifiConfig
-from schemas.site_file import SiteFile
+from wsnav.schemas.credentials import BrokerAddress, Credentials, NodeConfig, WifiConfig
+from wsnav.schemas.site_file import SiteFile
 
-PASSWORD_FILE = "broker.passwd"
+PASSWORD_FILE = "wsnav.broker.passwd"
 """`username:<argon2 hash>` lines; the format amqtt's FileAuthPlugin also reads."""
 OPERATOR = "operator"
 

@@ -30,12 +30,12 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO
 
-from broker.amqtt_config import BrokerOptions
-from broker.credentials import load_credentials, write_credentials
-from broker.server import RunningBroker, serve, start_broker
-from schemas.credentials import Credentials
-from schemas.site import Site, load_site
-from schemas.site_file import SiteFile
+from wsnav.broker.amqtt_config import BrokerOptions
+from wsnav.broker.credentials import load_credentials, write_credentials
+from wsnav.broker.server import RunningBroker, serve, start_broker
+from wsnav.schemas.credentials import Credentials
+from wsnav.schemas.site import Site, load_site
+from wsnav.schemas.site_file import SiteFile
 
 SiteLike = Site | SiteFile | Path | str
 

@@ -16,8 +16,8 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from schemas import topics
-from schemas.site_file import SiteFile
+from wsnav.schemas import topics
+from wsnav.schemas.site_file import SiteFile
 
 DEFAULT_PREFIX = "homeassistant"
 ORIGIN = {"name": "wsnav"}

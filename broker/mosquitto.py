@@ -19,10 +19,10 @@ import secrets
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from broker.acl import AclRules, site_rules
-from broker.credentials import load_folder, secure_dir, write_private
-from broker.packet_gate import MAX_PACKET_BYTES
-from schemas.site_file import SiteFile
+from wsnav.broker.acl import AclRules, site_rules
+from wsnav.broker.credentials import load_folder, secure_dir, write_private
+from wsnav.broker.packet_gate import MAX_PACKET_BYTES
+from wsnav.schemas.site_file import SiteFile
 
 CONF = "mosquitto.conf"
 PASSWORDS = "mosquitto.passwd"

@@ -16,8 +16,8 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from broker.mosquitto import CONF, MosquittoOptions, write_mosquitto_config
-from schemas.site_file import SiteFile
+from wsnav.broker.mosquitto import CONF, MosquittoOptions, write_mosquitto_config
+from wsnav.schemas.site_file import SiteFile
 
 START_ATTEMPTS = 3
 """A free port found may be taken by someone else before Mosquitto binds it: try again on another."""

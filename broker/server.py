@@ -24,12 +24,12 @@ from pathlib import Path
 from amqtt.broker import Broker
 from amqtt.errors import AMQTTError, BrokerError, PluginError, PluginLoadError
 
-from broker.admission import Admission, connection_capacity, raise_descriptor_limit
-from broker.amqtt_config import BrokerOptions, amqtt_config, bind_text
-from broker.amqtt_patch import WsnavBroker, close_listeners
-from broker.credentials import PASSWORD_FILE, CredentialsError, read_password_file
-from broker.gc_pacing import pace_collections
-from schemas.site_file import SiteFile
+from wsnav.broker.admission import Admission, connection_capacity, raise_descriptor_limit
+from wsnav.broker.amqtt_config import BrokerOptions, amqtt_config, bind_text
+from wsnav.broker.amqtt_patch import WsnavBroker, close_listeners
+from wsnav.broker.credentials import PASSWORD_FILE, CredentialsError, read_password_file
+from wsnav.broker.gc_pacing import pace_collections
+from wsnav.schemas.site_file import SiteFile
 
 log = logging.getLogger("wsnav.broker")
 

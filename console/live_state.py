@@ -15,10 +15,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from console.site_view import Key, SiteView
-from runtime.bus import Bus
-from runtime.clock import Clock
-from schemas import topics
+from wsnav.console.site_view import Key, SiteView
+from wsnav.runtime.bus import Bus
+from wsnav.runtime.clock import Clock
+from wsnav.schemas import topics
 
 BATCH_S = 0.05
 TICK_S = 1.0

@@ -11,11 +11,11 @@ from dataclasses import dataclass
 
 from pydantic import ValidationError
 
-from schemas import topics
-from schemas.ids import ID_PATTERN
-from schemas.messages import OperatorBlock, RobotGoal
-from schemas.ros_map import FREE
-from schemas.site import Site
+from wsnav.schemas import topics
+from wsnav.schemas.ids import ID_PATTERN
+from wsnav.schemas.messages import OperatorBlock, RobotGoal
+from wsnav.schemas.ros_map import FREE
+from wsnav.schemas.site import Site
 
 MAX_BLOCK_S = 7 * 24 * 3600.0
 _ID = re.compile(ID_PATTERN)

@@ -8,12 +8,12 @@ import os
 import secrets
 from dataclasses import dataclass
 
-from broker.credentials import CredentialsError, load_credentials
-from runtime.cli_support import CliError
-from runtime.clock import WallClock
-from runtime.mqtt_bus import BusError, MqttBus
-from schemas.credentials import Credentials
-from schemas.site import Site, SiteError, load_site
+from wsnav.broker.credentials import CredentialsError, load_credentials
+from wsnav.runtime.cli_support import CliError
+from wsnav.runtime.clock import WallClock
+from wsnav.runtime.mqtt_bus import BusError, MqttBus
+from wsnav.schemas.credentials import Credentials
+from wsnav.schemas.site import Site, SiteError, load_site
 
 
 @dataclass

@@ -7,12 +7,12 @@ import sys
 
 import uvicorn
 
-from console.auth import Authenticator
-from console.live_state import LiveState
-from console.operator_link import connect
-from console.site_view import SiteView
-from console.web_app import ConsoleApp
-from runtime.cli_support import CliError
+from wsnav.console.auth import Authenticator
+from wsnav.console.live_state import LiveState
+from wsnav.console.operator_link import connect
+from wsnav.console.site_view import SiteView
+from wsnav.console.web_app import ConsoleApp
+from wsnav.runtime.cli_support import CliError
 
 
 def console_command(args: argparse.Namespace) -> int:

@@ -13,8 +13,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from schemas import topics
-from schemas.messages import (
+from wsnav.schemas import topics
+from wsnav.schemas.messages import (
     MAX_OPERATOR_PAYLOAD_BYTES,
     NodeInfo,
     NodeStatus,
@@ -24,7 +24,7 @@ from schemas.messages import (
     ZoneState,
     parse_payload,
 )
-from schemas.site import Site
+from wsnav.schemas.site import Site
 
 Kind = Literal["zone", "node", "robot", "block"]
 Key = tuple[Kind, str]

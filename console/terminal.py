@@ -10,12 +10,12 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from console import operator_commands as commands
-from console.live_state import subscriptions
-from console.operator_commands import CommandError, Publication
-from console.operator_link import OperatorLink, connect
-from console.site_view import SiteView
-from runtime.cli_support import CliError
+from wsnav.console import operator_commands as commands
+from wsnav.console.live_state import subscriptions
+from wsnav.console.operator_commands import CommandError, Publication
+from wsnav.console.operator_link import OperatorLink, connect
+from wsnav.console.site_view import SiteView
+from wsnav.runtime.cli_support import CliError
 
 SETTLE_QUIET_S = 0.5
 SETTLE_MAX_S = 5.0

@@ -34,13 +34,13 @@ from starlette.responses import FileResponse, JSONResponse, RedirectResponse, Re
 from starlette.routing import Route
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from console import operator_commands as commands
-from console.auth import COOKIE, Authenticator, Session
-from console.live_state import LiveState, resync_event
-from console.operator_commands import CommandError, Publication
-from runtime.bus import Bus
-from runtime.clock import Clock
-from schemas.site import Site
+from wsnav.console import operator_commands as commands
+from wsnav.console.auth import COOKIE, Authenticator, Session
+from wsnav.console.live_state import LiveState, resync_event
+from wsnav.console.operator_commands import CommandError, Publication
+from wsnav.runtime.bus import Bus
+from wsnav.runtime.clock import Clock
+from wsnav.schemas.site import Site
 
 STATIC = Path(__file__).parent / "static"
 MAX_BODY = 16_384
@@ -224,7 +224,7 @@ class ConsoleApp:
     async def static(self, request: Request) -> Response:
         name = request.path_params["name"]
         path = STATIC / name
-        if name not in {"console.js", "console.css", "login.js"} or not path.is_file():
+        if name not in {"wsnav.console.js", "wsnav.console.css", "login.js"} or not path.is_file():
             raise Refused(404, "no such file")
         return FileResponse(path)
 

@@ -14,10 +14,10 @@ import uuid
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from experiments.run_plan import RunSpec
-from experiments.runner import quiet_worker_logs, run_with_own_broker
-from experiments.single_run import RunResult
-from schemas.site import Site
+from wsnav.experiments.run_plan import RunSpec
+from wsnav.experiments.runner import quiet_worker_logs, run_with_own_broker
+from wsnav.experiments.single_run import RunResult
+from wsnav.schemas.site import Site
 
 if TYPE_CHECKING:
     from distributed import Client

@@ -9,9 +9,9 @@ from pathlib import Path
 import pandas as pd
 from matplotlib.figure import Figure
 
-from experiments.fleet_scenario import DEADLOCK_M, DEADLOCK_S, FleetResult
-from schemas.site import Site
-from schemas.site_render import draw_site
+from wsnav.experiments.fleet_scenario import DEADLOCK_M, DEADLOCK_S, FleetResult
+from wsnav.schemas.site import Site
+from wsnav.schemas.site_render import draw_site
 
 
 def summary_rows(results: Sequence[FleetResult]) -> list[dict[str, object]]:

@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from experiments.fleet_sim import SimFleet, start_poses
-from experiments.single_run import DRIVE, LIDAR, SENSORS, BrokerAt
-from robot_agent.agent_config import load_agent_config
-from schemas.site import Site
+from wsnav.experiments.fleet_sim import SimFleet, start_poses
+from wsnav.experiments.single_run import DRIVE, LIDAR, SENSORS, BrokerAt
+from wsnav.robot_agent.agent_config import load_agent_config
+from wsnav.schemas.site import Site
 
 DEADLOCK_S = 60.0
 DEADLOCK_M = 0.5

@@ -15,24 +15,24 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from broker.credentials import load_credentials
-from experiments.lockstep import Audience, Deliveries, ExpectingBus, FleetBus, settle
-from experiments.single_run import DT, TRAJECTORY_EVERY_S, BrokerAt
-from robot_agent.agent import RobotAgent
-from robot_agent.agent_config import AgentConfig
-from robot_agent.backend import Pose
-from robot_agent.lidar import LidarParams
-from robot_agent.navigator import GoalLabel
-from robot_agent.sim_turtlebot3 import SimTurtleBot3, TurtleBot3Params
-from robot_agent.sim_world_grid import SimWorldGrid
-from runtime.clock import SimClock
-from runtime.mqtt_bus import MqttBus, connect_with_credentials
-from schemas import topics
-from schemas.messages import SimWorld
-from schemas.site import Site
-from zone_sim.emulated_node import Sent
-from zone_sim.sensor_model import SensorSettings
-from zone_sim.simulator import ZoneSimulator
+from wsnav.broker.credentials import load_credentials
+from wsnav.experiments.lockstep import Audience, Deliveries, ExpectingBus, FleetBus, settle
+from wsnav.experiments.single_run import DT, TRAJECTORY_EVERY_S, BrokerAt
+from wsnav.navigation.backend import Pose
+from wsnav.navigation.navigator import GoalLabel
+from wsnav.robot_agent.agent import RobotAgent
+from wsnav.robot_agent.agent_config import AgentConfig
+from wsnav.robot_agent.sim.lidar import LidarParams
+from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3, TurtleBot3Params
+from wsnav.robot_agent.sim.world_grid import SimWorldGrid
+from wsnav.runtime.clock import SimClock
+from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.messages import SimWorld
+from wsnav.schemas.site import Site
+from wsnav.zone_sim.emulated_node import Sent
+from wsnav.zone_sim.sensor_model import SensorSettings
+from wsnav.zone_sim.simulator import ZoneSimulator
 
 
 class FleetError(ValueError):

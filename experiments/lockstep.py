@@ -9,8 +9,8 @@ import time
 from collections import Counter
 from collections.abc import Callable
 
-from runtime.bus import Bus, Message
-from schemas.topics import topic_matches
+from wsnav.runtime.bus import Bus, Message
+from wsnav.schemas.topics import topic_matches
 
 REAL_TIMEOUT_S = 30.0
 

@@ -22,8 +22,8 @@ from matplotlib.figure import Figure
 from numpy.typing import NDArray
 from scipy import stats
 
-from schemas.site import Site
-from schemas.site_render import draw_site, figure_for
+from wsnav.schemas.site import Site
+from wsnav.schemas.site_render import draw_site, figure_for
 
 CONFIG_COLOURS = {"default": "tab:gray", "zones": "tab:orange", "full": "tab:blue"}
 CONFIG_ORDER = ("default", "zones", "full")
@@ -34,7 +34,7 @@ STEPS = {
 }
 """What each paired comparison isolates (the configurations differ in exactly that)."""
 TIME_CAP_S = 600.0
-"""experiments.single_run.TIMEOUT_SIM_S: a failed run's time counts as this (censored)."""
+"""wsnav.experiments.single_run.TIMEOUT_SIM_S: a failed run's time counts as this (censored)."""
 
 STOCK_DIFFERENCES = (
     "global planner: A* (pyastar2d) over NavFn's cost model, at full resolution in `default` and `zones` "

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from schemas.site_file import SiteFile
-from zone_sim.raffle import draw, run_stream
+from wsnav.schemas.site_file import SiteFile
+from wsnav.zone_sim.raffle import draw, run_stream
 
 
 @dataclass(frozen=True)

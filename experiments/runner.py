@@ -21,14 +21,14 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from broker.credentials import write_credentials
-from broker.embedded import BrokerThread
-from broker.mosquitto_process import mosquitto_process
-from experiments.report import paths_figure, write_report
-from experiments.run_plan import RunSpec
-from experiments.single_run import COLUMNS, DT, BrokerAt, RunResult, run_once
-from schemas.site import Site, load_site
-from schemas.site_file import SiteFile
+from wsnav.broker.credentials import write_credentials
+from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.mosquitto_process import mosquitto_process
+from wsnav.experiments.report import paths_figure, write_report
+from wsnav.experiments.run_plan import RunSpec
+from wsnav.experiments.single_run import COLUMNS, DT, BrokerAt, RunResult, run_once
+from wsnav.schemas.site import Site, load_site
+from wsnav.schemas.site_file import SiteFile
 
 Progress = Callable[[int, int], None]
 RUN_BROKERS = ("amqtt", "mosquitto")
@@ -122,7 +122,7 @@ def run_experiment(
     start = time.monotonic()
     done: list[tuple[RunSpec, RunResult]] = []
     if scheduler is not None:
-        from experiments.cluster import run_on_cluster  # dask loads only when a cluster is used
+        from wsnav.experiments.cluster import run_on_cluster  # dask loads only when a cluster is used
 
         def arrived(n: int) -> None:
             if progress is not None:

@@ -16,21 +16,21 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from broker.credentials import load_credentials
-from experiments.lockstep import Deliveries, ExpectingBus, WatchedBus, settle
-from experiments.run_plan import RunSpec
-from robot_agent.agent import RobotAgent
-from robot_agent.agent_config import load_agent_config
-from robot_agent.lidar import LidarParams
-from robot_agent.navigator import NavEvent
-from robot_agent.sim_turtlebot3 import SimTurtleBot3, TurtleBot3Params
-from robot_agent.sim_world_grid import SimWorldGrid
-from runtime.clock import SimClock
-from runtime.mqtt_bus import MqttBus, connect_with_credentials
-from schemas.site import Site
-from zone_sim.emulated_node import Sent
-from zone_sim.sensor_model import SensorSettings
-from zone_sim.simulator import ZoneSimulator
+from wsnav.broker.credentials import load_credentials
+from wsnav.experiments.lockstep import Deliveries, ExpectingBus, WatchedBus, settle
+from wsnav.experiments.run_plan import RunSpec
+from wsnav.navigation.navigator import NavEvent
+from wsnav.robot_agent.agent import RobotAgent
+from wsnav.robot_agent.agent_config import load_agent_config
+from wsnav.robot_agent.sim.lidar import LidarParams
+from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3, TurtleBot3Params
+from wsnav.robot_agent.sim.world_grid import SimWorldGrid
+from wsnav.runtime.clock import SimClock
+from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
+from wsnav.schemas.site import Site
+from wsnav.zone_sim.emulated_node import Sent
+from wsnav.zone_sim.sensor_model import SensorSettings
+from wsnav.zone_sim.simulator import ZoneSimulator
 
 DT = 0.05
 """Physics and loop step (s, simulated): the agent and the nodes do whatever is due at each."""

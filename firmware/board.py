@@ -14,7 +14,7 @@ import subprocess
 from pathlib import Path
 from typing import Protocol
 
-from firmware.build import tool_path
+from wsnav.firmware.build import tool_path
 
 
 class BoardError(Exception):

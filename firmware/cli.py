@@ -9,9 +9,9 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from firmware.board import MpremoteBoard
-from firmware.build import SIZE_TARGET, BuildError, build, compile_commands
-from firmware.deploy import (
+from wsnav.firmware.board import MpremoteBoard
+from wsnav.firmware.build import SIZE_TARGET, BuildError, build, compile_commands
+from wsnav.firmware.deploy import (
     FLASH_BAUD,
     Deployer,
     DeployError,
@@ -22,10 +22,10 @@ from firmware.deploy import (
     flash_commands,
     format_plan,
 )
-from runtime.cli_support import CliError
+from wsnav.runtime.cli_support import CliError
 
 if TYPE_CHECKING:
-    from runtime.cli_support import Parser
+    from wsnav.runtime.cli_support import Parser
 
 DEFAULT_OUT = Path("build/firmware")
 

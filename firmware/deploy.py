@@ -23,9 +23,9 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from firmware.board import Board, BoardError, MpremoteBoard
-from firmware.build import DEVICE, REPL_ONLY, SOURCE_ONLY, tool_path
-from schemas.credentials import NodeConfig
+from wsnav.firmware.board import Board, BoardError, MpremoteBoard
+from wsnav.firmware.build import DEVICE, REPL_ONLY, SOURCE_ONLY, tool_path
+from wsnav.schemas.credentials import NodeConfig
 
 MAINTENANCE = DEVICE / "maintenance.py"
 HOLD_MS = 300_000

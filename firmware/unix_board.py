@@ -26,8 +26,8 @@ import time
 import tty
 from pathlib import Path
 
-from firmware.board import BoardError
-from firmware.testing import micropython_env, micropython_exe
+from wsnav.firmware.board import BoardError
+from wsnav.firmware.testing import micropython_env, micropython_exe
 
 WDT_TIMEOUT_S = 3.2
 """The ESP8266 SDK's software watchdog: a reset about 3.2 s after the last feed."""

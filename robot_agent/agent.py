@@ -24,23 +24,20 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from robot_agent.agent_config import AgentConfig
-from robot_agent.backend import Pose, RobotBackend
-from robot_agent.controller import ControllerParams, PathFollower
-from robot_agent.costmap_layers import OtherRobot, RobotsLayer
-from robot_agent.costmap_planner import GlobalPlanner
-from robot_agent.layered_costmap import LayeredCostmap
-from robot_agent.navigator import GoalLabel, Navigator, NavigatorParams
-from robot_agent.right_of_way import must_yield_to, yield_reason
-from robot_agent.zone_escape import ZoneEscape
-from robot_agent.zone_geometry import GridFrame
-from robot_agent.zone_intake import ZoneIntake
-from robot_agent.zone_layer import ZoneLayer
-from runtime.bus import Bus, Message
-from runtime.clock import Clock
-from runtime.timers import Every
-from schemas import topics
-from schemas.messages import (
+from wsnav.navigation.backend import Pose, RobotBackend
+from wsnav.navigation.behaviors.escape import ZoneEscape
+from wsnav.navigation.behaviors.right_of_way import must_yield_to, yield_reason
+from wsnav.navigation.control.controller import ControllerParams, PathFollower
+from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
+from wsnav.navigation.costmap.layers import OtherRobot, RobotsLayer
+from wsnav.navigation.navigator import GoalLabel, Navigator, NavigatorParams
+from wsnav.navigation.planning.costmap_planner import GlobalPlanner
+from wsnav.robot_agent.agent_config import AgentConfig
+from wsnav.runtime.bus import Bus, Message
+from wsnav.runtime.clock import Clock
+from wsnav.runtime.timers import Every
+from wsnav.schemas import topics
+from wsnav.schemas.messages import (
     MAX_OPERATOR_PAYLOAD_BYTES,
     ROBOT_PATH_POINTS,
     PayloadError,
@@ -49,7 +46,10 @@ from schemas.messages import (
     SimWorld,
     parse_payload,
 )
-from schemas.site import Site
+from wsnav.schemas.site import Site
+from wsnav.zones.geometry import GridFrame
+from wsnav.zones.intake import ZoneIntake
+from wsnav.zones.zone_layer import ZoneLayer
 
 
 def path_ahead(path: NDArray[np.float64], x: float, y: float) -> list[tuple[float, float]] | None:
@@ -63,7 +63,7 @@ def path_ahead(path: NDArray[np.float64], x: float, y: float) -> list[tuple[floa
 
 
 class SimWorldSink(Protocol):
-    """The simulated world the sim backend's lidar and bumper see (robot_agent.sim_world_grid.SimWorldGrid)."""
+    """The simulated world the sim backend's lidar and bumper see (wsnav.robot_agent.sim.world_grid.SimWorldGrid)."""
 
     def apply(self, world: SimWorld) -> None: ...
 
@@ -124,7 +124,7 @@ class RobotAgent:
         radius = max(robots[self.robot_id].footprint_radius, backend.radius)
         self.radius = radius
         self.priority = list(robots).index(self.robot_id)
-        """Place in the site's robot list: the order of right of way (robot_agent.right_of_way)."""
+        """Place in the site's robot list: the order of right of way (wsnav.navigation.behaviors.right_of_way)."""
         self.fleet: dict[str, tuple[int, float]] = {}
         """The other robots whose status this agent follows: id -> (priority, the site's footprint radius)."""
         if config.fleet_layer:

@@ -13,10 +13,10 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from robot_agent.global_planner import PlannerParams
-from robot_agent.inflation import InflationParams
-from robot_agent.move_base_recovery import RecoveryParams
-from schemas.yaml_file import read_yaml_mapping
+from wsnav.navigation.behaviors.recovery import RecoveryParams
+from wsnav.navigation.costmap.inflation import InflationParams
+from wsnav.navigation.planning.global_planner import PlannerParams
+from wsnav.schemas.yaml_file import read_yaml_mapping
 
 CONFIG_DIR = Path(__file__).parent / "configs"
 BUILTIN = ("default", "zones", "full")
@@ -46,7 +46,7 @@ class InflationSection(_Strict):
 
 
 class PlannerSection(_Strict):
-    """The global planner (NavFn's cost model, see robot_agent.global_planner)."""
+    """The global planner (NavFn's cost model, see wsnav.navigation.planning.global_planner)."""
 
     neutral_cost: Annotated[float, Field(gt=0)] = 50.0
     cost_factor: Annotated[float, Field(ge=0)] = 0.8
@@ -67,7 +67,7 @@ class PlannerSection(_Strict):
 
 
 class RecoverySection(_Strict):
-    """Stock move_base's oscillation detection, patience and recovery behaviours (robot_agent.move_base_recovery);
+    """Stock move_base's oscillation detection, patience and recovery behaviours (wsnav.navigation.behaviors.recovery);
     the defaults are ROBOTIS' turtlebot3_navigation move_base_params (noetic)."""
 
     enabled: bool = False
@@ -120,7 +120,7 @@ class AgentConfig(_Strict):
     """At most one replan per this interval when the controller reports the path blocked."""
     fleet_layer: bool = True
     """On a site with several robots: the others' published poses as a costmap layer, and the right-of-way rule
-    (robot_agent.right_of_way). A site with one robot has neither."""
+    (wsnav.navigation.behaviors.right_of_way). A site with one robot has neither."""
     robot_pose_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
     """Another robot's pose is forgotten this long after its status was made (statuses come at 2 Hz)."""
     yield_distance_m: Annotated[float, Field(ge=0, le=20)] = 1.5

@@ -3,7 +3,7 @@
 The work lives in robot_agent.robot_command, imported only when the command runs, so other commands start fast.
 Other robots are added to the command by the component that knows them (`robot_parser` below): ros_bridge adds
 `--ros`, so this component stays free of ROS.
-(`wsnav plan` is wsnav.plan_command: it draws a picture, which is the CLI's job, over robot_agent.offline_plan.)
+(`wsnav plan` is wsnav.plan_command: it draws a picture, which is the CLI's job, over wsnav.navigation.planning.offline_plan.)
 """
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from runtime.cli_support import host_port
+from wsnav.runtime.cli_support import host_port
 
 if TYPE_CHECKING:
-    from runtime.cli_support import Parser
+    from wsnav.runtime.cli_support import Parser
 
 
 def register(sub: argparse._SubParsersAction[Parser]) -> None:
@@ -59,6 +59,6 @@ def robot_parser(sub: argparse._SubParsersAction[Parser]) -> Parser:
 
 
 def robot_command(args: argparse.Namespace) -> int:
-    from robot_agent.robot_command import robot_command as run
+    from wsnav.robot_agent.robot_command import robot_command as run
 
     return run(args)

@@ -21,18 +21,18 @@ from types import FrameType
 
 from pydantic import ValidationError
 
-from robot_agent.agent import RobotAgent, SimWorldSink
-from robot_agent.agent_config import AgentConfig, AgentConfigError, load_agent_config
-from robot_agent.backend import Pose, RobotBackend
-from robot_agent.offline_plan import parse_point
-from robot_agent.sim_turtlebot3 import SimTurtleBot3
-from robot_agent.sim_world_grid import SimWorldGrid
-from runtime.cli_support import CliError
-from runtime.clock import WallClock
-from runtime.mqtt_bus import BusError, connect_with_credentials
-from schemas.credentials import Credentials
-from schemas.messages import RobotStatus
-from schemas.site import Site, SiteError, load_site
+from wsnav.navigation.backend import Pose, RobotBackend
+from wsnav.navigation.planning.offline_plan import parse_point
+from wsnav.robot_agent.agent import RobotAgent, SimWorldSink
+from wsnav.robot_agent.agent_config import AgentConfig, AgentConfigError, load_agent_config
+from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
+from wsnav.robot_agent.sim.world_grid import SimWorldGrid
+from wsnav.runtime.cli_support import CliError
+from wsnav.runtime.clock import WallClock
+from wsnav.runtime.mqtt_bus import BusError, connect_with_credentials
+from wsnav.schemas.credentials import Credentials
+from wsnav.schemas.messages import RobotStatus
+from wsnav.schemas.site import Site, SiteError, load_site
 
 SIM_DT_S = 0.02
 """The simulated robot is advanced at 50 Hz of real time."""

@@ -22,19 +22,19 @@ from typing import Any
 
 import numpy as np
 
-from robot_agent.zone_geometry import Bounds, GridFrame
-from ros_bridge.move_base_supervisor import Action, Cancel, Goal, MoveBaseSupervisor, Resend
-from ros_bridge.ros_env import master_alive, master_uri, require_rospy, wait_for_master
-from ros_bridge.zone_feed import ZoneFeed
-from ros_bridge.zone_grid import UnrepresentableCost, UpdateWindow, ZoneGridCodec
-from runtime.bus import Bus
-from runtime.cli_support import CliError
-from runtime.clock import WallClock
-from runtime.mqtt_bus import BusError, connect_with_credentials
-from schemas import topics
-from schemas.credentials import Credentials
-from schemas.messages import PayloadError, RobotGoal, parse_payload
-from schemas.site import Site, SiteError, load_site
+from wsnav.ros_bridge.move_base_supervisor import Action, Cancel, Goal, MoveBaseSupervisor, Resend
+from wsnav.ros_bridge.ros_env import master_alive, master_uri, require_rospy, wait_for_master
+from wsnav.ros_bridge.zone_feed import ZoneFeed
+from wsnav.ros_bridge.zone_grid import UnrepresentableCost, UpdateWindow, ZoneGridCodec
+from wsnav.runtime.bus import Bus
+from wsnav.runtime.cli_support import CliError
+from wsnav.runtime.clock import WallClock
+from wsnav.runtime.mqtt_bus import BusError, connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.credentials import Credentials
+from wsnav.schemas.messages import PayloadError, RobotGoal, parse_payload
+from wsnav.schemas.site import Site, SiteError, load_site
+from wsnav.zones.geometry import Bounds, GridFrame
 
 STATUS_PERIOD_S = 0.5
 MASTER_CHECK_PERIOD_S = 2.0
@@ -55,7 +55,7 @@ class BridgeOptions:
 
 def bridge_command(args: argparse.Namespace) -> int:
     require_rospy()
-    from robot_agent.robot_command import read_credentials
+    from wsnav.robot_agent.robot_command import read_credentials
 
     try:
         site = load_site(args.site)

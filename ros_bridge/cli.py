@@ -6,10 +6,10 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from runtime.cli_support import host_port
+from wsnav.runtime.cli_support import host_port
 
 if TYPE_CHECKING:
-    from runtime.cli_support import Parser
+    from wsnav.runtime.cli_support import Parser
 
 
 def register(sub: argparse._SubParsersAction[Parser]) -> None:
@@ -53,6 +53,6 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
 
 
 def bridge_command(args: argparse.Namespace) -> int:
-    from ros_bridge.bridge_node import bridge_command as run
+    from wsnav.ros_bridge.bridge_node import bridge_command as run
 
     return run(args)

@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from ros_bridge.zone_feed import ZoneChange, ZoneFeed
-from schemas.messages import RobotStateValue, RobotStatus
+from wsnav.ros_bridge.zone_feed import ZoneChange, ZoneFeed
+from wsnav.schemas.messages import RobotStateValue, RobotStatus
 
 Pose = tuple[float, float, float]
 

@@ -22,12 +22,12 @@ from typing import Any
 
 import numpy as np
 
-from robot_agent.backend import LaserScan, Pose, Velocity
-from robot_agent.robot_command import RobotSession
-from robot_agent.sim_turtlebot3 import TurtleBot3Params
-from ros_bridge.ros_env import master_uri, require_rospy, wait_for_master
-from runtime.cli_support import CliError
-from schemas.site import Site
+from wsnav.navigation.backend import LaserScan, Pose, Velocity
+from wsnav.robot_agent.robot_command import RobotSession
+from wsnav.robot_agent.sim.turtlebot3 import TurtleBot3Params
+from wsnav.ros_bridge.ros_env import master_uri, require_rospy, wait_for_master
+from wsnav.runtime.cli_support import CliError
+from wsnav.schemas.site import Site
 
 ODOM_SILENCE_S = 0.5
 """Odometry older than this stops the robot (the TurtleBot3's own cmd_vel watchdog is of this order)."""

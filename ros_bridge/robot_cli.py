@@ -7,14 +7,14 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from robot_agent.cli import robot_parser
-from runtime.cli_support import host_port
+from wsnav.robot_agent.cli import robot_parser
+from wsnav.runtime.cli_support import host_port
 
 if TYPE_CHECKING:
-    from robot_agent.backend import Pose
-    from robot_agent.robot_command import RobotSession
-    from runtime.cli_support import Parser
-    from schemas.site import Site
+    from wsnav.navigation.backend import Pose
+    from wsnav.robot_agent.robot_command import RobotSession
+    from wsnav.runtime.cli_support import Parser
+    from wsnav.schemas.site import Site
 
 MASTER = "ROS master from ROS_MASTER_URI (default http://localhost:11311). See docs/ros.md."
 
@@ -70,12 +70,12 @@ def _add_ros_backend(robot: Parser) -> None:
 
 
 def ros_session(args: argparse.Namespace, site: Site, robot_id: str, start: Pose | None) -> RobotSession:
-    from ros_bridge.robot_backend import ros_session as start_session
+    from wsnav.ros_bridge.robot_backend import ros_session as start_session
 
     return start_session(args, site, robot_id, start)
 
 
 def sim_command(args: argparse.Namespace) -> int:
-    from ros_bridge.sim_node import sim_command as run
+    from wsnav.ros_bridge.sim_node import sim_command as run
 
     return run(args)

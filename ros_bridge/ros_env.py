@@ -18,7 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 
-from runtime.cli_support import CliError
+from wsnav.runtime.cli_support import CliError
 
 DEBIAN_PACKAGES = (
     "ros-core python3-rospy python3-rostopic python3-nav-msgs python3-map-msgs python3-sensor-msgs "

@@ -21,19 +21,19 @@ import time
 from types import FrameType
 from typing import Any
 
-from robot_agent.backend import LaserScan, Velocity
-from robot_agent.offline_plan import parse_point
-from robot_agent.robot_command import read_credentials
-from robot_agent.sim_turtlebot3 import SimTurtleBot3
-from robot_agent.sim_world_grid import SimWorldGrid
-from ros_bridge.ros_env import master_uri, require_rospy, wait_for_master
-from runtime.bus import Bus
-from runtime.cli_support import CliError
-from runtime.clock import WallClock
-from runtime.mqtt_bus import BusError, connect_with_credentials
-from schemas import topics
-from schemas.messages import MAX_OPERATOR_PAYLOAD_BYTES, PayloadError, SimWorld, parse_payload
-from schemas.site import SiteError, load_site
+from wsnav.navigation.backend import LaserScan, Velocity
+from wsnav.navigation.planning.offline_plan import parse_point
+from wsnav.robot_agent.robot_command import read_credentials
+from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
+from wsnav.robot_agent.sim.world_grid import SimWorldGrid
+from wsnav.ros_bridge.ros_env import master_uri, require_rospy, wait_for_master
+from wsnav.runtime.bus import Bus
+from wsnav.runtime.cli_support import CliError
+from wsnav.runtime.clock import WallClock
+from wsnav.runtime.mqtt_bus import BusError, connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.messages import MAX_OPERATOR_PAYLOAD_BYTES, PayloadError, SimWorld, parse_payload
+from wsnav.schemas.site import SiteError, load_site
 
 ODOM_FRAME = "odom"
 MAP_FRAME = "map"

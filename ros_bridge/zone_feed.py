@@ -11,12 +11,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from robot_agent.inflation import FREE_SPACE, NO_INFORMATION
-from robot_agent.zone_geometry import Bounds, CellWindow, GridFrame
-from robot_agent.zone_intake import ZoneIntake
-from robot_agent.zone_layer import ZoneLayer
-from runtime.bus import Message
-from schemas.site_file import SiteFile
+from wsnav.runtime.bus import Message
+from wsnav.schemas.site_file import SiteFile
+from wsnav.zones.cost_values import FREE_SPACE, NO_INFORMATION
+from wsnav.zones.geometry import Bounds, CellWindow, GridFrame
+from wsnav.zones.intake import ZoneIntake
+from wsnav.zones.zone_layer import ZoneLayer
 
 
 @dataclass(frozen=True)

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from robot_agent.inflation import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION
-from robot_agent.zone_geometry import Bounds
+from wsnav.zones.cost_values import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION
+from wsnav.zones.geometry import Bounds
 
 UNREPRESENTABLE = -128
 """Marks a cost in the encoding table that no OccupancyGrid value turns into."""

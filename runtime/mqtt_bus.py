@@ -16,9 +16,9 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.reasoncodes import ReasonCode
 
-from runtime.bus import Message, Will
-from runtime.clock import Clock, WallClock
-from schemas.credentials import Credentials
+from wsnav.runtime.bus import Message, Will
+from wsnav.runtime.clock import Clock, WallClock
+from wsnav.schemas.credentials import Credentials
 
 log = logging.getLogger(__name__)
 

@@ -10,8 +10,8 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from schemas.ids import Id
-from schemas.site_file import Sensor
+from wsnav.schemas.ids import Id
+from wsnav.schemas.site_file import Sensor
 
 Role = Literal["node", "robot", "operator"]
 

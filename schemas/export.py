@@ -1,5 +1,5 @@
 """Export the JSON Schema of every message and of the site file to schemas/json/ (firmware and other
-languages follow these files). Run: python -m schemas.export [--check]."""
+languages follow these files). Run: python -m wsnav.schemas.export [--check]."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import json
 import sys
 from pathlib import Path
 
-from schemas.credentials import Credentials, NodeConfig
-from schemas.messages import MESSAGE_MODELS
-from schemas.site_file import SiteFile
+from wsnav.schemas.credentials import Credentials, NodeConfig
+from wsnav.schemas.messages import MESSAGE_MODELS
+from wsnav.schemas.site_file import SiteFile
 
 JSON_DIR = Path(__file__).parent / "json"
 

@@ -12,7 +12,7 @@ from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from schemas.ids import Id
+from wsnav.schemas.ids import Id
 
 CONTRACT_VERSION = 1
 MAX_PAYLOAD_BYTES = 1024

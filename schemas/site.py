@@ -10,9 +10,9 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from schemas.ros_map import FREE, MapError, OccupancyGrid, load_map
-from schemas.site_file import SiteFile
-from schemas.yaml_file import read_yaml_mapping
+from wsnav.schemas.ros_map import FREE, MapError, OccupancyGrid, load_map
+from wsnav.schemas.site_file import SiteFile
+from wsnav.schemas.yaml_file import read_yaml_mapping
 
 SITE_FILE_NAME = "site.yaml"
 

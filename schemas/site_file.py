@@ -10,7 +10,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
-from schemas.ids import Id
+from wsnav.schemas.ids import Id
 
 Point2 = tuple[float, float]
 

@@ -15,7 +15,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.patches import FancyArrowPatch, Polygon
 
-from schemas.site import Site
+from wsnav.schemas.site import Site
 
 ZONE_COLOURS = (
     "tab:blue",

@@ -9,7 +9,7 @@ import re
 from dataclasses import dataclass
 from typing import Literal
 
-from schemas.ids import ID_PATTERN
+from wsnav.schemas.ids import ID_PATTERN
 
 ROOT = "wsn"
 _ID = re.compile(ID_PATTERN)

@@ -15,15 +15,15 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
-from broker.credentials import load_credentials
-from runtime.bus import Will
-from runtime.mqtt_bus import MqttBus, connect_with_credentials
-from schemas import topics
-from schemas.messages import NodeStatus, ZoneState
 from tests.conftest import require_tool
 from tests.test_broker_helpers import free_port, wait_listening
 from tests.test_compose_stack import SITE
 from tests.test_stack_processes import HEARTBEAT_S, WSNAV, Proc, Stack
+from wsnav.broker.credentials import load_credentials
+from wsnav.runtime.bus import Will
+from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.messages import NodeStatus, ZoneState
 
 CHROMIUM_ARGS = [
     "--headless",

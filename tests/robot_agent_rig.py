@@ -17,17 +17,17 @@ from types import TracebackType
 import numpy as np
 from matplotlib.path import Path as MplPath
 
-from broker.embedded import BrokerThread
-from robot_agent.agent import RobotAgent
-from robot_agent.agent_config import AgentConfig, load_agent_config
-from robot_agent.sim_turtlebot3 import SimTurtleBot3
-from robot_agent.sim_world_grid import SimWorldGrid
-from runtime.clock import SimClock
-from runtime.mqtt_bus import MqttBus, connect_with_credentials
-from schemas import topics
-from schemas.messages import RobotGoal, RobotStatus, SimObstacle, SimWorld, ZoneState, ZoneStateValue
-from schemas.site import load_site
 from tests.conftest import SITES
+from wsnav.broker.embedded import BrokerThread
+from wsnav.robot_agent.agent import RobotAgent
+from wsnav.robot_agent.agent_config import AgentConfig, load_agent_config
+from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
+from wsnav.robot_agent.sim.world_grid import SimWorldGrid
+from wsnav.runtime.clock import SimClock
+from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.messages import RobotGoal, RobotStatus, SimObstacle, SimWorld, ZoneState, ZoneStateValue
+from wsnav.schemas.site import load_site
 
 SCHOOL = SITES / "school"
 DT = 0.05

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from ros_bridge.ros_env import LocalRosCore, stop_process_group
 from tests.conftest import require_tool
+from wsnav.ros_bridge.ros_env import LocalRosCore, stop_process_group
 
 
 def require_ros() -> None:

@@ -15,19 +15,26 @@ import paho.mqtt.client as mqtt
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
-from broker.credentials import (
+from tests.conftest import require_tool
+from tests.site_fixtures import tiny_site
+from tests.test_broker_helpers import free_port, wait_listening
+from wsnav.broker.credentials import (
     PASSWORD_FILE,
     load_credentials,
     read_password_file,
     verify_password,
     write_credentials,
 )
-from broker.mosquitto import ACL, CONF, PASSWORDS, MosquittoOptions, mosquitto_hash, write_mosquitto_config
-from schemas.credentials import Credentials, NodeConfig
-from schemas.site import load_site
-from tests.conftest import require_tool
-from tests.site_fixtures import tiny_site
-from tests.test_broker_helpers import free_port, wait_listening
+from wsnav.broker.mosquitto import (
+    ACL,
+    CONF,
+    PASSWORDS,
+    MosquittoOptions,
+    mosquitto_hash,
+    write_mosquitto_config,
+)
+from wsnav.schemas.credentials import Credentials, NodeConfig
+from wsnav.schemas.site import load_site
 
 
 def wsnav(*args: str | Path) -> subprocess.CompletedProcess[str]:

@@ -13,10 +13,10 @@ import paho.mqtt.client as mqtt
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
-from broker.embedded import BrokerThread, embedded_broker
-from schemas import topics
 from tests.site_fixtures import tiny_site
 from tests.test_broker_helpers import TIMEOUT, Endpoint, client
+from wsnav.broker.embedded import BrokerThread, embedded_broker
+from wsnav.schemas import topics
 
 SITE = "tiny"
 

@@ -19,14 +19,14 @@ from typing import Any
 import jinja2
 import pytest
 
-from broker.credentials import load_credentials, write_credentials
-from broker.embedded import BrokerThread
-from broker.ha_discovery import discovery_messages
-from runtime.mqtt_bus import connect_with_credentials
-from schemas import topics
-from schemas.messages import NodeInfo, NodeStatus, ZoneState, ZoneStateValue
-from schemas.site import load_site
 from tests.site_fixtures import tiny_site
+from wsnav.broker.credentials import load_credentials, write_credentials
+from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.ha_discovery import discovery_messages
+from wsnav.runtime.mqtt_bus import connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.messages import NodeInfo, NodeStatus, ZoneState, ZoneStateValue
+from wsnav.schemas.site import load_site
 
 DISCOVERY_TOPIC = re.compile(r"^homeassistant/binary_sensor/(?:[a-zA-Z0-9_-]+/)?[a-zA-Z0-9_-]+/config$")
 """`<discovery_prefix>/<component>/[<node_id>/]<object_id>/config`, ids of [a-zA-Z0-9_-] (HA's MQTT docs)."""

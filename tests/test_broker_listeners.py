@@ -13,10 +13,10 @@ import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.reasoncodes import ReasonCode
 
-from broker.amqtt_config import BrokerOptions, TlsListener
-from broker.embedded import BrokerThread
 from tests.site_fixtures import tiny_site
 from tests.test_broker_helpers import TIMEOUT
+from wsnav.broker.amqtt_config import BrokerOptions, TlsListener
+from wsnav.broker.embedded import BrokerThread
 
 
 def self_signed(directory: Path) -> tuple[Path, Path]:

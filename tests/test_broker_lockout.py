@@ -15,14 +15,14 @@ from pathlib import Path
 
 import pytest
 
-from broker.admission import MAX_PER_IDENTITY
-from broker.credentials import write_credentials
-from broker.embedded import BrokerProcess
-from schemas import topics
-from schemas.site import load_site
 from tests.conftest import REPO
 from tests.site_fixtures import tiny_site
 from tests.test_broker_helpers import TIMEOUT, Client, Endpoint, client
+from wsnav.broker.admission import MAX_PER_IDENTITY
+from wsnav.broker.credentials import write_credentials
+from wsnav.broker.embedded import BrokerProcess
+from wsnav.schemas import topics
+from wsnav.schemas.site import load_site
 
 SITE = "tiny"
 LOGIN_S = 2.0

@@ -22,15 +22,15 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from broker.credentials import write_credentials
-from broker.embedded import BrokerProcess
-from broker.mosquitto import CONF, MosquittoOptions, write_mosquitto_config
-from broker.packet_gate import BadPacket, check_packet
-from schemas import topics
-from schemas.site import load_site
 from tests.conftest import require_tool
 from tests.site_fixtures import tiny_site
 from tests.test_broker_helpers import Endpoint, client, free_port, wait_listening
+from wsnav.broker.credentials import write_credentials
+from wsnav.broker.embedded import BrokerProcess
+from wsnav.broker.mosquitto import CONF, MosquittoOptions, write_mosquitto_config
+from wsnav.broker.packet_gate import BadPacket, check_packet
+from wsnav.schemas import topics
+from wsnav.schemas.site import load_site
 
 SITE = "tiny"
 OWN_TOPIC = topics.zone_state(SITE, "z1", "n1")

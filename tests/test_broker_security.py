@@ -16,11 +16,6 @@ from pathlib import Path
 
 import pytest
 
-from broker.credentials import write_credentials
-from broker.embedded import BrokerThread
-from broker.mosquitto import CONF, MosquittoOptions, write_mosquitto_config
-from schemas import topics
-from schemas.site import load_site
 from tests.conftest import require_tool
 from tests.site_fixtures import tiny_site
 from tests.test_broker_helpers import (
@@ -32,6 +27,11 @@ from tests.test_broker_helpers import (
     free_port,
     wait_listening,
 )
+from wsnav.broker.credentials import write_credentials
+from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.mosquitto import CONF, MosquittoOptions, write_mosquitto_config
+from wsnav.schemas import topics
+from wsnav.schemas.site import load_site
 
 SITE = "tiny"
 

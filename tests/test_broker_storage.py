@@ -13,14 +13,14 @@ from pathlib import Path
 
 import pytest
 
-from broker.credentials import write_credentials
-from broker.embedded import BrokerProcess
-from broker.retained_store import DB_NAME, read_retained
-from schemas import topics
-from schemas.site import load_site
 from tests.site_fixtures import tiny_site
 from tests.test_broker_helpers import TIMEOUT, Endpoint, client
 from tests.test_broker_process import wait_stored, wsnav
+from wsnav.broker.credentials import write_credentials
+from wsnav.broker.embedded import BrokerProcess
+from wsnav.broker.retained_store import DB_NAME, read_retained
+from wsnav.schemas import topics
+from wsnav.schemas.site import load_site
 
 SITE = "tiny"
 STATE = topics.zone_state(SITE, "z1", "n1")

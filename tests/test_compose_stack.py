@@ -29,10 +29,10 @@ from pathlib import Path
 import pytest
 import yaml
 
-from runtime.mqtt_bus import BusError, MqttBus
-from schemas import topics
-from schemas.messages import PayloadError, RobotGoal, RobotStatus, parse_payload
 from tests.conftest import REPO, SITES, require_tool
+from wsnav.runtime.mqtt_bus import BusError, MqttBus
+from wsnav.schemas import topics
+from wsnav.schemas.messages import PayloadError, RobotGoal, RobotStatus, parse_payload
 
 pytestmark = pytest.mark.timeout(1500)
 

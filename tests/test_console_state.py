@@ -8,12 +8,13 @@ from pathlib import Path
 
 import pytest
 
-from console import operator_commands as commands
-from console.operator_commands import CommandError
-from console.site_view import SiteView
-from console.terminal import render
-from schemas import topics
-from schemas.messages import (
+from tests.site_fixtures import tiny_site
+from wsnav.console import operator_commands as commands
+from wsnav.console.operator_commands import CommandError
+from wsnav.console.site_view import SiteView
+from wsnav.console.terminal import render
+from wsnav.schemas import topics
+from wsnav.schemas.messages import (
     MAX_PAYLOAD_BYTES,
     ROBOT_PATH_POINTS,
     NodeInfo,
@@ -24,8 +25,7 @@ from schemas.messages import (
     ZoneStateValue,
     parse_payload,
 )
-from schemas.site import Site, load_site
-from tests.site_fixtures import tiny_site
+from wsnav.schemas.site import Site, load_site
 
 HB = 5.0  # tiny_site's heartbeat; stale after 3 heartbeats
 
@@ -113,7 +113,7 @@ def test_a_malformed_node_info_is_dropped_with_one_log_line(
     good = NodeInfo(node="n1", fw="0.2.0", reset="power_on", uptime_s=5, reconnects=0).to_payload()
     view.apply(topics.node_info("tiny", "n1"), good, 1.0)
     bad = b'{"v":1,"node":"n1","fw":"0.2.0","reset":"gremlins","uptime_s":5,"reconnects":0}'
-    with caplog.at_level(logging.WARNING, logger="console.site_view"):
+    with caplog.at_level(logging.WARNING, logger="wsnav.console.site_view"):
         for t in (2.0, 3.0, 4.0):  # a retained bad message comes back on every reconnect: logged once
             assert view.apply(topics.node_info("tiny", "n1"), bad, t) == set()
     lines = [r.getMessage() for r in caplog.records]

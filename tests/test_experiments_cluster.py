@@ -13,13 +13,13 @@ from typing import TYPE_CHECKING, cast
 import pandas as pd
 import pytest
 
-from experiments.run_plan import plan_runs
-from experiments.runner import Outcome, run_experiment
-from experiments.single_run import COLUMNS, NONDETERMINISTIC
-from schemas.site import load_site
 from tests.conftest import SITES
 from tests.dask_fixtures import DaskCluster, dask_cluster, free_port
 from wsnav.cli import main
+from wsnav.experiments.run_plan import plan_runs
+from wsnav.experiments.runner import Outcome, run_experiment
+from wsnav.experiments.single_run import COLUMNS, NONDETERMINISTIC
+from wsnav.schemas.site import load_site
 
 if TYPE_CHECKING:
     from distributed import Worker

@@ -10,7 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from experiments.report import (
+from tests.conftest import SITES
+from wsnav.experiments.report import (
     TIME_CAP_S,
     markdown_table,
     mean_ci,
@@ -20,9 +21,8 @@ from experiments.report import (
     verdicts,
     write_report,
 )
-from experiments.run_plan import plan_runs
-from schemas.site import load_site
-from tests.conftest import SITES
+from wsnav.experiments.run_plan import plan_runs
+from wsnav.schemas.site import load_site
 
 
 def test_mean_ci_is_student_t() -> None:

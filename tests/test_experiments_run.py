@@ -10,12 +10,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from experiments.run_plan import plan_runs
-from experiments.runner import run_experiment, run_with_own_broker, write_outputs
-from experiments.single_run import COLUMNS, NONDETERMINISTIC, peak_rss_mb, reset_peak_rss
-from schemas.site import load_site
 from tests.conftest import REPO, SITES, require_tool
 from wsnav.cli import main
+from wsnav.experiments.run_plan import plan_runs
+from wsnav.experiments.runner import run_experiment, run_with_own_broker, write_outputs
+from wsnav.experiments.single_run import COLUMNS, NONDETERMINISTIC, peak_rss_mb, reset_peak_rss
+from wsnav.schemas.site import load_site
 
 SCHOOL = SITES / "school"
 
@@ -104,7 +104,7 @@ def test_each_run_measures_its_own_memory_peak_not_the_workers_lifetime_peak() -
 def test_each_step_of_the_ablation_changes_only_what_the_report_attributes_to_it() -> None:
     """default -> zones: the sensor network only (zone layer, Algorithm 3's waiting instead of planner
     patience); zones -> full: event-driven replanning and coarser, less frequent work only."""
-    from robot_agent.agent_config import load_agent_config
+    from wsnav.robot_agent.agent_config import load_agent_config
 
     def settings(name: str) -> dict[str, object]:
         flat = load_agent_config(name).model_dump()

@@ -11,8 +11,8 @@ from typing import Any
 
 import pytest
 
-from firmware.build import SIZE_TARGET
-from firmware.deploy import module_names
+from wsnav.firmware.build import SIZE_TARGET
+from wsnav.firmware.deploy import module_names
 
 
 def wsnav(*args: str | Path) -> subprocess.CompletedProcess[str]:

@@ -3,8 +3,8 @@ the same checks on the MicroPython VM with the ESP8266's heap."""
 
 from __future__ import annotations
 
-import importlib
 import json
+import os
 import random
 import subprocess
 import sys
@@ -14,22 +14,22 @@ from typing import Any
 
 import pytest
 
-import firmware
-from firmware.testing import HOST_STUBS, build_for_host, micropython_cmd, micropython_env
-from schemas import topics
-from schemas.credentials import NodeConfig
-from schemas.messages import NodeInfo, NodeStatus, ZoneState, ZoneStateValue, parse_payload
-from schemas.site_file import pin_problem
+from wsnav import firmware
+from wsnav.firmware.testing import HOST_STUBS, build_for_host, micropython_cmd, micropython_env
+from wsnav.schemas import topics
+from wsnav.schemas.credentials import NodeConfig
+from wsnav.schemas.messages import NodeInfo, NodeStatus, ZoneState, ZoneStateValue, parse_payload
+from wsnav.schemas.site_file import pin_problem
 
-firmware.add_device_path()
-sys.path.append(str(HOST_STUBS))
-
-# Imported by their board names, as the zone simulator does (pyright cannot see sys.path changes).
-logic_checks: Any = importlib.import_module("logic_checks")
-diagnostics: Any = importlib.import_module("diagnostics")
-node_logic: Any = importlib.import_module("node_logic")
-nodeconfig: Any = importlib.import_module("nodeconfig")
-payloads: Any = importlib.import_module("payloads")
+# Loaded as the zone simulator loads them (pyright cannot follow a module loaded at run time).
+_device: dict[str, Any] = firmware.load_device_modules(
+    "logic_checks", "diagnostics", "node_logic", "nodeconfig", "payloads", extra_dirs=[HOST_STUBS]
+)
+logic_checks: Any = _device["logic_checks"]
+diagnostics: Any = _device["diagnostics"]
+node_logic: Any = _device["node_logic"]
+nodeconfig: Any = _device["nodeconfig"]
+payloads: Any = _device["payloads"]
 
 
 @pytest.mark.parametrize("check", logic_checks.CHECKS, ids=lambda c: c.__name__)
@@ -122,10 +122,24 @@ def test_nodes_that_reconnect_together_do_not_heartbeat_in_step() -> None:
 
 def test_the_only_modules_simulators_may_import_are_pure() -> None:
     """No board module sneaks into PURE_MODULES: each imports on CPython without machine/network."""
-    for name in firmware.PURE_MODULES:
-        importlib.import_module(name)
+    firmware.load_device_modules(*firmware.PURE_MODULES)
     for name in ("machine", "network"):
         assert name not in sys.modules
+
+
+def test_board_module_names_stay_out_of_the_top_level_where_a_pypi_package_has_them(tmp_path: Path) -> None:
+    """A PyPI package named like a board module (`backoff` exists) must neither break the simulator nor be
+    replaced by our module: the board's names live under wsnav.firmware.device only."""
+    (tmp_path / "backoff.py").write_text("ON_PYPI = True\n")
+    code = (
+        "import backoff; from wsnav.zone_sim import firmware_modules as fm; import sys; "
+        "assert backoff.ON_PYPI and sys.modules['backoff'] is backoff; "
+        "assert fm.Backoff.__module__ == 'wsnav.firmware.device.backoff'; "
+        "assert not {'payloads', 'node_logic', 'debounce', 'sensing'} & set(sys.modules); print('ok')"
+    )
+    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert proc.stdout.strip() == "ok", proc.stderr
 
 
 def base_config(**changes: Any) -> dict[str, Any]:

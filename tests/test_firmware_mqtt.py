@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from firmware.testing import build_for_host, micropython_cmd, micropython_env
+from wsnav.firmware.testing import build_for_host, micropython_cmd, micropython_env
 
 Script = Callable[[socket.socket], None]
 

@@ -19,7 +19,8 @@ import paho.mqtt.client as mqtt
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
-from firmware.testing import (
+from tests.conftest import REPO
+from wsnav.firmware.testing import (
     NodeProcess,
     SiteBroker,
     build_for_host,
@@ -28,11 +29,10 @@ from firmware.testing import (
     parse_stats,
     write_credentials,
 )
-from schemas import topics
-from schemas.credentials import Credentials, NodeConfig
-from schemas.messages import NodeInfo, NodeStatus, ZoneState, parse_payload
-from tests.conftest import REPO
-from zone_sim.firmware_modules import diagnostics
+from wsnav.schemas import topics
+from wsnav.schemas.credentials import Credentials, NodeConfig
+from wsnav.schemas.messages import NodeInfo, NodeStatus, ZoneState, parse_payload
+from wsnav.zone_sim.firmware_modules import diagnostics
 
 SITE_DIR = REPO / "sites" / "school"
 SITE = "school"

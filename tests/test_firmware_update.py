@@ -19,11 +19,11 @@ from pathlib import Path
 
 import pytest
 
-from firmware.board import BoardError, MpremoteBoard
-from firmware.build import build
-from firmware.deploy import Deployer, DeployError, firmware_files, module_names
-from firmware.testing import DEVICE, build_for_host
-from firmware.unix_board import CHUNK, WDT_TIMEOUT_S, UnixBoard
+from wsnav.firmware.board import BoardError, MpremoteBoard
+from wsnav.firmware.build import build
+from wsnav.firmware.deploy import Deployer, DeployError, firmware_files, module_names
+from wsnav.firmware.testing import DEVICE, build_for_host
+from wsnav.firmware.unix_board import CHUNK, WDT_TIMEOUT_S, UnixBoard
 
 WAIT = 60.0
 

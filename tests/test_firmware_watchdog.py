@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from firmware.testing import build_for_host, micropython_env, micropython_exe, parse_stats
+from wsnav.firmware.testing import build_for_host, micropython_env, micropython_exe, parse_stats
 
 BUDGET_MS = 1500
 SDK_WATCHDOG_MS = 3200

@@ -13,25 +13,26 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from broker.embedded import BrokerThread
-from experiments.fleet_sim import FleetError, SimFleet, start_poses
-from experiments.single_run import BrokerAt
-from robot_agent.agent import RobotAgent
-from robot_agent.agent_config import load_agent_config
-from robot_agent.costmap_layers import OtherRobot, RobotsLayer
-from robot_agent.inflation import LETHAL_OBSTACLE, InflationParams
-from robot_agent.layered_costmap import LayeredCostmap
-from robot_agent.right_of_way import must_yield_to
-from robot_agent.sim_turtlebot3 import SimTurtleBot3
-from robot_agent.sim_world_grid import SimWorldGrid
-from robot_agent.zone_geometry import GridFrame
-from runtime.clock import SimClock
-from runtime.mqtt_bus import MqttBus, connect_with_credentials
-from schemas import topics
-from schemas.messages import RobotStatus, SimWorld
-from schemas.site import Site, load_site
 from tests.conftest import SITES
 from tests.site_fixtures import tiny_site
+from wsnav.broker.embedded import BrokerThread
+from wsnav.experiments.fleet_sim import FleetError, SimFleet, start_poses
+from wsnav.experiments.single_run import BrokerAt
+from wsnav.navigation.behaviors.right_of_way import must_yield_to
+from wsnav.navigation.costmap.inflation import InflationParams
+from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
+from wsnav.navigation.costmap.layers import OtherRobot, RobotsLayer
+from wsnav.robot_agent.agent import RobotAgent
+from wsnav.robot_agent.agent_config import load_agent_config
+from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
+from wsnav.robot_agent.sim.world_grid import SimWorldGrid
+from wsnav.runtime.clock import SimClock
+from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.messages import RobotStatus, SimWorld
+from wsnav.schemas.site import Site, load_site
+from wsnav.zones.cost_values import LETHAL_OBSTACLE
+from wsnav.zones.geometry import GridFrame
 
 SCHOOL = SITES / "school"
 REAL_TIMEOUT_S = 20.0
@@ -244,7 +245,7 @@ def test_simulated_robots_are_obstacles_to_each_others_lidar_and_bumper(school: 
     scan = a.scan()
     assert scan is not None and abs(float(scan.ranges[0]) - (1.0 - 0.105)) < 0.06  # robot2 ahead
     assert world.robot_touching("robot1", 9.8, 7.2, 0.105) == "robot2"
-    from robot_agent.backend import Velocity
+    from wsnav.navigation.backend import Velocity
 
     a.command(Velocity(0.22, 0.0))
     for i in range(100):

@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 from scipy.ndimage import distance_transform_edt
 
-from robot_agent.global_planner import (
+from tests.conftest import SITES
+from wsnav.navigation.costmap.inflation import InflationParams, inflate, static_layer
+from wsnav.navigation.planning.global_planner import (
     PlannerParams,
     _astar,
     densify,
@@ -21,17 +23,9 @@ from robot_agent.global_planner import (
     steps_to,
     weight_lut,
 )
-from robot_agent.inflation import (
-    INSCRIBED_INFLATED_OBSTACLE,
-    LETHAL_OBSTACLE,
-    NO_INFORMATION,
-    InflationParams,
-    inflate,
-    static_layer,
-)
-from robot_agent.zone_geometry import GridFrame, Polygon, polygon_window
-from schemas.site import load_site
-from tests.conftest import SITES
+from wsnav.schemas.site import load_site
+from wsnav.zones.cost_values import INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
+from wsnav.zones.geometry import GridFrame, Polygon, polygon_window
 
 RES = 0.05
 INFL = InflationParams(inscribed_radius=0.105, inflation_radius=1.0, cost_scaling_factor=3.0)

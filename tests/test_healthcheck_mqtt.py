@@ -9,13 +9,13 @@ from pathlib import Path
 
 import pytest
 
-from broker.embedded import BrokerThread
-from runtime.bus import Will
-from runtime.mqtt_bus import MqttBus
-from schemas import topics
-from schemas.messages import NodeStatus, RobotStatus
 from tests.site_fixtures import tiny_site
+from wsnav.broker.embedded import BrokerThread
 from wsnav.healthcheck import main
+from wsnav.runtime.bus import Will
+from wsnav.runtime.mqtt_bus import MqttBus
+from wsnav.schemas import topics
+from wsnav.schemas.messages import NodeStatus, RobotStatus
 
 
 def check(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:

@@ -6,9 +6,9 @@ import json
 
 import pytest
 
-from schemas import topics
-from schemas.export import stale_files
-from schemas.messages import (
+from wsnav.schemas import topics
+from wsnav.schemas.export import stale_files
+from wsnav.schemas.messages import (
     MAX_PAYLOAD_BYTES,
     NodeStatus,
     OperatorBlock,

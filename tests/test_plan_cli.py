@@ -11,9 +11,9 @@ from typing import Any
 
 import pytest
 
-from schemas.site import load_site
 from tests.conftest import REPO, SITES
 from wsnav.cli import main
+from wsnav.schemas.site import load_site
 
 REAL_MAP_SITES = ["depot", "depot_keepout", "warehouse", "warehouse_keepout", "tb3_sandbox"]
 

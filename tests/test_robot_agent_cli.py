@@ -12,11 +12,11 @@ from pathlib import Path
 
 import pytest
 
-from broker.embedded import BrokerThread
-from schemas import topics
-from schemas.messages import ZoneState
 from tests.conftest import SITES
 from tests.robot_agent_rig import connect
+from wsnav.broker.embedded import BrokerThread
+from wsnav.schemas import topics
+from wsnav.schemas.messages import ZoneState
 
 SCHOOL = SITES / "school"
 WSNAV = [sys.executable, "-m", "wsnav.cli"]
@@ -103,7 +103,7 @@ def test_bad_input_is_one_line_and_exit_2(
 def test_a_bad_config_file_names_the_key(tmp_path: Path) -> None:
     bad = tmp_path / "agent.yaml"
     bad.write_text("zone_layer: true\nreplan_rate_hz: -1\n")
-    from robot_agent.agent_config import AgentConfigError, load_agent_config
+    from wsnav.robot_agent.agent_config import AgentConfigError, load_agent_config
 
     with pytest.raises(AgentConfigError, match=r"agent\.yaml: replan_rate_hz: Input should be greater"):
         load_agent_config(bad)
@@ -113,7 +113,7 @@ def test_a_bad_config_file_names_the_key(tmp_path: Path) -> None:
 
 
 def test_the_shipped_configs_are_the_stock_turtlebot3_and_the_full_system() -> None:
-    from robot_agent.agent_config import load_agent_config
+    from wsnav.robot_agent.agent_config import load_agent_config
 
     default, full = load_agent_config("default"), load_agent_config("full")
     assert (default.zone_layer, default.replan_rate_hz, default.global_costmap_rate_hz) == (False, 5.0, 10.0)

@@ -11,17 +11,17 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from robot_agent.backend import LaserScan, Velocity
-from robot_agent.controller import ControllerParams, ControlResult, PathFollower
-from robot_agent.global_planner import plan_path
-from robot_agent.inflation import InflationParams
-from robot_agent.layered_costmap import LayeredCostmap
-from robot_agent.sim_turtlebot3 import SimTurtleBot3
-from robot_agent.sim_world_grid import SimWorldGrid
-from robot_agent.zone_geometry import GridFrame
-from schemas.messages import SimObstacle, SimWorld
-from schemas.site import Site, load_site
 from tests.conftest import SITES
+from wsnav.navigation.backend import LaserScan, Velocity
+from wsnav.navigation.control.controller import ControllerParams, ControlResult, PathFollower
+from wsnav.navigation.costmap.inflation import InflationParams
+from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
+from wsnav.navigation.planning.global_planner import plan_path
+from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
+from wsnav.robot_agent.sim.world_grid import SimWorldGrid
+from wsnav.schemas.messages import SimObstacle, SimWorld
+from wsnav.schemas.site import Site, load_site
+from wsnav.zones.geometry import GridFrame
 
 CONTROL_DT = 0.05
 INFLATION = InflationParams()

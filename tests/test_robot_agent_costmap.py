@@ -10,27 +10,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from robot_agent.backend import LaserScan
-from robot_agent.costmap_planner import PlannerWeights
-from robot_agent.global_planner import PlannerParams, plan_path, weights_for
-from robot_agent.inflation import (
-    FREE_SPACE,
-    INSCRIBED_INFLATED_OBSTACLE,
-    LETHAL_OBSTACLE,
-    NO_INFORMATION,
-    InflationParams,
-    inflate,
-    static_layer,
-)
-from robot_agent.layered_costmap import CHANGE_LOG, Bounds, LayeredCostmap
-from robot_agent.offline_plan import frame_of, zone_lethal
-from robot_agent.zone_escape import ZoneEscape
-from robot_agent.zone_layer import ZoneLayer
-from schemas.messages import NodeStatus, OperatorBlock, ZoneState
-from schemas.site import Site, load_site
-from schemas.site_file import ZonePolicy
 from tests.conftest import SITES
 from tests.site_fixtures import tiny_site
+from wsnav.navigation.backend import LaserScan
+from wsnav.navigation.behaviors.escape import ZoneEscape
+from wsnav.navigation.costmap.inflation import InflationParams, inflate, static_layer
+from wsnav.navigation.costmap.layered_costmap import CHANGE_LOG, Bounds, LayeredCostmap
+from wsnav.navigation.planning.costmap_planner import PlannerWeights
+from wsnav.navigation.planning.global_planner import PlannerParams, plan_path, weights_for
+from wsnav.navigation.planning.offline_plan import frame_of, zone_lethal
+from wsnav.schemas.messages import NodeStatus, OperatorBlock, ZoneState
+from wsnav.schemas.site import Site, load_site
+from wsnav.schemas.site_file import ZonePolicy
+from wsnav.zones.cost_values import FREE_SPACE, INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
+from wsnav.zones.zone_layer import ZoneLayer
 
 INFLATION = InflationParams(inscribed_radius=0.105, inflation_radius=1.0, cost_scaling_factor=3.0)
 

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas.messages import RobotStatus
 from tests.robot_agent_rig import LIDAR_RANGE_M, Rig, connect, distance_to_polygon
+from wsnav.schemas.messages import RobotStatus
 
 
 def z4_polygon(rig: Rig) -> list[tuple[float, float]]:

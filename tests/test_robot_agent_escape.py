@@ -11,18 +11,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from robot_agent.backend import LaserScan
-from robot_agent.costmap_planner import GlobalPlanner
-from robot_agent.global_planner import PlannerParams
-from robot_agent.inflation import INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, InflationParams
-from robot_agent.layered_costmap import LayeredCostmap
-from robot_agent.offline_plan import frame_of
-from robot_agent.zone_escape import ESCAPE_COST, ZoneEscape, plan_escape
-from robot_agent.zone_layer import BlockedArea, ZoneLayer
-from schemas import topics
-from schemas.messages import OperatorBlock, SimObstacle, SimWorld, ZoneState
-from schemas.site import Site, load_site
 from tests.robot_agent_rig import SCHOOL, Rig, distance_to_polygon
+from wsnav.navigation.backend import LaserScan
+from wsnav.navigation.behaviors.escape import ESCAPE_COST, ZoneEscape, plan_escape
+from wsnav.navigation.costmap.inflation import InflationParams
+from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
+from wsnav.navigation.planning.costmap_planner import GlobalPlanner
+from wsnav.navigation.planning.global_planner import PlannerParams
+from wsnav.navigation.planning.offline_plan import frame_of
+from wsnav.schemas import topics
+from wsnav.schemas.messages import OperatorBlock, SimObstacle, SimWorld, ZoneState
+from wsnav.schemas.site import Site, load_site
+from wsnav.zones.cost_values import INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE
+from wsnav.zones.zone_layer import BlockedArea, ZoneLayer
 
 RADIUS = 0.105
 INSIDE_Z1 = (17.5, 7.2)

@@ -4,7 +4,6 @@ a node's own credentials, the firmware's own payloads, and a node that tries to 
 
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 import re
@@ -15,25 +14,25 @@ from typing import Any
 import numpy as np
 import pytest
 
-import firmware
-from broker.embedded import BrokerThread
-from robot_agent.inflation import LETHAL_OBSTACLE, InflationParams
-from robot_agent.layered_costmap import LayeredCostmap
-from robot_agent.offline_plan import frame_of
-from robot_agent.zone_geometry import polygon_window
-from robot_agent.zone_intake import ZoneIntake
-from robot_agent.zone_layer import ZoneLayer
-from runtime.bus import Message, Will
-from runtime.mqtt_bus import MqttBus, connect_with_credentials
-from schemas import topics
-from schemas.messages import NodeStatus, OperatorBlock, ZoneState
-from schemas.site import Site, load_site
 from tests.conftest import SITES
 from tests.site_fixtures import tiny_site
+from wsnav import firmware
+from wsnav.broker.embedded import BrokerThread
+from wsnav.navigation.costmap.inflation import InflationParams
+from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
+from wsnav.navigation.planning.offline_plan import frame_of
+from wsnav.runtime.bus import Message, Will
+from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.messages import NodeStatus, OperatorBlock, ZoneState
+from wsnav.schemas.site import Site, load_site
+from wsnav.zones.cost_values import LETHAL_OBSTACLE
+from wsnav.zones.geometry import polygon_window
+from wsnav.zones.intake import ZoneIntake
+from wsnav.zones.zone_layer import ZoneLayer
 
-firmware.add_device_path()
-# The firmware's own state machine, by its board name (pyright cannot see sys.path changes).
-NodeLogic: Any = importlib.import_module("node_logic").NodeLogic
+# The firmware's own state machine (pyright cannot follow a module loaded at run time).
+NodeLogic: Any = firmware.load_device_modules("node_logic")["node_logic"].NodeLogic
 
 SCHOOL = "school"
 
@@ -157,7 +156,7 @@ def test_a_flood_of_one_bad_kind_logs_a_few_lines_but_counts_every_drop_and_a_ne
     school: Site, caplog: pytest.LogCaptureFixture
 ) -> None:
     agent = Agent(school)
-    caplog.set_level(logging.WARNING, logger="robot_agent.zone_intake")
+    caplog.set_level(logging.WARNING, logger="wsnav.zones.intake")
     for i in range(1000):  # 25 s of bus time, 40 malformed messages a second
         agent.feed(z_topic("z1", "n1"), b"garbage", t=i * 0.025)
     assert agent.intake.dropped == {"malformed": 1000}

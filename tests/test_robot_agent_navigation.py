@@ -6,8 +6,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from robot_agent.agent_config import load_agent_config
 from tests.robot_agent_rig import LIDAR_RANGE_M, Rig, distance_to_polygon
+from wsnav.robot_agent.agent_config import load_agent_config
 
 
 def drive_a_to_b_with_z4_obstructed(rig: Rig, *, tell_the_agent: bool) -> None:

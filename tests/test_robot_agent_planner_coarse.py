@@ -9,17 +9,18 @@ import math
 import numpy as np
 import pytest
 
-from robot_agent.backend import LaserScan
-from robot_agent.costmap_planner import GlobalPlanner, PlannerWeights
-from robot_agent.global_planner import PlannerParams, coarse_weights, plan_path, weights_for
-from robot_agent.inflation import FREE_SPACE, LETHAL_OBSTACLE, InflationParams
-from robot_agent.layered_costmap import LayeredCostmap
-from robot_agent.offline_plan import frame_of
-from robot_agent.zone_geometry import Bounds
-from robot_agent.zone_layer import ZoneLayer
-from schemas.messages import ZoneState
-from schemas.site import Site, load_site
 from tests.conftest import SITES
+from wsnav.navigation.backend import LaserScan
+from wsnav.navigation.costmap.inflation import InflationParams
+from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
+from wsnav.navigation.planning.costmap_planner import GlobalPlanner, PlannerWeights
+from wsnav.navigation.planning.global_planner import PlannerParams, coarse_weights, plan_path, weights_for
+from wsnav.navigation.planning.offline_plan import frame_of
+from wsnav.schemas.messages import ZoneState
+from wsnav.schemas.site import Site, load_site
+from wsnav.zones.cost_values import FREE_SPACE, LETHAL_OBSTACLE
+from wsnav.zones.geometry import Bounds
+from wsnav.zones.zone_layer import ZoneLayer
 
 WHOLE = PlannerParams(coarse_above_cells=0)
 COARSE = PlannerParams(coarse_above_cells=100_000)

@@ -10,20 +10,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from robot_agent.backend import Pose, Velocity
-from robot_agent.controller import ControlResult
-from robot_agent.costmap_planner import GlobalPlanner
-from robot_agent.global_planner import PlannerParams
-from robot_agent.inflation import LETHAL_OBSTACLE, InflationParams
-from robot_agent.layered_costmap import LayeredCostmap
-from robot_agent.move_base_recovery import MoveBaseRecovery, RecoveryParams
-from robot_agent.navigator import Navigator, NavigatorParams
-from robot_agent.sim_turtlebot3 import SimTurtleBot3
-from robot_agent.sim_world_grid import SimWorldGrid
-from robot_agent.zone_geometry import GridFrame
-from schemas.site import Site, load_site
 from tests.site_fixtures import tiny_site
 from tests.test_robot_agent_costmap import scan_from
+from wsnav.navigation.backend import Pose, Velocity
+from wsnav.navigation.behaviors.recovery import MoveBaseRecovery, RecoveryParams
+from wsnav.navigation.control.controller import ControlResult
+from wsnav.navigation.costmap.inflation import InflationParams
+from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
+from wsnav.navigation.navigator import Navigator, NavigatorParams
+from wsnav.navigation.planning.costmap_planner import GlobalPlanner
+from wsnav.navigation.planning.global_planner import PlannerParams
+from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
+from wsnav.robot_agent.sim.world_grid import SimWorldGrid
+from wsnav.schemas.site import Site, load_site
+from wsnav.zones.cost_values import LETHAL_OBSTACLE
+from wsnav.zones.geometry import GridFrame
 
 INFLATION = InflationParams(inscribed_radius=0.105, inflation_radius=1.0, cost_scaling_factor=3.0)
 DT = 0.05

@@ -8,12 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from robot_agent.lidar import LidarParams, cast_scan
-from robot_agent.sim_world_grid import SimWorldGrid
-from robot_agent.zone_geometry import GridFrame
-from schemas.messages import SimObstacle, SimWorld
-from schemas.site import load_site
 from tests.conftest import SITES
+from wsnav.robot_agent.sim.lidar import LidarParams, cast_scan
+from wsnav.robot_agent.sim.world_grid import SimWorldGrid
+from wsnav.schemas.messages import SimObstacle, SimWorld
+from wsnav.schemas.site import load_site
+from wsnav.zones.geometry import GridFrame
 
 CELL = 0.05
 # South corridor of the school (sites/school/layout.yaml): wall centre lines y 5.9 and 8.5, 0.2 m thick, so

@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from robot_agent.backend import RobotBackend, Velocity
-from robot_agent.sim_turtlebot3 import SimTurtleBot3, TurtleBot3Params
-from robot_agent.sim_world_grid import SimWorldGrid
-from schemas.messages import SimObstacle, SimWorld
-from schemas.site import load_site
 from tests.conftest import SITES
+from wsnav.navigation.backend import RobotBackend, Velocity
+from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3, TurtleBot3Params
+from wsnav.robot_agent.sim.world_grid import SimWorldGrid
+from wsnav.schemas.messages import SimObstacle, SimWorld
+from wsnav.schemas.site import load_site
 
 DT = 0.05
 # The school's south corridor is free from y 6.0 to 8.4 (layout.yaml); at x 10.5 neither wall has a door,

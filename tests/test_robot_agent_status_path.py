@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from robot_agent.agent import path_ahead
-from schemas.messages import ROBOT_PATH_POINTS
+from wsnav.robot_agent.agent import path_ahead
+from wsnav.schemas.messages import ROBOT_PATH_POINTS
 
 
 def test_a_short_plan_goes_out_whole_from_the_vertex_nearest_the_robot() -> None:

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import pytest
 
-from robot_agent.inflation import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION
-from robot_agent.offline_plan import frame_of
-from robot_agent.zone_layer import ZoneLayer
-from schemas.messages import NodeStatus, OperatorBlock, ZoneState
-from schemas.site import Site, load_site
-from schemas.site_file import ZonePolicy
 from tests.conftest import SITES
+from wsnav.navigation.planning.offline_plan import frame_of
+from wsnav.schemas.messages import NodeStatus, OperatorBlock, ZoneState
+from wsnav.schemas.site import Site, load_site
+from wsnav.schemas.site_file import ZonePolicy
+from wsnav.zones.cost_values import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION
+from wsnav.zones.zone_layer import ZoneLayer
 
 HEARTBEAT = 5.0  # the school's heartbeat_s
 STALE_AFTER = 3 * HEARTBEAT

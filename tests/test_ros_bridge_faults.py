@@ -7,12 +7,12 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
-from broker.embedded import BrokerThread
-from ros_bridge.ros_env import LocalRosCore, master_alive
-from schemas.site import load_site
 from tests.conftest import SITES
 from tests.ros_fixtures import RosMaster, WsnavChild, require_ros, wait_until
 from tests.test_ros_bridge_grid import bridge_args
+from wsnav.broker.embedded import BrokerThread
+from wsnav.ros_bridge.ros_env import LocalRosCore, master_alive
+from wsnav.schemas.site import load_site
 
 SCHOOL = SITES / "school"
 

@@ -22,17 +22,17 @@ import numpy as np
 import pytest
 import yaml
 
-from broker.embedded import BrokerThread
-from robot_agent.zone_geometry import GridFrame
-from ros_bridge.zone_feed import ZoneFeed
-from runtime.bus import Message
-from runtime.mqtt_bus import MqttBus, connect_with_credentials
-from schemas import topics
-from schemas.messages import NodeStatus, OperatorBlock, ZoneState
-from schemas.site import load_site
 from tests.conftest import SITES, require_tool
 from tests.costmap2d_model import StaticLayerModel
 from tests.ros_fixtures import RosMaster, WsnavChild, wait_until
+from wsnav.broker.embedded import BrokerThread
+from wsnav.ros_bridge.zone_feed import ZoneFeed
+from wsnav.runtime.bus import Message
+from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.messages import NodeStatus, OperatorBlock, ZoneState
+from wsnav.schemas.site import load_site
+from wsnav.zones.geometry import GridFrame
 
 EVENTS = 100
 

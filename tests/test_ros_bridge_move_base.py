@@ -19,12 +19,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from broker.embedded import BrokerThread
-from runtime.mqtt_bus import MqttBus, connect_with_credentials
-from schemas import topics
-from schemas.messages import RobotStatus, ZoneState
 from tests.ros_fixtures import RosMaster, WsnavChild, wait_until
 from tests.test_ros_bridge_grid import bridge_args, slow_heartbeat_school
+from wsnav.broker.embedded import BrokerThread
+from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.messages import RobotStatus, ZoneState
 
 PLAN = [(12.0, 7.2), (25.0, 7.2), (25.0, 22.8), (29.0, 22.8)]
 """A -> B by the south corridor (through z1) and the middle one (through z4)."""

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from ros_bridge.ros_env import free_port, master_alive, wait_for_master
-from runtime.cli_support import CliError
 from tests.ros_fixtures import RosMaster
+from wsnav.ros_bridge.ros_env import free_port, master_alive, wait_for_master
+from wsnav.runtime.cli_support import CliError
 
 
 def test_no_master_says_one_line_and_backs_off() -> None:

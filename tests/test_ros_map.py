@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from schemas.ros_map import FREE, OCCUPIED, UNKNOWN, MapError, load_map
 from tests.conftest import SITES
 from tests.site_fixtures import write_pgm
+from wsnav.schemas.ros_map import FREE, OCCUPIED, UNKNOWN, MapError, load_map
 
 
 def _yaml(path: Path, image: str, **keys: object) -> Path:

@@ -21,13 +21,13 @@ from pathlib import Path
 import pytest
 import yaml
 
-from broker.embedded import BrokerThread
-from ros_bridge.ros_env import free_port
-from schemas import topics
-from schemas.messages import SimObstacle, SimWorld, ZoneState
 from tests.conftest import SITES
 from tests.robot_agent_rig import connect, distance_to_polygon
 from tests.ros_fixtures import RosMaster, WsnavChild, require_ros, wait_until
+from wsnav.broker.embedded import BrokerThread
+from wsnav.ros_bridge.ros_env import free_port
+from wsnav.schemas import topics
+from wsnav.schemas.messages import SimObstacle, SimWorld, ZoneState
 
 LIBRARY_ZONE = [(26.5, 21.5), (28.5, 21.5), (28.5, 24.1), (26.5, 24.1)]
 """z8, added to the school for this test: the north corridor between the library's two doors (x 22.5 and 33.5),
@@ -208,8 +208,13 @@ def test_the_ros_backend_takes_tf_s_map_pose_else_odometry_from_start_and_stops_
     from geometry_msgs.msg import TransformStamped, Twist
     from nav_msgs.msg import Odometry
 
-    from robot_agent.backend import Velocity
-    from ros_bridge.robot_backend import MAP_POSE_MAX_AGE_S, ODOM_SILENCE_S, RosRobotBackend, RosRobotTopics
+    from wsnav.navigation.backend import Velocity
+    from wsnav.ros_bridge.robot_backend import (
+        MAP_POSE_MAX_AGE_S,
+        ODOM_SILENCE_S,
+        RosRobotBackend,
+        RosRobotTopics,
+    )
 
     names = RosRobotTopics("/fb/scan", "/fb/odom", "/fb/cmd_vel", "fb_map", "fb_base")
     said: list[str] = []

@@ -5,16 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robot_agent.inflation import static_layer
-from robot_agent.zone_geometry import Bounds, GridFrame
-from ros_bridge.zone_feed import ZoneFeed
-from ros_bridge.zone_grid import UnrepresentableCost, UpdateWindow, ZoneGridCodec
-from runtime.bus import Message
-from schemas import topics
-from schemas.messages import OperatorBlock
-from schemas.site import Site, load_site
 from tests.conftest import SITES
 from tests.costmap2d_model import LETHAL, NO_INFORMATION, StaticLayerModel, interpret_value
+from wsnav.navigation.costmap.inflation import static_layer
+from wsnav.ros_bridge.zone_feed import ZoneFeed
+from wsnav.ros_bridge.zone_grid import UnrepresentableCost, UpdateWindow, ZoneGridCodec
+from wsnav.runtime.bus import Message
+from wsnav.schemas import topics
+from wsnav.schemas.messages import OperatorBlock
+from wsnav.schemas.site import Site, load_site
+from wsnav.zones.geometry import Bounds, GridFrame
 
 
 def test_every_cost_the_zone_layer_makes_comes_back_out_of_the_static_layer() -> None:

@@ -8,16 +8,16 @@ from pathlib import Path
 
 import pytest
 
-from broker.credentials import write_credentials
-from broker.embedded import BrokerThread
-from broker.server import BrokerStartError
-from runtime.bus import Message, Will
-from runtime.clock import Clock, SimClock
-from runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
-from schemas import topics
-from schemas.site import load_site
-from schemas.topics import topic_matches
 from tests.site_fixtures import tiny_site
+from wsnav.broker.credentials import write_credentials
+from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.server import BrokerStartError
+from wsnav.runtime.bus import Message, Will
+from wsnav.runtime.clock import Clock, SimClock
+from wsnav.runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.site import load_site
+from wsnav.schemas.topics import topic_matches
 
 SITE = "tiny"
 
@@ -135,7 +135,7 @@ def test_a_full_queue_and_a_refused_subscription_are_logged_not_silent(
             max_queue=3,
         ).connect(timeout_s=30.0)
         node = bus_for(broker, "n1")
-        with caplog.at_level("WARNING", logger="runtime.mqtt_bus"):
+        with caplog.at_level("WARNING", logger="wsnav.runtime.mqtt_bus"):
             node.subscribe(topics.all_zone_states(SITE))  # a node may not read other nodes' zones
             robot.subscribe(topics.all_zone_states(SITE))
             time.sleep(0.3)  # the SUBACKs

@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 from scipy.ndimage import distance_transform_edt
 
-from robot_agent.global_planner import Plan, PlannerParams, densify, plan_path
-from robot_agent.inflation import InflationParams
-from robot_agent.lidar import LidarParams
-from robot_agent.offline_plan import site_costmap, zone_lethal
-from schemas.site import Site, load_site
 from tests.conftest import SITES
 from wsnav.cli import main
+from wsnav.navigation.costmap.inflation import InflationParams
+from wsnav.navigation.planning.global_planner import Plan, PlannerParams, densify, plan_path
+from wsnav.navigation.planning.offline_plan import site_costmap, zone_lethal
+from wsnav.robot_agent.sim.lidar import LidarParams
+from wsnav.schemas.site import Site, load_site
 
 SCHOOL = SITES / "school"
 ROUTES = [("A", "B", ["z1", "z4"]), ("B", "C", ["z4", "z5"]), ("C", "D", ["z1", "z5", "z3"])]

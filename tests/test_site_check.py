@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from schemas.site import SiteError, load_site
 from tests.site_fixtures import tiny_site
+from wsnav.schemas.site import SiteError, load_site
 
 
 def wsnav(*args: str | Path) -> subprocess.CompletedProcess[str]:

@@ -28,15 +28,15 @@ from typing import IO
 import pytest
 import yaml
 
-from broker.credentials import load_credentials, write_credentials
-from broker.mosquitto import CONF
-from runtime.mqtt_bus import MqttBus
-from schemas import topics
-from schemas.messages import NodeStatus, PayloadError, RobotStatus, ZoneState, parse_payload
-from schemas.site import load_site
 from tests.conftest import require_tool
 from tests.test_broker_helpers import Endpoint, client, free_port, wait_listening
 from tests.test_compose_stack import P2, ROBOT, SITE, UPPER, inside, write_site
+from wsnav.broker.credentials import load_credentials, write_credentials
+from wsnav.broker.mosquitto import CONF
+from wsnav.runtime.mqtt_bus import MqttBus
+from wsnav.schemas import topics
+from wsnav.schemas.messages import NodeStatus, PayloadError, RobotStatus, ZoneState, parse_payload
+from wsnav.schemas.site import load_site
 
 pytestmark = pytest.mark.timeout(300)
 

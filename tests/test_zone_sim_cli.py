@@ -9,17 +9,17 @@ from pathlib import Path
 
 import pytest
 
-from broker.embedded import BrokerThread
-from experiments.run_plan import plan_runs
-from runtime.clock import SimClock
-from schemas import topics
-from schemas.messages import SimWorld, ZoneState, parse_payload
-from schemas.site import load_site
 from tests.conftest import SITES
 from tests.zone_sim_fixtures import SITE, sim_site, subscriber
+from wsnav.broker.embedded import BrokerThread
 from wsnav.cli import main
-from zone_sim.raffle import draws
-from zone_sim.scenario import ScenarioError, load_scenario
+from wsnav.experiments.run_plan import plan_runs
+from wsnav.runtime.clock import SimClock
+from wsnav.schemas import topics
+from wsnav.schemas.messages import SimWorld, ZoneState, parse_payload
+from wsnav.schemas.site import load_site
+from wsnav.zone_sim.raffle import draws
+from wsnav.zone_sim.scenario import ScenarioError, load_scenario
 
 
 def error_line(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:

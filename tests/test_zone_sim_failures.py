@@ -7,14 +7,14 @@ import json
 import time
 from pathlib import Path
 
-from broker.embedded import BrokerThread
-from runtime.bus import Message
-from runtime.clock import SimClock
-from schemas import topics
-from schemas.messages import NodeStatus, ZoneState, parse_payload
-from schemas.site import load_site
 from tests.zone_sim_fixtures import HEARTBEAT_S, drive, settle, sim_site, subscriber, wait_online
-from zone_sim.simulator import ZoneSimulator
+from wsnav.broker.embedded import BrokerThread
+from wsnav.runtime.bus import Message
+from wsnav.runtime.clock import SimClock
+from wsnav.schemas import topics
+from wsnav.schemas.messages import NodeStatus, ZoneState, parse_payload
+from wsnav.schemas.site import load_site
+from wsnav.zone_sim.simulator import ZoneSimulator
 
 
 class Ages:

@@ -6,16 +6,16 @@ from __future__ import annotations
 import random
 from pathlib import Path
 
-from broker.embedded import BrokerThread
-from runtime.clock import SimClock
-from schemas import topics
-from schemas.messages import NodeInfo, NodeStatus, ZoneState, parse_payload
-from schemas.site import load_site
 from tests.zone_sim_fixtures import SITE, drive, settle, sim_site, subscriber, wait_online
-from zone_sim.emulated_node import Sent
-from zone_sim.firmware_modules import SEQ_BASE_BITS, NodeLogic, diagnostics
-from zone_sim.scenario import Block, Scenario
-from zone_sim.simulator import ZoneSimulator
+from wsnav.broker.embedded import BrokerThread
+from wsnav.runtime.clock import SimClock
+from wsnav.schemas import topics
+from wsnav.schemas.messages import NodeInfo, NodeStatus, ZoneState, parse_payload
+from wsnav.schemas.site import load_site
+from wsnav.zone_sim.emulated_node import Sent
+from wsnav.zone_sim.firmware_modules import SEQ_BASE_BITS, NodeLogic, diagnostics
+from wsnav.zone_sim.scenario import Block, Scenario
+from wsnav.zone_sim.simulator import ZoneSimulator
 
 FIRMWARE_VERSION = diagnostics.FIRMWARE_VERSION
 

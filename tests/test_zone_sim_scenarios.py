@@ -5,17 +5,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from broker.embedded import BrokerThread
-from runtime.bus import Message
-from runtime.clock import SimClock
-from schemas import topics
-from schemas.messages import SimWorld, ZoneState, parse_payload
-from schemas.site import load_site
 from tests.zone_sim_fixtures import drive, settle, sim_site, subscriber, wait_online
-from zone_sim.emulated_node import Sent
-from zone_sim.scenario import Block, Raffle, Scenario, SensorSpec
-from zone_sim.sensor_model import SensorSettings
-from zone_sim.simulator import ZoneSimulator
+from wsnav.broker.embedded import BrokerThread
+from wsnav.runtime.bus import Message
+from wsnav.runtime.clock import SimClock
+from wsnav.schemas import topics
+from wsnav.schemas.messages import SimWorld, ZoneState, parse_payload
+from wsnav.schemas.site import load_site
+from wsnav.zone_sim.emulated_node import Sent
+from wsnav.zone_sim.scenario import Block, Raffle, Scenario, SensorSpec
+from wsnav.zone_sim.sensor_model import SensorSettings
+from wsnav.zone_sim.simulator import ZoneSimulator
 
 
 def states_by_node(messages: list[Message]) -> dict[str, list[ZoneState]]:

@@ -6,10 +6,10 @@ import random
 
 import pytest
 
-from schemas.site import load_site
 from tests.conftest import SITES
-from zone_sim.sensor_model import SensorSettings, SimulatedSensor
-from zone_sim.world import World
+from wsnav.schemas.site import load_site
+from wsnav.zone_sim.sensor_model import SensorSettings, SimulatedSensor
+from wsnav.zone_sim.world import World
 
 PIR = {"zone": "z1", "sensor_type": "pir", "invert": False, "threshold_mm": 0, "samples": 1}
 

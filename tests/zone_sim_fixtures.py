@@ -6,13 +6,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from broker.embedded import BrokerThread
-from runtime.bus import Message
-from runtime.clock import Clock, SimClock
-from runtime.mqtt_bus import MqttBus, connect_with_credentials
-from schemas import topics
 from tests.site_fixtures import tiny_site
-from zone_sim.simulator import ZoneSimulator
+from wsnav.broker.embedded import BrokerThread
+from wsnav.runtime.bus import Message
+from wsnav.runtime.clock import Clock, SimClock
+from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.zone_sim.simulator import ZoneSimulator
 
 SITE = "tiny"
 HEARTBEAT_S = 1.0

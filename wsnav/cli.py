@@ -7,15 +7,15 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 
-from broker import cli as broker_cli
-from console import cli as console_cli
-from firmware import cli as firmware_cli
-from robot_agent import cli as robot_agent_cli
-from ros_bridge import cli as ros_bridge_cli
-from ros_bridge import robot_cli as ros_bridge_robot_cli
-from runtime.cli_support import CliError, Parser
 from wsnav import experiment_cli, fleet_cli, plan_command, site_commands
-from zone_sim import cli as zone_sim_cli
+from wsnav.broker import cli as broker_cli
+from wsnav.console import cli as console_cli
+from wsnav.firmware import cli as firmware_cli
+from wsnav.robot_agent import cli as robot_agent_cli
+from wsnav.ros_bridge import cli as ros_bridge_cli
+from wsnav.ros_bridge import robot_cli as ros_bridge_robot_cli
+from wsnav.runtime.cli_support import CliError, Parser
+from wsnav.zone_sim import cli as zone_sim_cli
 
 Registrar = Callable[["argparse._SubParsersAction[Parser]"], None]
 

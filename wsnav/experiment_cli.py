@@ -11,10 +11,10 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from runtime.cli_support import host_port
+from wsnav.runtime.cli_support import host_port
 
 if TYPE_CHECKING:
-    from runtime.cli_support import Parser
+    from wsnav.runtime.cli_support import Parser
 
 
 def register(sub: argparse._SubParsersAction[Parser]) -> None:

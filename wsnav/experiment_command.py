@@ -8,15 +8,15 @@ from pathlib import Path
 
 import numpy as np
 
-from broker.mosquitto_process import MosquittoError
-from experiments.cluster import ClusterError
-from experiments.report import paths_figure
-from experiments.run_plan import RunSpec, plan_runs
-from experiments.runner import progress_line, report_header, run_experiment, write_outputs
-from experiments.single_run import BrokerAt
-from robot_agent.agent_config import AgentConfigError, load_agent_config
-from runtime.cli_support import CliError
-from schemas.site import Site, SiteError, load_site
+from wsnav.broker.mosquitto_process import MosquittoError
+from wsnav.experiments.cluster import ClusterError
+from wsnav.experiments.report import paths_figure
+from wsnav.experiments.run_plan import RunSpec, plan_runs
+from wsnav.experiments.runner import progress_line, report_header, run_experiment, write_outputs
+from wsnav.experiments.single_run import BrokerAt
+from wsnav.robot_agent.agent_config import AgentConfigError, load_agent_config
+from wsnav.runtime.cli_support import CliError
+from wsnav.schemas.site import Site, SiteError, load_site
 
 
 def _site(path: Path) -> Site:
@@ -43,7 +43,7 @@ def _specs(site: Site, configs: list[str], runs: int, seed: int) -> list[RunSpec
 
 def _cluster_size(address: str) -> int:
     """The cluster's worker threads; a scheduler that does not answer, or has no workers, is one line."""
-    from experiments.cluster import cluster_size
+    from wsnav.experiments.cluster import cluster_size
 
     try:
         return cluster_size(address)

@@ -12,10 +12,10 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from runtime.cli_support import host_port
+from wsnav.runtime.cli_support import host_port
 
 if TYPE_CHECKING:
-    from runtime.cli_support import Parser
+    from wsnav.runtime.cli_support import Parser
 
 
 def _broker_args(parser: Parser) -> None:

@@ -8,14 +8,14 @@ import math
 from collections.abc import Iterator
 from pathlib import Path
 
-from broker.embedded import BrokerThread
-from experiments.fleet_report import summary_rows, write_fleet_report
-from experiments.fleet_scenario import run_fleet
-from experiments.fleet_sim import FleetError, SimFleet, start_poses
-from experiments.single_run import BrokerAt
-from robot_agent.agent_config import AgentConfigError, load_agent_config
-from runtime.cli_support import CliError
-from schemas.site import Site, SiteError, load_site
+from wsnav.broker.embedded import BrokerThread
+from wsnav.experiments.fleet_report import summary_rows, write_fleet_report
+from wsnav.experiments.fleet_scenario import run_fleet
+from wsnav.experiments.fleet_sim import FleetError, SimFleet, start_poses
+from wsnav.experiments.single_run import BrokerAt
+from wsnav.robot_agent.agent_config import AgentConfigError, load_agent_config
+from wsnav.runtime.cli_support import CliError
+from wsnav.schemas.site import Site, SiteError, load_site
 
 
 def _site(path: Path) -> Site:

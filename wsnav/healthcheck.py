@@ -18,12 +18,12 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from broker.credentials import CredentialsError, load_credentials
-from runtime.cli_support import Parser, host_port
-from runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
-from schemas import topics
-from schemas.messages import NodeStatus, PayloadError, RobotStatus, parse_payload
-from schemas.site import Site, SiteError, load_site
+from wsnav.broker.credentials import CredentialsError, load_credentials
+from wsnav.runtime.cli_support import Parser, host_port
+from wsnav.runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.messages import NodeStatus, PayloadError, RobotStatus, parse_payload
+from wsnav.schemas.site import Site, SiteError, load_site
 
 
 class Unhealthy(Exception):

@@ -1,7 +1,7 @@
 """`wsnav plan --site DIR --from POINT --to POINT [--block ZONE ...] [--png FILE]`: an offline plan, no broker.
 
 Prints one JSON object (`reachable`, `length_m`, `path`, `blocked_zones`, `plan_ms`, ...). The plan is
-robot_agent.offline_plan's; the picture is drawn here, since components do not import wsnav (the site drawing is
+wsnav.navigation.planning.offline_plan's; the picture is drawn here, since components do not import wsnav (the site drawing is
 schemas.site_render). Planner and matplotlib are imported only when the command runs, so other commands start fast.
 """
 
@@ -13,11 +13,11 @@ import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from runtime.cli_support import CliError
+from wsnav.runtime.cli_support import CliError
 
 if TYPE_CHECKING:
-    from robot_agent.offline_plan import OfflinePlan
-    from runtime.cli_support import Parser
+    from wsnav.navigation.planning.offline_plan import OfflinePlan
+    from wsnav.runtime.cli_support import Parser
 
 
 def register(sub: argparse._SubParsersAction[Parser]) -> None:
@@ -38,7 +38,7 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
 
 
 def plan_command(args: argparse.Namespace) -> int:
-    from robot_agent.offline_plan import offline_plan
+    from wsnav.navigation.planning.offline_plan import offline_plan
 
     result = offline_plan(
         args.site, args.start, args.goal, args.block, args.robot, args.inflation_radius, args.cost_scaling
@@ -53,7 +53,7 @@ def plan_command(args: argparse.Namespace) -> int:
 
 def draw_plan(result: OfflinePlan, png: Path, title: str) -> None:
     """The site with the blocked zones hatched and the planned path (or why there is none) in the title."""
-    from schemas.site_render import draw_site, figure_for
+    from wsnav.schemas.site_render import draw_site, figure_for
 
     site, plan, blocked = result.site, result.plan, result.blocked
     fig, ax = figure_for(site)

@@ -6,11 +6,11 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from runtime.cli_support import CliError
-from schemas.site import SiteError, load_site
+from wsnav.runtime.cli_support import CliError
+from wsnav.schemas.site import SiteError, load_site
 
 if TYPE_CHECKING:
-    from runtime.cli_support import Parser
+    from wsnav.runtime.cli_support import Parser
 
 
 def register(sub: argparse._SubParsersAction[Parser]) -> None:
@@ -40,7 +40,7 @@ def check_command(args: argparse.Namespace) -> int:
 
 
 def render_command(args: argparse.Namespace) -> int:
-    from schemas.site_render import render_site
+    from wsnav.schemas.site_render import render_site
 
     try:
         site = load_site(args.site)

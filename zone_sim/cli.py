@@ -11,10 +11,10 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from runtime.cli_support import host_port
+from wsnav.runtime.cli_support import host_port
 
 if TYPE_CHECKING:
-    from runtime.cli_support import Parser
+    from wsnav.runtime.cli_support import Parser
 
 
 def register(sub: argparse._SubParsersAction[Parser]) -> None:
@@ -78,6 +78,6 @@ def _float(text: str) -> float:
 
 
 def zones_command(args: argparse.Namespace) -> int:
-    from zone_sim.run import run_zones
+    from wsnav.zone_sim.run import run_zones
 
     return run_zones(args)

@@ -15,9 +15,9 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
-from zone_sim.firmware_modules import POWER_ON_RESET, SEQ_BASE_BITS, Backoff, NodeLogic, diagnostics
-from zone_sim.links import LinkAddress, LinkLoop, NodeLink
-from zone_sim.sensor_model import SimulatedSensor
+from wsnav.zone_sim.firmware_modules import POWER_ON_RESET, SEQ_BASE_BITS, Backoff, NodeLogic, diagnostics
+from wsnav.zone_sim.links import LinkAddress, LinkLoop, NodeLink
+from wsnav.zone_sim.sensor_model import SimulatedSensor
 
 BROKER_BACKOFF_BASE_MS = 500
 BROKER_BACKOFF_CAP_MS = 30000

@@ -1,24 +1,23 @@
-"""The firmware's own pure logic modules, imported by their board names (the same source files the ESP8266 runs).
+"""The firmware's own pure logic modules (the same source files the ESP8266 runs).
 
-One place does the import for the rest of zone_sim; see firmware/__init__.py for why the device
-folder goes on sys.path.
+One place does the import for the rest of zone_sim; see firmware/__init__.py for how the board's module names
+are kept out of the top level.
 """
 
 from __future__ import annotations
 
-import importlib
 from typing import Any
 
-import firmware
+from wsnav.firmware import PURE_MODULES, load_device_modules
 
-firmware.add_device_path()
-# By name at run time: the device folder is not a package, so the type checker cannot follow these imports.
-backoff: Any = importlib.import_module("backoff")
-diagnostics: Any = importlib.import_module("diagnostics")
-node_logic: Any = importlib.import_module("node_logic")
-nodeconfig: Any = importlib.import_module("nodeconfig")
-payloads: Any = importlib.import_module("payloads")
-sensing: Any = importlib.import_module("sensing")
+# Loaded at run time: the device folder is not a package, so the type checker cannot follow these imports.
+_device: dict[str, Any] = load_device_modules(*PURE_MODULES)
+backoff: Any = _device["backoff"]
+diagnostics: Any = _device["diagnostics"]
+node_logic: Any = _device["node_logic"]
+nodeconfig: Any = _device["nodeconfig"]
+payloads: Any = _device["payloads"]
+sensing: Any = _device["sensing"]
 
 Backoff = backoff.Backoff
 POWER_ON_RESET = 0
@@ -27,7 +26,7 @@ NodeLogic = node_logic.NodeLogic
 ConfigError = nodeconfig.ConfigError
 parse_node_config = nodeconfig.parse
 digital_occupied = sensing.digital_occupied
-BLOCKED_LEVEL = importlib.import_module("debounce").BLOCKED
+BLOCKED_LEVEL = _device["debounce"].BLOCKED
 
 
 def ultrasonic_occupied(pulses_us: list[int], threshold_mm: int) -> bool:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from schemas.site_file import Route, SiteFile
+from wsnav.schemas.site_file import Route, SiteFile
 
 
 class RaffleError(ValueError):

@@ -5,13 +5,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-from runtime.cli_support import CliError
-from runtime.clock import WallClock
-from schemas.site import SiteError, load_site
-from zone_sim.scenario import ScenarioError, blocks_scenario, load_scenario
-from zone_sim.sensor_model import SensorSettings
-from zone_sim.simulator import SimulatorError, ZoneSimulator
-from zone_sim.world import WorldError
+from wsnav.runtime.cli_support import CliError
+from wsnav.runtime.clock import WallClock
+from wsnav.schemas.site import SiteError, load_site
+from wsnav.zone_sim.scenario import ScenarioError, blocks_scenario, load_scenario
+from wsnav.zone_sim.sensor_model import SensorSettings
+from wsnav.zone_sim.simulator import SimulatorError, ZoneSimulator
+from wsnav.zone_sim.world import WorldError
 
 
 def run_zones(args: argparse.Namespace) -> int:

@@ -24,10 +24,10 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from schemas.ids import Id
-from schemas.site_file import SiteFile
-from schemas.yaml_file import read_yaml_mapping
-from zone_sim.raffle import RaffleError, draws, find_route
+from wsnav.schemas.ids import Id
+from wsnav.schemas.site_file import SiteFile
+from wsnav.schemas.yaml_file import read_yaml_mapping
+from wsnav.zone_sim.raffle import RaffleError, draws, find_route
 
 Seconds = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 

@@ -12,8 +12,8 @@ import random
 from dataclasses import dataclass
 from typing import Any
 
-from zone_sim.firmware_modules import NO_ECHO_MM, digital_occupied, ultrasonic_occupied
-from zone_sim.world import World
+from wsnav.zone_sim.firmware_modules import NO_ECHO_MM, digital_occupied, ultrasonic_occupied
+from wsnav.zone_sim.world import World
 
 SOUND_US_PER_MM = 2000 / 343
 """Round-trip echo microseconds per millimetre of distance (the inverse of sensing.echo_us_to_mm)."""

@@ -23,18 +23,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from broker.credentials import CredentialsError, load_credentials
-from runtime.bus import Bus
-from runtime.clock import Clock
-from runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
-from schemas import topics
-from schemas.site import Site
-from zone_sim.emulated_node import EmulatedNode, Power, Sent
-from zone_sim.firmware_modules import ConfigError, parse_node_config
-from zone_sim.links import LinkLoop
-from zone_sim.scenario import Event, Scenario
-from zone_sim.sensor_model import SensorSettings, SimulatedSensor
-from zone_sim.world import World, WorldError
+from wsnav.broker.credentials import CredentialsError, load_credentials
+from wsnav.runtime.bus import Bus
+from wsnav.runtime.clock import Clock
+from wsnav.runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.site import Site
+from wsnav.zone_sim.emulated_node import EmulatedNode, Power, Sent
+from wsnav.zone_sim.firmware_modules import ConfigError, parse_node_config
+from wsnav.zone_sim.links import LinkLoop
+from wsnav.zone_sim.scenario import Event, Scenario
+from wsnav.zone_sim.sensor_model import SensorSettings, SimulatedSensor
+from wsnav.zone_sim.world import World, WorldError
 
 OPERATOR = "operator"
 OPERATOR_CONNECT_TIMEOUT_S = 10.0

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from schemas.messages import SimObstacle, SimWorld
-from schemas.site_file import SiteFile
+from wsnav.schemas.messages import SimObstacle, SimWorld
+from wsnav.schemas.site_file import SiteFile
 
 
 class WorldError(ValueError):

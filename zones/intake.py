@@ -28,10 +28,9 @@ from typing import TypeVar
 
 from pydantic import ValidationError
 
-from robot_agent.zone_layer import ZoneLayer
-from runtime.bus import Message
-from schemas import topics
-from schemas.messages import (
+from wsnav.runtime.bus import Message
+from wsnav.schemas import topics
+from wsnav.schemas.messages import (
     MAX_OPERATOR_PAYLOAD_BYTES,
     MAX_PAYLOAD_BYTES,
     NodeStatus,
@@ -40,7 +39,8 @@ from schemas.messages import (
     ZoneState,
     refuse_duplicate_keys,
 )
-from schemas.site_file import SiteFile
+from wsnav.schemas.site_file import SiteFile
+from wsnav.zones.zone_layer import ZoneLayer
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """A simulated TurtleBot3 Burger: acceleration-limited differential drive, a circular bumper, an LDS-01 lidar.
 
-It implements robot_agent.backend.RobotBackend. Time is whatever the owner passes to `step` (simulated time),
+It implements wsnav.navigation.backend.RobotBackend. Time is whatever the owner passes to `step` (simulated time),
 so the same robot runs in lock-step with the rest of a simulation, faster than real time.
 """
 
@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robot_agent.backend import DriveLimits, LaserScan, Pose, Velocity
-from robot_agent.lidar import LidarParams, cast_scan
-from robot_agent.sim_world_grid import SimWorldGrid
+from wsnav.navigation.backend import DriveLimits, LaserScan, Pose, Velocity
+from wsnav.robot_agent.sim.lidar import LidarParams, cast_scan
+from wsnav.robot_agent.sim.world_grid import SimWorldGrid
 
 _BURGER = DriveLimits()
 """The controller's default limits are the Burger's: one place for the numbers."""

@@ -7,17 +7,17 @@ Pure logic over the costmap, planner, controller and robot backend, driven by `s
   (a path that appeared may be shorter, one that vanished must be replaced); no path: stop and wait.
 - Waiting resumes by itself: every later zone change retries, and so (configurably) does a timer.
 - The robot's footprint touches a blocked zone (it was inside when the zone was reported): leave it by the
-  shortest way out over the escape view (robot_agent.zone_escape) (the zone passable, walls and lidar marks not; the controller
+  shortest way out over the escape view (wsnav.navigation.behaviors.escape) (the zone passable, walls and lidar marks not; the controller
   sees the same view), then on to the goal by a route that avoids the zone, or stop and wait once out if there
   is none. Once out, back on the costmap as it is: the zone is lethal again, no way back in.
 - The controller reports its path blocked (the lidar saw something): replan over the obstacle marks.
 - Configurably, replan at a fixed rate too (stock move_base's planner_frequency).
 - Configurably, stock move_base's oscillation detection, patience and recovery behaviours
-  (robot_agent.move_base_recovery): the robot not 0.2 m further in 10 s, the controller without a valid command
+  (wsnav.navigation.behaviors.recovery): the robot not 0.2 m further in 10 s, the controller without a valid command
   for 15 s, or (stock only) no plan for 5 s runs the next of conservative reset, rotation, aggressive reset,
   rotation; when all have run, the goal is aborted (cancelled, naming move_base's reason).
 
-- Held by the agent (another robot has right of way, robot_agent.right_of_way): stop and wait, keeping the goal,
+- Held by the agent (another robot has right of way, wsnav.navigation.behaviors.right_of_way): stop and wait, keeping the goal,
   with the agent's reason; released, plan again from where it stands.
 """
 
@@ -32,20 +32,20 @@ from typing import Literal, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from robot_agent.backend import Pose, RobotBackend, Velocity
-from robot_agent.costmap_planner import GlobalPlanner, PlanningCostmap
-from robot_agent.global_planner import Plan
-from robot_agent.move_base_recovery import (
+from wsnav.navigation.backend import Pose, RobotBackend, Velocity
+from wsnav.navigation.behaviors.escape import EscapePlan, EscapeView, Leaving, plan_escape
+from wsnav.navigation.behaviors.recovery import (
     ABORT_REASONS,
     MoveBaseRecovery,
     RecoveryParams,
     RecoveryTrigger,
     Rotation,
 )
-from robot_agent.zone_escape import EscapePlan, EscapeView, Leaving, plan_escape
-from robot_agent.zone_geometry import Bounds, GridFrame
-from robot_agent.zone_layer import BlockedArea
-from runtime.timers import Every
+from wsnav.navigation.planning.costmap_planner import GlobalPlanner, PlanningCostmap
+from wsnav.navigation.planning.global_planner import Plan
+from wsnav.runtime.timers import Every
+from wsnav.zones.geometry import Bounds, GridFrame
+from wsnav.zones.zone_layer import BlockedArea
 
 NavState = Literal["idle", "navigating", "waiting", "arrived", "cancelled"]
 Trigger = Literal["goal", "zone", "blocked", "periodic", "retry", "recovery", "yield"]
@@ -66,7 +66,7 @@ GoalLabel = str | Pose
 
 
 class Costmap(PlanningCostmap, Protocol):
-    """What the navigator reads of robot_agent.layered_costmap.LayeredCostmap."""
+    """What the navigator reads of wsnav.navigation.costmap.layered_costmap.LayeredCostmap."""
 
     def in_lethal(self, x: float, y: float) -> bool: ...
     def clear_obstacles_outside(self, x: float, y: float, size_m: float) -> Bounds | None: ...
@@ -76,7 +76,7 @@ class Costmap(PlanningCostmap, Protocol):
 
 
 class Escape(Protocol):
-    """What the navigator needs of robot_agent.zone_escape.ZoneEscape."""
+    """What the navigator needs of wsnav.navigation.behaviors.escape.ZoneEscape."""
 
     def areas_at(self, x: float, y: float) -> list[BlockedArea]:
         """Blocked zones (and operator blocks) the robot's footprint would touch at this point."""
@@ -107,7 +107,7 @@ class ControlOutput(Protocol):
 
 
 class Controller(Protocol):
-    """What the navigator needs of robot_agent.controller.PathFollower."""
+    """What the navigator needs of wsnav.navigation.control.controller.PathFollower."""
 
     def set_path(self, path: NDArray[np.float64], goal_yaw: float | None = None) -> None: ...
     def clear(self) -> None: ...

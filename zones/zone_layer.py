@@ -17,10 +17,10 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from robot_agent.inflation import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION
-from robot_agent.zone_geometry import Bounds, CellWindow, GridFrame, polygon_window
-from schemas.messages import NodeStatus, OperatorBlock, ZoneState
-from schemas.site_file import SiteFile, ZonePolicy
+from wsnav.schemas.messages import NodeStatus, OperatorBlock, ZoneState
+from wsnav.schemas.site_file import SiteFile, ZonePolicy
+from wsnav.zones.cost_values import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION
+from wsnav.zones.geometry import Bounds, CellWindow, GridFrame, polygon_window
 
 Word = Literal["clear", "caution", "unknown", "blocked"]
 """What one node says about its zone once staleness is applied; ordered by precedence."""

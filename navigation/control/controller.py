@@ -16,10 +16,10 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from robot_agent.backend import DriveLimits, Pose, Velocity
-from robot_agent.global_planner import densify, steps_to
-from robot_agent.inflation import FREE_SPACE, INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
-from robot_agent.zone_geometry import GridFrame
+from wsnav.navigation.backend import DriveLimits, Pose, Velocity
+from wsnav.navigation.planning.global_planner import densify, steps_to
+from wsnav.zones.cost_values import FREE_SPACE, INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
+from wsnav.zones.geometry import GridFrame
 
 Status = Literal["following", "arrived", "blocked", "idle"]
 

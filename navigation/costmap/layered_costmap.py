@@ -1,8 +1,8 @@
 """The robot's layered costmap, with costmap_2d's semantics: static -> obstacle -> zone -> robots, then inflation.
 
-The layers (robot_agent.costmap_layers) are merged in order, each by its own rule (costmap_2d's: the static
+The layers (wsnav.navigation.costmap.layers) are merged in order, each by its own rule (costmap_2d's: the static
 layer overwrites, the others by updateWithMax, where a layer's NO_INFORMATION never hides a known cost), then
-inflated with costmap_2d's formula (robot_agent.inflation). Every
+inflated with costmap_2d's formula (wsnav.navigation.costmap.inflation). Every
 update touches only the bounds that changed: the cells whose merged cost a layer changed are merged again, and
 the inflation layer's reach around them re-inflated from the merged cells within reach of them (a lethal
 cell farther than the radius cannot change a cell's cost), so the result is cell for cell what a whole-map
@@ -18,8 +18,9 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from robot_agent.backend import LaserScan, Pose
-from robot_agent.costmap_layers import (
+from wsnav.navigation.backend import LaserScan, Pose
+from wsnav.navigation.costmap.inflation import InflationParams
+from wsnav.navigation.costmap.layers import (
     InflationLayer,
     Layer,
     ObstacleLayer,
@@ -27,16 +28,10 @@ from robot_agent.costmap_layers import (
     StaticLayer,
     ZoneCostLayer,
 )
-from robot_agent.inflation import (
-    FREE_SPACE,
-    INSCRIBED_INFLATED_OBSTACLE,
-    LETHAL_OBSTACLE,
-    NO_INFORMATION,
-    InflationParams,
-)
-from robot_agent.zone_geometry import Bounds, GridFrame
-from robot_agent.zone_layer import ZoneLayer
-from schemas.ros_map import OccupancyGrid
+from wsnav.schemas.ros_map import OccupancyGrid
+from wsnav.zones.cost_values import FREE_SPACE, INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
+from wsnav.zones.geometry import Bounds, GridFrame
+from wsnav.zones.zone_layer import ZoneLayer
 
 __all__ = ["Bounds", "LayeredCostmap"]
 

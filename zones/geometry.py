@@ -14,7 +14,7 @@ import numpy as np
 from matplotlib.path import Path as MplPath
 from numpy.typing import NDArray
 
-from schemas.ros_map import OccupancyGrid
+from wsnav.schemas.ros_map import OccupancyGrid
 
 Polygon = Sequence[tuple[float, float]] | Sequence[Sequence[float]]
 

@@ -1,6 +1,6 @@
 """Stock move_base's oscillation detection, patience and recovery behaviours (ROS 1 noetic, move_base.cpp).
 
-The bookkeeping only; the navigator (robot_agent.navigator) runs the behaviours. move_base's rules, as its
+The bookkeeping only; the navigator (wsnav.navigation.navigator) runs the behaviours. move_base's rules, as its
 `executeCycle` has them:
 
 - Oscillation: each control cycle, once the robot is `oscillation_distance` from the pose last noted, the pose
@@ -21,7 +21,7 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
-from robot_agent.backend import Pose
+from wsnav.navigation.backend import Pose
 
 RecoveryTrigger = Literal["oscillation", "controlling", "planning"]
 ABORT_REASONS: dict[RecoveryTrigger, str] = {

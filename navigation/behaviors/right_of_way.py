@@ -3,7 +3,7 @@
 The site's robot list is the order of right of way (the first robot has it over all others). A robot yields
 (stops where it is and waits, its status saying to whom and why) while a robot with right of way is driving
 towards it: within `distance_m`, each in front of the other (within `cone_deg` of its heading). The robot with
-right of way never stops for it: it sees the yielding robot's footprint in its costmap (robot_agent.costmap_layers
+right of way never stops for it: it sees the yielding robot's footprint in its costmap (wsnav.navigation.costmap.layers
 .RobotsLayer) and plans round it, as round any obstacle; once it has passed (no longer in front), the yielding
 robot plans again and goes on. A robot with right of way that is not driving (waiting for a way, arrived, idle)
 is never yielded to, so two robots can never wait for each other: the lower one plans round the other instead.
@@ -14,8 +14,8 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable
 
-from robot_agent.backend import Pose
-from robot_agent.costmap_layers import OtherRobot
+from wsnav.navigation.backend import Pose
+from wsnav.navigation.costmap.layers import OtherRobot
 
 YIELD_DISTANCE_M = 1.5
 """Centre to centre: at the TurtleBot3's 0.22 m/s, seven seconds before the two footprints would meet."""

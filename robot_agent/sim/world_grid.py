@@ -13,10 +13,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import distance_transform_edt
 
-from robot_agent.inflation import LETHAL_OBSTACLE, static_layer
-from robot_agent.zone_geometry import CellWindow, GridFrame, polygon_window
-from schemas.messages import SimWorld
-from schemas.ros_map import OccupancyGrid
+from wsnav.navigation.costmap.inflation import static_layer
+from wsnav.schemas.messages import SimWorld
+from wsnav.schemas.ros_map import OccupancyGrid
+from wsnav.zones.cost_values import LETHAL_OBSTACLE
+from wsnav.zones.geometry import CellWindow, GridFrame, polygon_window
 
 
 class SimWorldGrid:

@@ -16,15 +16,15 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from robot_agent.global_planner import Plan, PlannerParams, plan_path, simplify
-from robot_agent.inflation import InflationParams
-from robot_agent.layered_costmap import LayeredCostmap
-from robot_agent.zone_geometry import GridFrame, polygon_window
-from robot_agent.zone_layer import ZoneLayer
-from runtime.cli_support import CliError
-from schemas.messages import OperatorBlock
-from schemas.ros_map import FREE
-from schemas.site import Site, SiteError, load_site
+from wsnav.navigation.costmap.inflation import InflationParams
+from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
+from wsnav.navigation.planning.global_planner import Plan, PlannerParams, plan_path, simplify
+from wsnav.runtime.cli_support import CliError
+from wsnav.schemas.messages import OperatorBlock
+from wsnav.schemas.ros_map import FREE
+from wsnav.schemas.site import Site, SiteError, load_site
+from wsnav.zones.geometry import GridFrame, polygon_window
+from wsnav.zones.zone_layer import ZoneLayer
 
 
 def frame_of(site: Site) -> GridFrame:

@@ -17,8 +17,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from robot_agent.backend import LaserScan, Pose
-from robot_agent.zone_geometry import GridFrame
+from wsnav.navigation.backend import LaserScan, Pose
+from wsnav.zones.geometry import GridFrame
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,7 @@
-"""costmap_2d's cost values, its static layer from a ROS map, and its inflation formula.
+"""costmap_2d's static layer from a ROS map, and its inflation formula.
 
-Users of ROS read costs as costmap_2d defines them, so we keep its numbers and its rule exactly:
-0 free, 253 inscribed (the robot's centre here means a collision), 254 lethal, 255 unknown, and between
-the inscribed radius and the inflation radius `252 * exp(-k * (d - r_inscribed))`.
+Users of ROS read costs as costmap_2d defines them, so we keep its values (wsnav.zones.cost_values) and its rule
+exactly: between the inscribed radius and the inflation radius `252 * exp(-k * (d - r_inscribed))`.
 """
 
 from __future__ import annotations
@@ -15,14 +14,14 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from schemas.ros_map import OCCUPIED, UNKNOWN, OccupancyGrid
-
-FREE_SPACE = 0
-INSCRIBED_INFLATED_OBSTACLE = 253
-LETHAL_OBSTACLE = 254
-NO_INFORMATION = 255
-
-Costs = NDArray[np.uint8]
+from wsnav.schemas.ros_map import OCCUPIED, UNKNOWN, OccupancyGrid
+from wsnav.zones.cost_values import (
+    FREE_SPACE,
+    INSCRIBED_INFLATED_OBSTACLE,
+    LETHAL_OBSTACLE,
+    NO_INFORMATION,
+    Costs,
+)
 
 
 @dataclass(frozen=True)

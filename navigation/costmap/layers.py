@@ -1,7 +1,7 @@
 """The costmap's layers, each with its own grid and its own rule for entering master (costmap_2d's `Layer`).
 
 A layer reports the windows it changed since it was last asked (costmap_2d's `updateBounds`) and combines its
-costs into a master window (`updateCosts`). The stack (robot_agent.layered_costmap) merges static, obstacle and
+costs into a master window (`updateCosts`). The stack (wsnav.navigation.costmap.layered_costmap) merges static, obstacle and
 zone layers in that order, then hands the result to the inflation layer. The rules are costmap_2d's: the static
 layer overwrites (StaticLayer without `use_maximum`), the others merge by `update_with_max`, in which a layer's
 NO_INFORMATION never overrides what master knows. Adding a layer means writing one class
@@ -19,18 +19,12 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from robot_agent.backend import LaserScan, Pose
-from robot_agent.inflation import (
-    LETHAL_OBSTACLE,
-    NO_INFORMATION,
-    InflationParams,
-    inflate,
-    inflation_reach,
-    static_layer,
-)
-from robot_agent.zone_geometry import Bounds, GridFrame
-from robot_agent.zone_layer import BlockedArea, ZoneLayer
-from schemas.ros_map import OccupancyGrid
+from wsnav.navigation.backend import LaserScan, Pose
+from wsnav.navigation.costmap.inflation import InflationParams, inflate, inflation_reach, static_layer
+from wsnav.schemas.ros_map import OccupancyGrid
+from wsnav.zones.cost_values import LETHAL_OBSTACLE, NO_INFORMATION
+from wsnav.zones.geometry import Bounds, GridFrame
+from wsnav.zones.zone_layer import BlockedArea, ZoneLayer
 
 Costs = NDArray[np.uint8]
 
@@ -286,7 +280,7 @@ class OtherRobot:
     radius: float
     state: str
     priority: int
-    """Its place in the site's robot list: 0 has right of way over everyone (robot_agent.right_of_way)."""
+    """Its place in the site's robot list: 0 has right of way over everyone (wsnav.navigation.behaviors.right_of_way)."""
     expires_at: float
     """Clock time after which its pose is too old to keep (it went silent, or its status was an old retained one)."""
 

@@ -18,12 +18,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import distance_transform_edt
 
-from robot_agent.costmap_planner import GlobalPlanner, PlanningCostmap
-from robot_agent.global_planner import XY, Plan, plan_exit
-from robot_agent.inflation import INSCRIBED_INFLATED_OBSTACLE, inflate
-from robot_agent.layered_costmap import LayeredCostmap
-from robot_agent.zone_geometry import Bounds, CellWindow
-from robot_agent.zone_layer import BlockedArea
+from wsnav.navigation.costmap.inflation import inflate
+from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
+from wsnav.navigation.planning.costmap_planner import GlobalPlanner, PlanningCostmap
+from wsnav.navigation.planning.global_planner import XY, Plan, plan_exit
+from wsnav.zones.cost_values import INSCRIBED_INFLATED_OBSTACLE
+from wsnav.zones.geometry import Bounds, CellWindow
+from wsnav.zones.zone_layer import BlockedArea
 
 ESCAPE_COST = 200
 """What a cell made lethal or inscribed only by a zone the robot stands in costs in an escape view: passable, but

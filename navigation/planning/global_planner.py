@@ -23,8 +23,8 @@ from numpy.typing import NDArray
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from robot_agent.inflation import INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
-from robot_agent.zone_geometry import Bounds, GridFrame
+from wsnav.zones.cost_values import INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
+from wsnav.zones.geometry import Bounds, GridFrame
 
 _PYASTAR: Any = importlib.import_module("pyastar2d.astar")
 """The compiled module behind pyastar2d.astar_path."""

@@ -13,7 +13,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from robot_agent.global_planner import (
+from wsnav.navigation.planning.global_planner import (
     XY,
     Plan,
     PlannerParams,
@@ -22,8 +22,8 @@ from robot_agent.global_planner import (
     searched_coarse,
     weight_lut,
 )
-from robot_agent.inflation import NO_INFORMATION
-from robot_agent.zone_geometry import Bounds, GridFrame
+from wsnav.zones.cost_values import NO_INFORMATION
+from wsnav.zones.geometry import Bounds, GridFrame
 
 
 def pool_max(costs: NDArray[np.uint8], factor: int) -> NDArray[np.uint8]:
@@ -43,7 +43,7 @@ def pool_max(costs: NDArray[np.uint8], factor: int) -> NDArray[np.uint8]:
 
 
 class PlanningCostmap(Protocol):
-    """What the planner reads of robot_agent.layered_costmap.LayeredCostmap."""
+    """What the planner reads of wsnav.navigation.costmap.layered_costmap.LayeredCostmap."""
 
     @property
     def frame(self) -> GridFrame: ...
