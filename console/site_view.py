@@ -25,6 +25,8 @@ from wsnav.schemas.messages import (
     parse_payload,
 )
 from wsnav.schemas.site import Site
+from wsnav.zones.geometry import GridFrame
+from wsnav.zones.zone_layer import ZoneLayer
 
 Kind = Literal["zone", "node", "robot", "block"]
 Key = tuple[Kind, str]
@@ -73,6 +75,8 @@ class SiteView:
             self.zone_nodes[n.zone].append(n.id)
         self.robots: dict[str, RobotView] = {r.id: RobotView() for r in spec.robots}
         self.blocks: dict[str, BlockView] = {}
+        self.rule = ZoneLayer(spec, GridFrame.of_grid(site.grid))
+        """The robots' own zone layer, fed the same messages: a zone's state is what the robots make of it."""
         self.dropped: collections.Counter[str] = collections.Counter()
         self.last_drop: str | None = None
         self._logged: dict[str, str] = {}
@@ -114,6 +118,7 @@ class SiteView:
         if node is None or msg.node != node_id or msg.zone != node.zone:
             return self._drop(f"zone state of unknown node or wrong zone: {node_id}")
         node.state, node.seq, node.heard_at = msg.state, msg.seq, at
+        self.rule.on_zone_state(msg, at)
         if node.online is None:
             node.online = True  # a node that speaks is connected, even before its retained birth arrives
         return {("node", node_id), ("zone", node.zone)}
@@ -123,7 +128,10 @@ class SiteView:
         if node is None:
             return self._drop(f"status of unknown node: {node_id}")
         msg = parse_payload(NodeStatus, payload)
+        if msg.node != node_id:
+            return self._drop(f"status of {msg.node} on {node_id}'s topic")
         node.online, node.status_at = msg.status == "online", at
+        self.rule.on_node_status(msg, at)
         return {("node", node_id), ("zone", node.zone)}
 
     def _node_info(self, node_id: str, payload: bytes, at: float) -> set[Key]:
@@ -157,15 +165,16 @@ class SiteView:
         return {("robot", robot_id)}
 
     def _block(self, block_id: str, payload: bytes, at: float) -> set[Key]:
+        msg = parse_payload(OperatorBlock, payload, max_bytes=MAX_OPERATOR_PAYLOAD_BYTES) if payload else None
         before = self.blocks.pop(block_id, None)
         keys: set[Key] = {("block", block_id)}
         if before is not None and before.block.zone is not None:
             keys.add(("zone", before.block.zone))
-        if payload:
-            msg = parse_payload(OperatorBlock, payload, max_bytes=MAX_OPERATOR_PAYLOAD_BYTES)
+        if msg is not None:
             self.blocks[block_id] = BlockView(msg, at)
             if msg.zone is not None:
                 keys.add(("zone", msg.zone))
+        self.rule.on_operator_block(block_id, msg, at)
         return keys
 
     # -- time ----------------------------------------------------------------------------------------------
@@ -185,18 +194,14 @@ class SiteView:
         return node.heard_at is not None and now - node.heard_at <= self.stale_after * node.heartbeat_s
 
     def zone_state(self, zone_id: str, now: float) -> str:
-        """blocked (by a node or the operator), caution, clear, stale (nodes silent or offline), unknown."""
-        if any(b.block.zone == zone_id for b in self.blocks.values()):
-            return "blocked"
-        nodes = [self.nodes[n] for n in self.zone_nodes.get(zone_id, [])]
-        fresh = [n.state for n in nodes if n.online is not False and self.node_fresh(n, now)]
-        if "blocked" in fresh:
-            return "blocked"
-        if "caution" in fresh:
-            return "caution"
-        if fresh:
-            return "clear"
-        return "stale" if any(n.heard_at is not None or n.online is not None for n in nodes) else "unknown"
+        """What the robots make of the zone (blocked, caution, clear, unknown), by the site's policy: fusion
+        of its nodes, and what a stale node counts as. `stale_nodes` in the entry says who is silent."""
+        self.rule.refresh(now)
+        return self.rule.zone_word(zone_id)
+
+    def stale_nodes(self, zone_id: str, now: float) -> list[str]:
+        self.rule.refresh(now)
+        return self.rule.stale_nodes(zone_id)
 
     def zone_states(self, now: float) -> dict[str, str]:
         return {z: self.zone_state(z, now) for z in self.zones}
@@ -211,6 +216,7 @@ class SiteView:
             return {
                 "id": ident,
                 "state": self.zone_state(ident, now),
+                "stale_nodes": self.stale_nodes(ident, now),
                 "nodes": self.zone_nodes[ident],
                 "operator_blocks": blocks,
             }

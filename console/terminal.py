@@ -84,7 +84,12 @@ def render(snapshot: dict[str, Any]) -> str:
     out += _table(
         ["zone", "state", "nodes", "operator blocks"],
         [
-            [z["id"], z["state"], " ".join(z["nodes"]), " ".join(z["operator_blocks"])]
+            [
+                z["id"],
+                z["state"] + (f" (stale: {' '.join(z['stale_nodes'])})" if z["stale_nodes"] else ""),
+                " ".join(z["nodes"]),
+                " ".join(z["operator_blocks"]),
+            ]
             for z in snapshot["zones"]
         ],
     )

@@ -10,55 +10,96 @@ import pytest
 
 from tests.conftest import REPO
 
-COMPONENTS = [
-    "broker",
-    "firmware",
-    "robot_agent",
-    "zone_sim",
-    "schemas",
-    "runtime",
-    "experiments",
-    "ros_bridge",
-    "console",
-]
-FORBIDDEN = {
-    "robot_agent": {"zone_sim", "ros_bridge"},  # the agent runs where no ROS is installed
-    "zone_sim": {"robot_agent", "ros_bridge"},
-    "ros_bridge": {"zone_sim"},
-    "console": {"robot_agent", "zone_sim", "ros_bridge", "experiments"},  # only the MQTT contract
+ALLOWED: dict[str, set[str]] = {
+    "schemas": set(),
+    "runtime": {"schemas"},
+    "broker": {"schemas", "runtime"},
+    "firmware": {"schemas", "runtime", "broker"},  # deploy writes the node's credentials file
+    "zones": {"schemas", "runtime"},
+    "navigation": {"schemas", "runtime", "zones"},
+    "robot_agent": {"schemas", "runtime", "zones", "navigation"},  # never ROS, never the simulator
+    "zone_sim": {"schemas", "runtime", "broker", "firmware"},  # runs the firmware's own logic
+    "experiments": {"schemas", "runtime", "broker", "zones", "navigation", "robot_agent", "zone_sim"},
+    "ros_bridge": {"schemas", "runtime", "zones", "navigation", "robot_agent"},
+    "console": {"schemas", "runtime", "broker", "zones"},  # the MQTT contract and the one zone rule
 }
+"""What each component may import, as docs/architecture.md's table says; the wsnav CLI may import all of them."""
+COMPONENTS = list(ALLOWED)
+TOP_LEVEL = set(COMPONENTS)
 
 
-def imported_packages(source: Path) -> set[str]:
-    """Top-level packages a module imports, also inside functions and TYPE_CHECKING blocks."""
+def python_files(folder: Path) -> list[Path]:
+    return [p for p in folder.rglob("*.py") if "device" not in p.relative_to(REPO).parts]
+
+
+def imported_names(source: Path) -> set[str]:
+    """Absolute module names a file imports (also inside functions and TYPE_CHECKING blocks); for
+    `from wsnav import x` the name is `wsnav.x`."""
     out: set[str] = set()
     for node in ast.walk(ast.parse(source.read_text(), filename=str(source))):
         if isinstance(node, ast.Import):
-            out.update(alias.name.split(".")[0] for alias in node.names)
+            out.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            out.add(node.module.split(".")[0])
+            out.add(node.module)
+            if node.module == "wsnav":
+                out.update(f"wsnav.{alias.name}" for alias in node.names)
     return out
 
 
+def wsnav_component(name: str) -> str | None:
+    parts = name.split(".")
+    return parts[1] if parts[0] == "wsnav" and len(parts) > 1 else None
+
+
 @pytest.mark.parametrize("component", COMPONENTS)
-def test_a_component_imports_neither_the_cli_nor_a_sibling_it_must_not_know(component: str) -> None:
-    forbidden = {"wsnav"} | FORBIDDEN.get(component, set())
-    sources = [p for p in (REPO / component).rglob("*.py") if "device" not in p.relative_to(REPO).parts]
+def test_a_component_imports_only_what_the_architecture_allows(component: str) -> None:
+    sources = python_files(REPO / component)
     assert sources
+    allowed = ALLOWED[component] | {component}
+    bad = set()
+    for p in sources:
+        for name in imported_names(p):
+            used = wsnav_component(name)
+            if used is not None and used not in allowed:
+                bad.add(f"{p.relative_to(REPO)} imports wsnav.{used}")
+    assert not bad, sorted(bad)
+
+
+def test_every_import_of_our_code_goes_through_the_wsnav_namespace() -> None:
+    """A top-level `import schemas` would load a second copy of the module (or PyPI's package of that name)."""
+    sources = [
+        p for folder in [*COMPONENTS, "wsnav", "tests", "bench", "sites"] for p in python_files(REPO / folder)
+    ]
     bad = {
-        f"{p.relative_to(REPO)} imports {pkg}" for p in sources for pkg in imported_packages(p) & forbidden
+        f"{p.relative_to(REPO)}: {name}"
+        for p in sources
+        for name in imported_names(p)
+        if name.split(".")[0] in TOP_LEVEL
     }
     assert not bad, sorted(bad)
 
 
+def test_the_architecture_page_states_the_allow_list() -> None:
+    page = (REPO / "docs" / "architecture.md").read_text()
+    for component, allowed in ALLOWED.items():
+        row = next((line for line in page.splitlines() if line.startswith(f"| `{component}/`")), None)
+        assert row is not None, f"docs/architecture.md has no row for {component}/"
+        cell = row.rstrip(" |").rsplit("|", 1)[-1]
+        stated = {name.strip(" `/") for name in cell.split(",") if name.strip(" `/-")}
+        assert stated == allowed, f"{component}: page says {sorted(stated)}, code allows {sorted(allowed)}"
+
+
 def test_every_component_ships_in_the_wheel_and_the_image() -> None:
-    """A component missing from the package list or the image's build context installs, then fails to import."""
+    """A component missing from the namespace or the image's build context installs, then fails to import."""
     import tomllib
 
     include = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"][
         "include"
     ]
+    assert include == ["wsnav*"], "the wheel installs one top-level name, wsnav"
     context = (REPO / ".dockerignore").read_text().splitlines()
-    for component in [*COMPONENTS, "wsnav"]:
-        assert f"{component}*" in include, f"pyproject.toml: {component} is not in the packages"
+    for component in COMPONENTS:
+        link = REPO / "wsnav" / component
+        assert link.is_symlink() and link.resolve() == (REPO / component).resolve(), f"wsnav/{component}"
         assert f"!{component}/" in context, f".dockerignore: {component}/ is left out of the image"
+    assert "!wsnav/" in context

@@ -26,6 +26,8 @@ from wsnav.schemas.messages import (
     parse_payload,
 )
 from wsnav.schemas.site import Site, load_site
+from wsnav.zones.geometry import GridFrame
+from wsnav.zones.zone_layer import ZoneLayer
 
 HB = 5.0  # tiny_site's heartbeat; stale after 3 heartbeats
 
@@ -42,22 +44,64 @@ def zone_msg(node: str, zone: str, state: ZoneStateValue, seq: int = 1) -> tuple
 
 
 def test_zone_states_follow_nodes_silence_wills_and_operator_blocks(site: Site) -> None:
+    """tiny's policy is the default: any node blocked blocks, a stale or offline node's last word is kept."""
     view = SiteView(site)
-    assert view.zone_states(0.0) == {"z1": "unknown", "z2": "unknown"}
+    assert view.zone_states(0.0) == {"z1": "clear", "z2": "clear"}, "the robots take an unheard zone as clear"
     view.apply(*zone_msg("n1", "z1", "blocked"), 100.0)
     view.apply(*zone_msg("n2", "z2", "caution"), 100.0)
     assert view.zone_states(101.0) == {"z1": "blocked", "z2": "caution"}
-    assert view.zone_states(100.0 + 3 * HB + 0.1) == {"z1": "stale", "z2": "stale"}
-    view.apply(topics.node_status("tiny", "n1"), NodeStatus(node="n1", status="offline").to_payload(), 102.0)
-    assert view.zone_state("z1", 102.0) == "stale", "an offline node's last word does not hold its zone"
-    block = OperatorBlock(zone="z2", expires_at=110.0, reason="spill").to_payload()
-    assert view.apply(topics.operator_block("tiny", "b1"), block, 103.0) == {("block", "b1"), ("zone", "z2")}
-    assert view.zone_state("z2", 104.0) == "blocked"
-    assert view.entry(("block", "b1"), 104.0) == {
-        "id": "b1", "zone": "z2", "polygon": None, "expires_at": 110.0, "left_s": 6.0, "reason": "spill",
+    assert view.zone_states(100.0 + 3 * HB + 0.1) == {"z1": "blocked", "z2": "caution"}
+    assert view.entry(("zone", "z1"), 100.0 + 3 * HB + 0.1)["stale_nodes"] == ["n1"]  # type: ignore[index]
+    view.apply(topics.node_status("tiny", "n1"), NodeStatus(node="n1", status="offline").to_payload(), 116.0)
+    assert view.zone_state("z1", 116.0) == "blocked", "an offline node's last word holds its zone under keep"
+    assert view.entry(("zone", "z1"), 116.0)["stale_nodes"] == ["n1"]  # type: ignore[index]
+    block = OperatorBlock(zone="z2", expires_at=125.0, reason="spill").to_payload()
+    view.apply(*zone_msg("n2", "z2", "caution", seq=2), 117.0)
+    assert view.apply(topics.operator_block("tiny", "b1"), block, 117.0) == {("block", "b1"), ("zone", "z2")}
+    assert view.zone_state("z2", 118.0) == "blocked"
+    assert view.entry(("block", "b1"), 118.0) == {
+        "id": "b1", "zone": "z2", "polygon": None, "expires_at": 125.0, "left_s": 7.0, "reason": "spill",
     }  # fmt: skip
-    assert view.expire(110.0) == {("block", "b1"), ("zone", "z2")}
-    assert view.zone_state("z2", 110.0) == "caution"
+    assert view.expire(125.0) == {("block", "b1"), ("zone", "z2")}
+    assert view.zone_state("z2", 125.0) == "caution"
+
+
+def robots_view(tmp_path: Path, policy: dict[str, object], watchers: int) -> tuple[SiteView, ZoneLayer]:
+    """The console's view and a robot's zone layer on a site whose z1 is watched by `watchers` nodes."""
+    nodes = [
+        {"id": f"n{i}", "zone": "z1", "sensor": {"type": "pir", "pin": 5}} for i in range(1, watchers + 1)
+    ]
+    nodes.append({"id": "m", "zone": "z2", "sensor": {"type": "pir", "pin": 5}})
+    s = load_site(tiny_site(tmp_path / "policy", nodes=nodes, policy=policy))
+    return SiteView(s), ZoneLayer(s.spec, GridFrame.of_grid(s.grid))
+
+
+def test_majority_fusion_shows_what_the_robot_does_with_one_blocked_node_of_three(tmp_path: Path) -> None:
+    """Under `fuse: majority` one node of three saying blocked is a caution to the robot: the console showed
+    blocked while the robot drove through."""
+    view, robot = robots_view(tmp_path, {"fuse": "majority"}, 3)
+    for node, state in (("n1", "blocked"), ("n2", "clear"), ("n3", "clear")):
+        topic, payload = zone_msg(node, "z1", state)  # type: ignore[arg-type]
+        view.apply(topic, payload, 10.0)
+        robot.on_zone_state(parse_payload(ZoneState, payload), 10.0)
+    assert robot.blocked_zones() == []
+    assert view.zone_state("z1", 11.0) == "caution"
+    view.apply(*zone_msg("n2", "z1", "blocked", seq=2), 12.0)
+    assert view.zone_state("z1", 12.5) == "blocked", "two of three is a majority"
+
+
+def test_under_stale_keep_a_silent_nodes_last_blocked_word_still_shows_blocked(tmp_path: Path) -> None:
+    """`stale: keep`: the robot keeps avoiding a zone whose node said blocked and fell silent; the console showed
+    'stale' instead. It shows blocked, and names the silent node."""
+    view, robot = robots_view(tmp_path, {"stale": "keep"}, 1)
+    topic, payload = zone_msg("n1", "z1", "blocked")
+    view.apply(topic, payload, 10.0)
+    robot.on_zone_state(parse_payload(ZoneState, payload), 10.0)
+    later = 10.0 + 10 * HB
+    robot.refresh(later)
+    assert robot.blocked_zones() == ["z1"]
+    assert view.zone_state("z1", later) == "blocked"
+    assert view.entry(("zone", "z1"), later)["stale_nodes"] == ["n1"]  # type: ignore[index]
 
 
 def test_bad_messages_are_dropped_counted_and_change_nothing(site: Site) -> None:

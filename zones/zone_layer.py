@@ -140,6 +140,17 @@ class ZoneLayer:
         """Operator block ids in force now (zone or polygon)."""
         return sorted(self._blocks)
 
+    def zone_word(self, zone_id: str) -> Word:
+        """What the robots make of a zone now, by the one rule (operator block, staleness, fusion): the
+        console shows this, so the operator's map is what the robots avoid."""
+        if any(b.zone == zone_id for b in self._blocks.values()):
+            return "blocked"
+        return self._fuse([self._word(self._nodes[n]) for n in self._watchers[zone_id]])
+
+    def stale_nodes(self, zone_id: str) -> list[str]:
+        """The zone's nodes that are silent past the policy's limit or offline (read by `policy.stale`)."""
+        return [n for n in self._watchers[zone_id] if self._stale(self._nodes[n])]
+
     def zone_window(self, zone_id: str) -> CellWindow:
         return self._windows[zone_id]
 
@@ -286,8 +297,7 @@ class ZoneLayer:
         if zone_id in zone_blocked:
             cost = LETHAL_OBSTACLE
         else:
-            words: list[Word] = [self._word(self._nodes[n]) for n in self._watchers[zone_id]]
-            cost = self._cost(self._fuse(words))
+            cost = self._cost(self._fuse([self._word(self._nodes[n]) for n in self._watchers[zone_id]]))
         if cost == self._costs[zone_id]:
             return False
         self._costs[zone_id] = cost

@@ -89,8 +89,9 @@ function renderZone(z) {
   dirty.zones.add(z.id);
   const poly = $(`zone-${z.id}`);
   if (poly) {
-    poly.setAttribute("class", `zone ${z.state}`);
+    poly.setAttribute("class", `zone ${z.state}` + (z.stale_nodes.length ? " has-stale" : ""));
     poly.setAttribute("data-state", z.state);
+    poly.setAttribute("data-stale", z.stale_nodes.join(" "));
   }
 }
 
@@ -232,7 +233,8 @@ function blockRow(b) {
 function zoneRow(z) {
   const tr = row($("zones"), `zone-row-${z.id}`, 3);
   setText(tr.cells[0], z.id);
-  setText(tr.cells[1], z.state + (z.operator_blocks.length ? " (operator)" : ""), `state-${z.state}`);
+  const note = [z.operator_blocks.length ? "operator" : "", z.stale_nodes.length ? `stale: ${z.stale_nodes.join(" ")}` : ""].filter(Boolean);
+  setText(tr.cells[1], z.state + (note.length ? ` (${note.join("; ")})` : ""), `state-${z.state}`);
   setText(tr.cells[2], z.nodes.join(" "));
 }
 
