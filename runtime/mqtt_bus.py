@@ -61,6 +61,8 @@ class MqttBus:
         self._queue: collections.deque[Message] = collections.deque(maxlen=max_queue)
         self._arrived = threading.Condition()
         self._connected = threading.Event()
+        self._answered = threading.Event()
+        """The broker answered the first CONNECT, yes or no: a refused login ends `connect` at once."""
         self._refused: str | None = None
         self.dropped_overflow = 0
         """Inbound messages pushed out of the full queue (logged at 1, 10, 100, ... of them)."""
@@ -88,13 +90,16 @@ class MqttBus:
         except (OSError, ValueError) as exc:
             raise BusError(f"cannot reach MQTT broker {self._host}:{self._port}: {exc}") from None
         self._client.loop_start()
-        if not self._connected.wait(timeout_s):
+        self._answered.wait(timeout_s)
+        if not self._connected.is_set():
             self._client.loop_stop()
             sock = self._client.socket()
             if sock is not None:  # a failed connect leaves nothing open behind it
                 sock.close()
-            why = self._refused or "no answer"
-            raise BusError(f"cannot connect to MQTT broker {self._host}:{self._port}: {why}")
+            where = f"MQTT broker {self._host}:{self._port}"
+            if self._refused is not None:
+                raise BusError(f"{where} refused the login: {self._refused} (check the username and password)")
+            raise BusError(f"cannot connect to {where}: no answer")
         return self
 
     def _on_connect(
@@ -102,6 +107,10 @@ class MqttBus:
     ) -> None:
         if reason.is_failure:
             self._refused = str(reason)
+            if not self._answered.is_set():
+                self._answered.set()
+            else:
+                log.warning("the broker refused the login on reconnect: %s", reason)
             return
         self.connects += 1
         with self._filters_lock:
@@ -113,6 +122,7 @@ class MqttBus:
                 self._birth.topic, self._birth.payload, qos=self._birth.qos, retain=self._birth.retain
             )
         self._connected.set()
+        self._answered.set()
 
     def _on_disconnect(self, _c: object, _u: object, _f: object, reason: ReasonCode, _p: object) -> None:
         self._connected.clear()

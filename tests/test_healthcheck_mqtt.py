@@ -53,7 +53,7 @@ def test_broker_check_needs_a_working_login(tmp_path: Path, capsys: pytest.Captu
             capsys, "broker", "--broker", address, "--credentials", str(wrong), "--timeout", "2"
         )
         assert code == 1
-        assert text.startswith("unhealthy: cannot connect to MQTT broker") and "\n" not in text
+        assert text.startswith(f"unhealthy: MQTT broker {address} refused the login") and "\n" not in text
     code, text = check(capsys, "broker", "--broker", address, "--credentials", str(tmp_path / "none.json"))
     assert (code, text.startswith("unhealthy: ")) == (1, True)
 
