@@ -27,6 +27,7 @@ import math
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from enum import Enum
 from typing import Literal, Protocol
 
 import numpy as np
@@ -48,6 +49,36 @@ from wsnav.zones.geometry import Bounds, GridFrame
 from wsnav.zones.zone_layer import BlockedArea
 
 NavState = Literal["idle", "navigating", "waiting", "arrived", "cancelled"]
+"""What the robot's status says; `Navigator.mode` says more."""
+
+
+class Mode(Enum):
+    """What the navigator is doing, one at a time (move_base's PLANNING / CONTROLLING / CLEARING and the waits).
+
+    A plan is made on an event, in whichever mode allows one; it is not a mode of its own."""
+
+    IDLE = "idle"
+    CONTROLLING = "controlling"
+    """Following a plan: to the goal, or out of the blocked areas the robot stands in (`leaving`)."""
+    CLEARING = "clearing"
+    """A recovery behaviour runs (rotate_recovery turning in place): nothing else drives the robot."""
+    WAITING = "waiting"
+    """No path: retried on every zone change and on the retry timer."""
+    HELD = "held"
+    """Stopped by the agent (another robot has right of way), keeping the goal; plans again when released."""
+    ARRIVED = "arrived"
+    CANCELLED = "cancelled"
+
+
+_STATE: dict[Mode, NavState] = {
+    Mode.IDLE: "idle",
+    Mode.CONTROLLING: "navigating",
+    Mode.CLEARING: "navigating",
+    Mode.WAITING: "waiting",
+    Mode.HELD: "waiting",
+    Mode.ARRIVED: "arrived",
+    Mode.CANCELLED: "cancelled",
+}
 Trigger = Literal["goal", "zone", "blocked", "periodic", "retry", "recovery", "yield"]
 EventKind = Literal[
     "goal",
@@ -162,7 +193,7 @@ class Navigator:
         self.backend = backend
         self.params = params or NavigatorParams()
         self._blocked_zones = blocked_zones or list
-        self.state: NavState = "idle"
+        self.mode = Mode.IDLE
         self.reason: str | None = None
         self.goal: Pose | None = None
         self.goal_label: GoalLabel | None = None
@@ -185,26 +216,32 @@ class Navigator:
         """The blocked areas the robot is driving out of, and whether a route goes on (None: in none)."""
         self.recovery = MoveBaseRecovery(self.params.recovery) if self.params.recovery is not None else None
         self._rotation: Rotation | None = None
+        """The rotation in progress; set only in Mode.CLEARING."""
 
-        self.holding: str | None = None
+    @property
+    def state(self) -> NavState:
+        return _STATE[self.mode]
+
+    @property
+    def holding(self) -> str | None:
         """Why the agent holds the robot (it yields to another robot), None when it does not."""
+        return self.reason if self.mode is Mode.HELD else None
 
     @property
     def active(self) -> bool:
-        return self.state in ("navigating", "waiting")
+        return self.mode in (Mode.CONTROLLING, Mode.CLEARING, Mode.WAITING, Mode.HELD)
 
     def next_due(self) -> float:
         """The earliest time `step` has work to do (for a real-time loop's sleep)."""
         if self.state == "navigating":
             return min(self._control.next, self._periodic.next)
-        if self.state == "waiting":
+        if self.mode is Mode.WAITING:
             return self._retry.next
         return math.inf
 
     def set_goal(self, goal: Pose, label: GoalLabel, now: float) -> None:
         """A new goal replaces the old one; planned at once."""
         self.goal, self.goal_label = goal, label
-        self.holding = None
         self.replans = 0
         self.replans_by.clear()
         self.reason = None
@@ -218,7 +255,7 @@ class Navigator:
         if zone is not None:
             self._cancel(now, zone)
             return
-        self.state = "navigating"
+        self.mode = Mode.CONTROLLING
         self._plan(now, "goal")
 
     def cancel(self, now: float, reason: str) -> None:
@@ -228,28 +265,27 @@ class Navigator:
     def hold(self, now: float, reason: str) -> None:
         """Stop and wait for something outside the navigator (another robot's right of way), keeping the goal.
 
-        Only a robot driving on its route is held: one leaving a blocked zone goes on out first."""
-        if self.holding is not None:
-            if reason != self.holding:
-                self.holding = self.reason = reason
+        Only a robot driving on its route (or turning in a recovery) is held: one leaving a blocked zone goes on
+        out first. A recovery behaviour in progress is dropped: released, the robot plans afresh."""
+        if self.mode is Mode.HELD:
+            if reason != self.reason:
+                self.reason = reason
                 self._record(now, "waiting", "yield", reason)
             return
-        if self.state != "navigating" or self.leaving is not None:
+        if self.mode not in (Mode.CONTROLLING, Mode.CLEARING) or self.leaving is not None:
             return
         self._stop()
-        self.holding = reason
-        self.state, self.reason = "waiting", reason
+        self.mode, self.reason = Mode.HELD, reason
         self._record(now, "waiting", "yield", reason)
 
     def release(self, now: float) -> None:
         """The hold is over: plan again from where the robot stands."""
-        if self.holding is None:
+        if self.mode is not Mode.HELD:
             return
-        self.holding = None
+        self.mode = Mode.WAITING
         if self.recovery is not None:
             self.recovery.restart_clocks(now, self.backend.pose())
-        if self.state == "waiting":
-            self._plan(now, "yield")
+        self._plan(now, "yield")
 
     def on_zones_changed(self, now: float) -> None:
         """The zone layer changed the costmap: Algorithm 3, run at once rather than on the planner's timer."""
@@ -259,7 +295,7 @@ class Navigator:
         if zone is not None:
             self._cancel(now, zone)
             return
-        if self.holding is not None:
+        if self.mode is Mode.HELD:
             return  # planned when released, over the costmap as it is then
         x, y, _ = self.backend.pose()
         if (
@@ -271,15 +307,15 @@ class Navigator:
 
     def step(self, now: float) -> None:
         """Timers: periodic replanning, retries while waiting, and the controller at its rate."""
-        if self.state == "waiting":
-            if self.holding is None and self._retry.due(now):
+        if self.mode is Mode.WAITING:
+            if self._retry.due(now):
                 self._plan(now, "retry")
             return
-        if self.state != "navigating":
-            return
-        if self._rotation is not None:
+        if self.mode is Mode.CLEARING:
             if self._control.due(now):
                 self._rotate_tick(now)
+            return
+        if self.mode is not Mode.CONTROLLING:
             return
         if self._periodic.due(now):
             self._plan(now, "periodic")
@@ -314,7 +350,7 @@ class Navigator:
             self._plan(now, "zone", escape=False)
         elif result.status == "arrived":
             self._stop()
-            self.state, self.reason = "arrived", None
+            self.mode, self.reason = Mode.ARRIVED, None
             self._record(now, "arrived")
         elif result.status == "blocked":
             self.backend.stop()
@@ -339,10 +375,10 @@ class Navigator:
             self._cancel(now, f"aborted: {ABORT_REASONS[trigger]} even after all recovery behaviours")
             return
         self._record(now, "recovery", detail=f"{name} ({trigger})")
-        if self.state == "waiting":
+        if self.mode is Mode.WAITING:
             self._control.start(now)
             self._periodic.start(now)
-        self.state, self.reason = "navigating", f"recovery: {name}"
+        self.mode, self.reason = Mode.CLEARING, f"recovery: {name}"
         side = self.recovery.params.reset_distance(name)
         if side is None:
             self.controller.clear()
@@ -366,7 +402,7 @@ class Navigator:
     def _after_behaviour(self, now: float) -> None:
         assert self.recovery is not None
         self.recovery.behaviour_done(now)
-        self.reason = None
+        self.mode, self.reason = Mode.CONTROLLING, None
         self._plan(now, "recovery")
 
     def _plan(self, now: float, trigger: Trigger, *, escape: bool = True) -> None:
@@ -430,8 +466,10 @@ class Navigator:
         self.plan_length_m = length_m
         to_goal = leaving is None or leaving.onward
         self.controller.set_path(path, self.goal[2] if to_goal else None)
-        resumed = self.state == "waiting"
-        self.state, self.reason = "navigating", None
+        resumed = self.mode is Mode.WAITING
+        if self.mode is not Mode.CLEARING:  # a rotation in progress finishes first (move_base's CLEARING)
+            self.mode = Mode.CONTROLLING
+        self.reason = None
         if resumed:
             self._control.start(now)
             self._periodic.start(now)
@@ -481,20 +519,21 @@ class Navigator:
 
     def _wait(self, now: float, trigger: Trigger, reason: str) -> None:
         self._stop()
-        if self.state != "waiting" or self.reason != reason:
+        if self.mode is not Mode.WAITING or self.reason != reason:
             self._record(now, "waiting", trigger, reason)
-        if self.state != "waiting":
+        if self.mode is not Mode.WAITING:
             self._retry.start(now)
-        self.state, self.reason = "waiting", reason
+        self.mode, self.reason = Mode.WAITING, reason
 
     def _cancel(self, now: float, reason: str) -> None:
-        self._rotation = None
         self._stop()
-        self.holding = None
-        self.state, self.reason = "cancelled", reason
+        self.mode, self.reason = Mode.CANCELLED, reason
         self._record(now, "cancelled", detail=reason)
 
     def _stop(self) -> None:
+        self._rotation = None
+        if self.mode is Mode.CLEARING:
+            self.mode = Mode.CONTROLLING
         self.backend.stop()
         self.controller.clear()
         self.path = np.zeros((0, 2))

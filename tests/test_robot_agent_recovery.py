@@ -17,7 +17,7 @@ from wsnav.navigation.behaviors.recovery import MoveBaseRecovery, RecoveryParams
 from wsnav.navigation.control.controller import ControlResult
 from wsnav.navigation.costmap.inflation import InflationParams
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
-from wsnav.navigation.navigator import Navigator, NavigatorParams
+from wsnav.navigation.navigator import Mode, Navigator, NavigatorParams
 from wsnav.navigation.planning.costmap_planner import GlobalPlanner
 from wsnav.navigation.planning.global_planner import PlannerParams
 from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
@@ -151,3 +151,42 @@ def test_a_robot_held_for_another_robot_runs_no_recovery_when_released(tiny: Sit
         t += DT
     assert nav.state == "navigating"
     assert not [e for e in nav.events if e.kind == "recovery"]
+
+
+def test_a_robot_held_during_a_recovery_rotation_stops_turning_and_follows_its_plan_when_released(
+    tiny: Site,
+) -> None:
+    """Held for right of way in the middle of rotate_recovery, the robot reported "resumed" when released and
+    went on turning in place (the rotation flag outlived the hold). Held drops the behaviour; released, the
+    controller drives again."""
+    costmap = LayeredCostmap(tiny.grid, INFLATION)
+    robot = SimTurtleBot3("robot1", SimWorldGrid(tiny.grid), (1.0, 4.0, 0.0))
+    controller = Dithering()
+    nav = Navigator(
+        costmap, GlobalPlanner(PlannerParams()), controller, robot, NavigatorParams(recovery=RecoveryParams())
+    )
+    nav.set_goal((9.0, 4.0, 0.0), "B", 0.0)
+    t = 0.0
+    while nav.reason != "recovery: rotate_recovery" and t < 60.0:
+        nav.step(t)
+        robot.step(DT, t + DT)
+        t += DT
+    assert nav.mode is Mode.CLEARING, "the dithering robot got to move_base's second behaviour"
+    nav.hold(t, "yielding to robot2")
+    assert (nav.mode, nav.state, nav.holding) == (Mode.HELD, "waiting", "yielding to robot2")
+    for _ in range(20):
+        nav.step(t)
+        robot.step(DT, t + DT)
+        t += DT
+    assert abs(robot.velocity().angular) < 1e-6, "held: not turning"
+    nav.release(t)
+    calls = controller.calls
+    for _ in range(20):
+        nav.step(t)
+        robot.step(DT, t + DT)
+        t += DT
+    assert (nav.mode, nav.reason) == (Mode.CONTROLLING, None)
+    assert controller.calls >= calls + 8, (
+        "released, the controller drives at 10 Hz (not the abandoned rotation)"
+    )
+    assert [e.kind for e in nav.events][-1] == "resumed"
