@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import logging
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -74,7 +73,6 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         default=10.0,
         help="seconds between freezing long-lived objects out of garbage collections (0: never)",
     )
-    run.add_argument("--log-level", choices=["debug", "info", "warning", "error"], default="warning")
     run.set_defaults(func=run_command)
 
     creds = bsub.add_parser("credentials", help="per-id credentials files and the broker's password file")
@@ -164,9 +162,6 @@ def run_command(args: argparse.Namespace) -> int:
         connect_timeout_s=args.connect_timeout,
         max_packet_bytes=args.max_packet_bytes,
         gc_freeze_s=args.gc_freeze,
-    )
-    logging.basicConfig(
-        level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
 
     def ready(running: RunningBroker) -> None:

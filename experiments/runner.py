@@ -58,7 +58,8 @@ def quiet_worker_logs() -> None:
     """Dropped retained messages of the previous run and the broker's chatter about clients that the last run
     closed are expected: neither is worth a line on the console."""
     logging.getLogger("amqtt").setLevel(logging.CRITICAL)
-    logging.getLogger("robot_agent").setLevel(logging.ERROR)
+    for component in ("wsnav.robot_agent", "wsnav.navigation", "wsnav.zones"):
+        logging.getLogger(component).setLevel(logging.ERROR)
 
 
 def _init_worker(site_dir: Path, broker: BrokerAt | None, run_broker: str = "amqtt") -> None:

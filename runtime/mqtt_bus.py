@@ -98,7 +98,9 @@ class MqttBus:
                 sock.close()
             where = f"MQTT broker {self._host}:{self._port}"
             if self._refused is not None:
-                raise BusError(f"{where} refused the login: {self._refused} (check the username and password)")
+                raise BusError(
+                    f"{where} refused the login: {self._refused} (check the username and password)"
+                )
             raise BusError(f"cannot connect to {where}: no answer")
         return self
 

@@ -15,6 +15,7 @@ from wsnav.robot_agent import cli as robot_agent_cli
 from wsnav.ros_bridge import cli as ros_bridge_cli
 from wsnav.ros_bridge import robot_cli as ros_bridge_robot_cli
 from wsnav.runtime.cli_support import CliError, Parser
+from wsnav.runtime.logs import add_log_level, setup_logging
 from wsnav.zone_sim import cli as zone_sim_cli
 
 Registrar = Callable[["argparse._SubParsersAction[Parser]"], None]
@@ -39,12 +40,23 @@ def build_parser() -> Parser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
     for register in REGISTRARS:
         register(sub)
+    for command in leaf_parsers(parser):
+        add_log_level(command)
     return parser
+
+
+def leaf_parsers(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+    """The parsers that run something (`wsnav robot`, `wsnav broker run`, ...): every one takes --log-level."""
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        return [parser]
+    return [leaf for a in subs for p in dict.fromkeys(a.choices.values()) for leaf in leaf_parsers(p)]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    setup_logging(args.log_level)
     try:
         return int(args.func(args) or 0)
     except CliError as exc:
