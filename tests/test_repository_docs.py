@@ -33,10 +33,17 @@ def test_no_tracked_file_refers_to_a_design_document_outside_the_repository() ->
     assert citing == [], f"these files cite a document the repository does not hold: {citing}"
 
 
-def test_every_test_the_architecture_page_names_exists() -> None:
-    page = (REPO / "docs" / "architecture.md").read_text(encoding="utf-8")
+DESIGN_PAGES = ("architecture.md", "dependencies.md")
+
+
+def design_text() -> str:
+    return "\n".join((REPO / "docs" / name).read_text(encoding="utf-8") for name in DESIGN_PAGES)
+
+
+def test_every_test_the_design_pages_name_exists() -> None:
+    page = design_text()
     paths = set(re.findall(r"tests/test_\w+\.py", page))
-    assert len(paths) >= 8, "the page names the tests that pin its facts"
+    assert len(paths) >= 8, "the pages name the tests that pin their facts"
     missing_files = sorted(p for p in paths if not (REPO / p).is_file())
     assert missing_files == []
     defined = {
@@ -46,4 +53,22 @@ def test_every_test_the_architecture_page_names_exists() -> None:
         p.removeprefix("tests/").removesuffix(".py") for p in paths
     }
     assert len(named) >= 10
-    assert sorted(named - defined) == [], "renamed or removed tests are still cited by docs/architecture.md"
+    assert sorted(named - defined) == [], "renamed or removed tests are still cited by the design pages"
+
+
+def test_every_module_the_design_pages_name_exists() -> None:
+    """A page that sends a newcomer to a moved file is wrong: each `folder/module.py` it names is there."""
+    page = design_text()
+    named = set(re.findall(r"`((?:[a-z_]+/)+[a-z_0-9]+\.py)`", page))
+    assert len(named) >= 20
+    assert sorted(p for p in named if not (REPO / p).is_file()) == []
+
+
+def test_the_architecture_page_says_where_every_command_lives() -> None:
+    from wsnav.cli import build_parser, leaf_parsers
+
+    page = (REPO / "docs" / "architecture.md").read_text(encoding="utf-8")
+    table = page[page.index("### Where each command's work lives") :]
+    table = table[: table.index("\n\n", table.index("| command"))]
+    missing = [p.prog for p in leaf_parsers(build_parser()) if p.prog.split()[-1] not in table]
+    assert missing == []
