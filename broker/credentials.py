@@ -23,7 +23,7 @@ from pydantic import ValidationError
 from wsnav.schemas.credentials import BrokerAddress, Credentials, NodeConfig, WifiConfig
 from wsnav.schemas.site_file import SiteFile
 
-PASSWORD_FILE = "wsnav.broker.passwd"
+PASSWORD_FILE = "broker.passwd"
 """`username:<argon2 hash>` lines; the format amqtt's FileAuthPlugin also reads."""
 OPERATOR = "operator"
 
