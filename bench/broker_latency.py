@@ -26,8 +26,8 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
 from bench.bench_broker import fresh_broker, mosquitto_broker
-from wsnav.broker.credentials import load_credentials
 from wsnav.schemas import topics
+from wsnav.schemas.credentials import load_credentials
 from wsnav.schemas.site import load_site
 
 SITE_YAML = """name: bench

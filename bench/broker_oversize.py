@@ -22,8 +22,8 @@ import psutil
 
 from bench.bench_broker import fresh_broker
 from tests.site_fixtures import tiny_site
-from wsnav.broker.credentials import load_credentials
 from wsnav.schemas import topics
+from wsnav.schemas.credentials import load_credentials
 
 
 def _field(data: bytes) -> bytes:

@@ -109,12 +109,12 @@ def run_agent(
     site_dir: str, creds: str, host: str, port: int, robot_id: str, ready: Any, done: Any, out: Any
 ) -> None:
     """One robot agent in real time, driving to its goal, until told to stop; reports reactions and CPU."""
-    from wsnav.broker.credentials import load_credentials
     from wsnav.robot_agent.agent import RobotAgent
     from wsnav.robot_agent.agent_config import load_agent_config
     from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
     from wsnav.robot_agent.sim.world_grid import SimWorldGrid
     from wsnav.runtime.mqtt_bus import connect_with_credentials
+    from wsnav.schemas.credentials import load_credentials
     from wsnav.schemas.site import load_site
 
     site = load_site(site_dir)
@@ -178,9 +178,9 @@ def phase(
     ctx: Any, site_dir: Path, creds: Path, host: str, port: int, robots: list[str], changes: int, seq0: int
 ) -> tuple[list[AgentResult], float]:
     """Start the agents, toggle z4 `changes` times, collect each agent's reactions; returns them and the load."""
-    from wsnav.broker.credentials import load_credentials
     from wsnav.runtime.mqtt_bus import connect_with_credentials
     from wsnav.schemas import topics
+    from wsnav.schemas.credentials import load_credentials
     from wsnav.schemas.messages import ZoneState
 
     ready, out, done = ctx.Queue(), ctx.Queue(), ctx.Event()

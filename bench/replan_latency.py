@@ -54,7 +54,7 @@ def pct(values: list[float], q: float) -> float:
 
 def measure(host: str, port: int, creds_dir: Path, downsample: int, changes: int, seq0: int) -> Result:
     """One agent on a fresh connection; `seq0` lies above every seq the node published before."""
-    from wsnav.broker.credentials import load_credentials
+    from wsnav.schemas.credentials import load_credentials
 
     site = load_site(SCHOOL)
     clock = WallClock()

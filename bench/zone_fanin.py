@@ -39,8 +39,9 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from bench.bench_broker import BROKERS, site_broker
 from bench.benchmarks_md import write_section
-from wsnav.broker.credentials import load_credentials, write_credentials
+from wsnav.broker.credentials import write_credentials
 from wsnav.schemas import topics
+from wsnav.schemas.credentials import load_credentials
 from wsnav.schemas.messages import ZoneState
 from wsnav.schemas.site import load_site
 

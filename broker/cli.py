@@ -185,7 +185,8 @@ def run_command(args: argparse.Namespace) -> int:
 
 
 def _ids_without_password(site: Site, credentials: Path) -> list[str]:
-    from wsnav.broker.credentials import PASSWORD_FILE, CredentialsError, read_password_file, site_ids
+    from wsnav.broker.credentials import PASSWORD_FILE, read_password_file, site_ids
+    from wsnav.schemas.credentials import CredentialsError
 
     try:
         users = read_password_file(credentials / PASSWORD_FILE)
@@ -195,7 +196,8 @@ def _ids_without_password(site: Site, credentials: Path) -> list[str]:
 
 
 def credentials_command(args: argparse.Namespace) -> int:
-    from wsnav.broker.credentials import CredentialsError, write_credentials
+    from wsnav.broker.credentials import write_credentials
+    from wsnav.schemas.credentials import CredentialsError
 
     site = _site(args.site)
     try:
@@ -215,8 +217,8 @@ def credentials_command(args: argparse.Namespace) -> int:
 
 
 def mosquitto_command(args: argparse.Namespace) -> int:
-    from wsnav.broker.credentials import CredentialsError
     from wsnav.broker.mosquitto import MosquittoOptions, write_mosquitto_config
+    from wsnav.schemas.credentials import CredentialsError
 
     site = _site(args.site)
     options = MosquittoOptions(
@@ -248,8 +250,8 @@ def ha_discovery_command(args: argparse.Namespace) -> int:
         return 0
     import time
 
-    from wsnav.broker.credentials import CredentialsError, load_credentials
     from wsnav.runtime.mqtt_bus import BusError, connect_with_credentials
+    from wsnav.schemas.credentials import CredentialsError, load_credentials
 
     host, port = args.broker
     try:

@@ -9,7 +9,6 @@ owner-only (files 0600, folder 0700) because these files are the keys to the sit
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import secrets
 import tempfile
@@ -20,7 +19,15 @@ from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatchError
 from pydantic import ValidationError
 
-from wsnav.schemas.credentials import BrokerAddress, Credentials, NodeConfig, WifiConfig
+from wsnav.schemas.credentials import (
+    BrokerAddress,
+    Credentials,
+    CredentialsError,
+    NodeConfig,
+    WifiConfig,
+    load_credentials,
+    read_json_object,
+)
 from wsnav.schemas.site_file import SiteFile
 
 PASSWORD_FILE = "broker.passwd"
@@ -30,10 +37,6 @@ OPERATOR = "operator"
 # The passwords are 192-bit random tokens, so a slow hash adds no real protection against guessing; modest
 # argon2id parameters keep a connect at a few ms on a Raspberry Pi even when 1000 nodes join at once.
 HASHER = PasswordHasher(time_cost=1, memory_cost=8192, parallelism=1)
-
-
-class CredentialsError(ValueError):
-    """A credentials folder or file that cannot be used; str() is one line naming the file."""
 
 
 @dataclass
@@ -79,7 +82,7 @@ def write_credentials(
     node_by_id = {n.id: n for n in spec.nodes}
     robot_ids = {r.id for r in spec.robots}
     for ident in site_ids(spec):
-        old = _read_raw(existing[ident]) if ident in existing else None
+        old = read_json_object(existing[ident]) if ident in existing else None
         password = _password_of(old, existing.get(ident)) or new_password()
         address = _broker_of(old, broker)
         wifi = _wifi_of(old, wifi_ssid, wifi_password)
@@ -155,19 +158,6 @@ def verify_password(digest: str, password: str) -> bool:
         return False
 
 
-def load_credentials(path: Path) -> Credentials:
-    """One `<id>.json` (a NodeConfig when its role is node); raises CredentialsError with a one-line reason."""
-    raw = _read_raw(path)
-    try:
-        return (
-            NodeConfig.model_validate(raw) if raw.get("role") == "node" else Credentials.model_validate(raw)
-        )
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        key = ".".join(str(p) for p in err["loc"]) or "(file)"
-        raise CredentialsError(f"{path}: {key}: {err['msg']}") from None
-
-
 def load_folder(folder: Path, spec: SiteFile) -> dict[str, Credentials]:
     """Every site id's credentials from the folder; a missing or broken file is an error naming it."""
     if not folder.is_dir():
@@ -182,20 +172,6 @@ def load_folder(folder: Path, spec: SiteFile) -> dict[str, Credentials]:
             raise CredentialsError(f"{path}: username {creds.username!r} does not match the file name")
         found[ident] = creds
     return found
-
-
-def _read_raw(path: Path) -> dict[str, object]:
-    try:
-        raw = json.loads(path.read_text())
-    except OSError as exc:
-        raise CredentialsError(f"{path}: cannot read: {exc.strerror}") from None
-    except json.JSONDecodeError as exc:
-        raise CredentialsError(
-            f"{path}: not valid JSON: {exc.msg} (line {exc.lineno}); fix or remove it"
-        ) from None
-    if not isinstance(raw, dict):
-        raise CredentialsError(f"{path}: expected a JSON object")
-    return raw
 
 
 def _password_of(old: dict[str, object] | None, path: Path | None) -> str | None:

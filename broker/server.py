@@ -27,8 +27,9 @@ from amqtt.errors import AMQTTError, BrokerError, PluginError, PluginLoadError
 from wsnav.broker.admission import Admission, connection_capacity, raise_descriptor_limit
 from wsnav.broker.amqtt_config import BrokerOptions, amqtt_config, bind_text
 from wsnav.broker.amqtt_patch import WsnavBroker, close_listeners
-from wsnav.broker.credentials import PASSWORD_FILE, CredentialsError, read_password_file
+from wsnav.broker.credentials import PASSWORD_FILE, read_password_file
 from wsnav.broker.gc_pacing import pace_collections
+from wsnav.schemas.credentials import CredentialsError
 from wsnav.schemas.site_file import SiteFile
 
 log = logging.getLogger("wsnav.broker")

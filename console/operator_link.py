@@ -8,11 +8,10 @@ import os
 import secrets
 from dataclasses import dataclass
 
-from wsnav.broker.credentials import CredentialsError, load_credentials
 from wsnav.runtime.cli_support import CliError
 from wsnav.runtime.clock import WallClock
 from wsnav.runtime.mqtt_bus import BusError, MqttBus
-from wsnav.schemas.credentials import Credentials
+from wsnav.schemas.credentials import Credentials, CredentialsError, credentials_for
 from wsnav.schemas.site import Site, SiteError, load_site
 
 
@@ -30,15 +29,9 @@ def load_operator(args: argparse.Namespace) -> tuple[Site, Credentials]:
     except SiteError as exc:
         raise CliError(str(exc)) from None
     try:
-        creds = load_credentials(args.credentials)
+        creds = credentials_for(args.credentials, role="operator", site=site.name, ids=["operator"])
     except CredentialsError as exc:
         raise CliError(str(exc)) from None
-    if creds.role != "operator":
-        raise CliError(
-            f"{args.credentials}: these are the credentials of a {creds.role}, not of the operator"
-        )
-    if creds.site != site.name:
-        raise CliError(f"{args.credentials}: credentials for site {creds.site!r}, not {site.name!r}")
     return site, creds
 
 

@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from wsnav.broker.credentials import load_credentials
 from wsnav.experiments.lockstep import Audience, Deliveries, ExpectingBus, FleetBus, settle
 from wsnav.experiments.single_run import DT, TRAJECTORY_EVERY_S, BrokerAt
 from wsnav.navigation.backend import Pose
@@ -28,6 +27,7 @@ from wsnav.robot_agent.sim.world_grid import SimWorldGrid
 from wsnav.runtime.clock import SimClock
 from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
 from wsnav.schemas import topics
+from wsnav.schemas.credentials import load_credentials
 from wsnav.schemas.messages import SimWorld
 from wsnav.schemas.site import Site
 from wsnav.zone_sim.emulated_node import Sent

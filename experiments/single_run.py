@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from wsnav.broker.credentials import load_credentials
 from wsnav.experiments.lockstep import Deliveries, ExpectingBus, WatchedBus, settle
 from wsnav.experiments.run_plan import RunSpec
 from wsnav.navigation.navigator import NavEvent
@@ -27,6 +26,7 @@ from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3, TurtleBot3Params
 from wsnav.robot_agent.sim.world_grid import SimWorldGrid
 from wsnav.runtime.clock import SimClock
 from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
+from wsnav.schemas.credentials import load_credentials
 from wsnav.schemas.site import Site
 from wsnav.zone_sim.emulated_node import Sent
 from wsnav.zone_sim.sensor_model import SensorSettings

@@ -9,7 +9,6 @@ is reached and 1 when it is cancelled. Ctrl-C or SIGTERM stop the robot and disc
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import signal
 import sys
@@ -18,8 +17,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
-
-from pydantic import ValidationError
 
 from wsnav.navigation.backend import Pose, RobotBackend
 from wsnav.navigation.planning.offline_plan import parse_point
@@ -30,7 +27,7 @@ from wsnav.robot_agent.sim.world_grid import SimWorldGrid
 from wsnav.runtime.cli_support import CliError
 from wsnav.runtime.clock import WallClock
 from wsnav.runtime.mqtt_bus import BusError, connect_with_credentials
-from wsnav.schemas.credentials import Credentials
+from wsnav.schemas.credentials import Credentials, CredentialsError, credentials_for
 from wsnav.schemas.messages import RobotStatus
 from wsnav.schemas.site import Site, SiteError, load_site
 
@@ -165,25 +162,9 @@ def _drive(
 def read_credentials(path: Path, site: Site) -> Credentials:
     """The robot's credentials file (from `wsnav broker credentials`), checked against the site."""
     try:
-        creds = Credentials.model_validate(json.loads(path.read_text()))
-    except FileNotFoundError:
-        raise CliError(f"{path}: no such credentials file") from None
-    except OSError as exc:
-        raise CliError(f"{path}: cannot read: {exc.strerror}") from None
-    except ValueError as exc:
-        if isinstance(exc, ValidationError):
-            err = exc.errors()[0]
-            key = ".".join(str(p) for p in err["loc"]) or "(file)"
-            raise CliError(f"{path}: {key}: {err['msg']}") from None
-        raise CliError(f"{path}: not a JSON credentials file") from None
-    if creds.role != "robot":
-        raise CliError(f"{path}: these are the credentials of a {creds.role}, not of a robot")
-    if creds.site != site.name:
-        raise CliError(f"{path}: credentials for site {creds.site!r}, not {site.name!r}")
-    robots = [r.id for r in site.spec.robots]
-    if creds.username not in robots:
-        raise CliError(f"{path}: robot {creds.username!r} is not in site {site.name!r} (robots: {robots})")
-    return creds
+        return credentials_for(path, role="robot", site=site.name, ids=[r.id for r in site.spec.robots])
+    except CredentialsError as exc:
+        raise CliError(str(exc)) from None
 
 
 class StatusPrinter:

@@ -19,10 +19,10 @@ from tests.conftest import require_tool
 from tests.test_broker_helpers import free_port, wait_listening
 from tests.test_compose_stack import SITE
 from tests.test_stack_processes import HEARTBEAT_S, WSNAV, Proc, Stack
-from wsnav.broker.credentials import load_credentials
 from wsnav.runtime.bus import Will
 from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
 from wsnav.schemas import topics
+from wsnav.schemas.credentials import load_credentials
 from wsnav.schemas.messages import NodeStatus, ZoneState
 
 CHROMIUM_ARGS = [

@@ -20,7 +20,6 @@ from tests.site_fixtures import tiny_site
 from tests.test_broker_helpers import free_port, wait_listening
 from wsnav.broker.credentials import (
     PASSWORD_FILE,
-    load_credentials,
     read_password_file,
     verify_password,
     write_credentials,
@@ -33,7 +32,7 @@ from wsnav.broker.mosquitto import (
     mosquitto_hash,
     write_mosquitto_config,
 )
-from wsnav.schemas.credentials import Credentials, NodeConfig
+from wsnav.schemas.credentials import Credentials, NodeConfig, load_credentials
 from wsnav.schemas.site import load_site
 
 

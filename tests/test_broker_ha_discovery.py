@@ -20,11 +20,12 @@ import jinja2
 import pytest
 
 from tests.site_fixtures import tiny_site
-from wsnav.broker.credentials import load_credentials, write_credentials
+from wsnav.broker.credentials import write_credentials
 from wsnav.broker.embedded import BrokerThread
 from wsnav.broker.ha_discovery import discovery_messages
 from wsnav.runtime.mqtt_bus import connect_with_credentials
 from wsnav.schemas import topics
+from wsnav.schemas.credentials import load_credentials
 from wsnav.schemas.messages import NodeInfo, NodeStatus, ZoneState, ZoneStateValue
 from wsnav.schemas.site import load_site
 

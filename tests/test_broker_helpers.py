@@ -20,7 +20,7 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.reasoncodes import ReasonCode
 
-from wsnav.broker.credentials import load_credentials
+from wsnav.schemas.credentials import load_credentials
 
 TIMEOUT = 30.0
 

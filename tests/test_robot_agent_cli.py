@@ -68,7 +68,7 @@ def free_port() -> int:
         ({"--start": "nowhere"}, "--start 'nowhere': not a point of site 'school'"),
         ({"--goal": "0,0"}, "--goal [0, 0] lies inside"),
         ({"--config": "missing.yaml"}, "missing.yaml: no such agent config"),
-        ({"--credentials": "missing.json"}, "missing.json: no such credentials file"),
+        ({"--credentials": "missing.json"}, "missing.json: cannot read: No such file or directory"),
         ({"--sim": None}, "pass --sim (a simulated TurtleBot3) or --ros"),
         ({"--broker": "nohost"}, "argument --broker: expected HOST:PORT"),
         ({"--broker": "UNREACHABLE"}, "cannot connect to MQTT broker 127.0.0.1:"),

@@ -18,10 +18,10 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from wsnav.broker.credentials import CredentialsError, load_credentials
 from wsnav.runtime.cli_support import Parser, host_port
 from wsnav.runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
 from wsnav.schemas import topics
+from wsnav.schemas.credentials import CredentialsError, load_credentials
 from wsnav.schemas.messages import NodeStatus, PayloadError, RobotStatus, parse_payload
 from wsnav.schemas.site import Site, SiteError, load_site
 

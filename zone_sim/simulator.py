@@ -23,11 +23,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from wsnav.broker.credentials import CredentialsError, load_credentials
 from wsnav.runtime.bus import Bus
 from wsnav.runtime.clock import Clock
 from wsnav.runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
 from wsnav.schemas import topics
+from wsnav.schemas.credentials import CredentialsError, load_credentials
 from wsnav.schemas.site import Site
 from wsnav.zone_sim.emulated_node import EmulatedNode, Power, Sent
 from wsnav.zone_sim.firmware_modules import ConfigError, parse_node_config
