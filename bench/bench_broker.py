@@ -9,9 +9,9 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from wsnav.broker.amqtt.embedded import BrokerProcess
 from wsnav.broker.credentials import write_credentials
-from wsnav.broker.embedded import BrokerProcess
-from wsnav.broker.mosquitto_process import MosquittoError, mosquitto_process
+from wsnav.broker.mosquitto.process import MosquittoError, mosquitto_process
 from wsnav.schemas.site import load_site
 from wsnav.schemas.site_file import SiteFile
 

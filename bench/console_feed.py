@@ -32,7 +32,7 @@ from bench.bench_broker import mosquitto_broker
 from bench.benchmarks_md import bench_parser, machine_note, write_section
 from bench.zone_fanin import cpu_s, fanin_site, simulate, subscribe_all
 from wsnav.broker.credentials import write_credentials
-from wsnav.broker.mosquitto_process import free_port
+from wsnav.broker.mosquitto.process import free_port
 from wsnav.runtime.mqtt_bus import connect_with_credentials
 from wsnav.schemas import topics
 from wsnav.schemas.credentials import load_credentials

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.benchmarks_md import bench_parser, machine_note, write_section
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.ros_bridge.ros_env import LocalRosCore
 
 REPO = Path(__file__).resolve().parent.parent

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from bench.benchmarks_md import bench_parser, machine_note, write_section
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.ros_bridge.ros_env import LocalRosCore, stop_process_group
 from wsnav.runtime.clock import WallClock
 from wsnav.runtime.mqtt_bus import connect_with_credentials

@@ -8,7 +8,7 @@
   simulator), and reads everything of the site; it also publishes and reads Home Assistant's discovery configs
   (`homeassistant/#`, `wsnav broker ha-discovery`).
 Nothing else outside `wsn/<site>/` is allowed to anyone. The same `AclRules` feed the amqtt plugin below and the
-Mosquitto ACL file (broker.mosquitto), so the two brokers enforce one model.
+Mosquitto ACL file (wsnav.broker.mosquitto.config), so the two brokers enforce one model.
 """
 
 from __future__ import annotations

@@ -129,8 +129,8 @@ def _site(path: Path) -> Site:
 
 
 def run_command(args: argparse.Namespace) -> int:
-    from wsnav.broker.amqtt_config import BrokerOptions, TlsListener
-    from wsnav.broker.server import BrokerStartError, RunningBroker, serve
+    from wsnav.broker.amqtt.config import BrokerOptions, TlsListener
+    from wsnav.broker.amqtt.server import BrokerStartError, RunningBroker, serve
 
     site = _site(args.site)
     tls = None
@@ -217,7 +217,7 @@ def credentials_command(args: argparse.Namespace) -> int:
 
 
 def mosquitto_command(args: argparse.Namespace) -> int:
-    from wsnav.broker.mosquitto import MosquittoOptions, write_mosquitto_config
+    from wsnav.broker.mosquitto.config import MosquittoOptions, write_mosquitto_config
     from wsnav.schemas.credentials import CredentialsError
 
     site = _site(args.site)

@@ -21,9 +21,9 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.broker.credentials import write_credentials
-from wsnav.broker.embedded import BrokerThread
-from wsnav.broker.mosquitto_process import mosquitto_process
+from wsnav.broker.mosquitto.process import mosquitto_process
 from wsnav.experiments.report import paths_figure, write_report
 from wsnav.experiments.run_plan import RunSpec
 from wsnav.experiments.single_run import COLUMNS, DT, BrokerAt, RunResult, run_once

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from wsnav.broker.embedded import BrokerProcess as EmbeddedBroker
+    from wsnav.broker.amqtt.embedded import BrokerProcess as EmbeddedBroker
 
 DEVICE = Path(__file__).resolve().parent / "device"
 HOST_STUBS = DEVICE / "host_stubs"
@@ -55,7 +55,7 @@ class SiteBroker:
 
     def start(self, timeout_s: float = 120.0) -> None:
         """Start (first time on a free port, then on the same port) and wait for its ready line."""
-        from wsnav.broker.embedded import BrokerProcess as EmbeddedBroker
+        from wsnav.broker.amqtt.embedded import BrokerProcess as EmbeddedBroker
 
         proc = EmbeddedBroker(
             self.site,

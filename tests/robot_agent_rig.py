@@ -18,7 +18,7 @@ import numpy as np
 from matplotlib.path import Path as MplPath
 
 from tests.conftest import SITES
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.robot_agent.agent import RobotAgent
 from wsnav.robot_agent.agent_config import AgentConfig, load_agent_config
 from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3

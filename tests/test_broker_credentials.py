@@ -24,7 +24,7 @@ from wsnav.broker.credentials import (
     verify_password,
     write_credentials,
 )
-from wsnav.broker.mosquitto import (
+from wsnav.broker.mosquitto.config import (
     ACL,
     CONF,
     PASSWORDS,

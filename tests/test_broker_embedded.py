@@ -15,7 +15,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from tests.site_fixtures import tiny_site
 from tests.test_broker_helpers import TIMEOUT, Endpoint, client
-from wsnav.broker.embedded import BrokerThread, embedded_broker
+from wsnav.broker.amqtt.embedded import BrokerThread, embedded_broker
 from wsnav.schemas import topics
 
 SITE = "tiny"

@@ -1,4 +1,4 @@
-"""wsnav.broker.gc_pacing: what is frozen is skipped by collections, and nothing frozen stays unreclaimed for good."""
+"""wsnav.broker.amqtt.gc_pacing: what is frozen is skipped by collections, and nothing frozen stays unreclaimed for good."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from wsnav.broker.gc_pacing import freeze_now, pace_collections, refresh
+from wsnav.broker.amqtt.gc_pacing import freeze_now, pace_collections, refresh
 
 
 class Session:

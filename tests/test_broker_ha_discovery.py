@@ -20,8 +20,8 @@ import jinja2
 import pytest
 
 from tests.site_fixtures import tiny_site
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.broker.credentials import write_credentials
-from wsnav.broker.embedded import BrokerThread
 from wsnav.broker.ha_discovery import discovery_messages
 from wsnav.runtime.mqtt_bus import connect_with_credentials
 from wsnav.schemas import topics

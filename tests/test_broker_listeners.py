@@ -15,8 +15,8 @@ from paho.mqtt.reasoncodes import ReasonCode
 
 from tests.site_fixtures import tiny_site
 from tests.test_broker_helpers import TIMEOUT
-from wsnav.broker.amqtt_config import BrokerOptions, TlsListener
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.config import BrokerOptions, TlsListener
+from wsnav.broker.amqtt.embedded import BrokerThread
 
 
 def self_signed(directory: Path) -> tuple[Path, Path]:

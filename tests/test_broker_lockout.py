@@ -18,9 +18,9 @@ import pytest
 from tests.conftest import REPO
 from tests.site_fixtures import tiny_site
 from tests.test_broker_helpers import TIMEOUT, Client, Endpoint, client
-from wsnav.broker.admission import MAX_PER_IDENTITY
+from wsnav.broker.amqtt.admission import MAX_PER_IDENTITY
+from wsnav.broker.amqtt.embedded import BrokerProcess
 from wsnav.broker.credentials import write_credentials
-from wsnav.broker.embedded import BrokerProcess
 from wsnav.schemas import topics
 from wsnav.schemas.site import load_site
 

@@ -14,9 +14,9 @@ import pytest
 
 from tests.site_fixtures import tiny_site
 from tests.test_broker_helpers import TIMEOUT, Endpoint, client
+from wsnav.broker.amqtt.embedded import BrokerProcess
+from wsnav.broker.amqtt.retained_store import read_retained
 from wsnav.broker.credentials import write_credentials
-from wsnav.broker.embedded import BrokerProcess
-from wsnav.broker.retained_store import read_retained
 from wsnav.schemas import topics
 from wsnav.schemas.site import load_site
 
@@ -185,8 +185,8 @@ def test_bad_input_is_one_line(
 
 def test_broken_password_file_is_one_line(setup: tuple[Path, Path]) -> None:
     site, creds = setup
-    (creds / "broker.passwd").write_text("n1 has no hash\n")
+    (creds / "wsnav.broker.passwd").write_text("n1 has no hash\n")
     result = wsnav("broker", "run", "--site", site, "--credentials", creds, "--bind", "127.0.0.1:0")
     assert result.returncode != 0
     assert len(result.stderr.splitlines()) == 1, result.stderr
-    assert "broker.passwd: line 1" in result.stderr
+    assert "wsnav.broker.passwd: line 1" in result.stderr

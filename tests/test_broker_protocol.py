@@ -25,10 +25,10 @@ from hypothesis import strategies as st
 from tests.conftest import require_tool
 from tests.site_fixtures import tiny_site
 from tests.test_broker_helpers import Endpoint, client, free_port, wait_listening
+from wsnav.broker.amqtt.embedded import BrokerProcess
+from wsnav.broker.amqtt.packet_gate import BadPacket, check_packet
 from wsnav.broker.credentials import write_credentials
-from wsnav.broker.embedded import BrokerProcess
-from wsnav.broker.mosquitto import CONF, MosquittoOptions, write_mosquitto_config
-from wsnav.broker.packet_gate import BadPacket, check_packet
+from wsnav.broker.mosquitto.config import CONF, MosquittoOptions, write_mosquitto_config
 from wsnav.schemas import topics
 from wsnav.schemas.site import load_site
 

@@ -27,9 +27,9 @@ from tests.test_broker_helpers import (
     free_port,
     wait_listening,
 )
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.broker.credentials import write_credentials
-from wsnav.broker.embedded import BrokerThread
-from wsnav.broker.mosquitto import CONF, MosquittoOptions, write_mosquitto_config
+from wsnav.broker.mosquitto.config import CONF, MosquittoOptions, write_mosquitto_config
 from wsnav.schemas import topics
 from wsnav.schemas.site import load_site
 

@@ -16,9 +16,9 @@ import pytest
 from tests.site_fixtures import tiny_site
 from tests.test_broker_helpers import TIMEOUT, Endpoint, client
 from tests.test_broker_process import wait_stored, wsnav
+from wsnav.broker.amqtt.embedded import BrokerProcess
+from wsnav.broker.amqtt.retained_store import DB_NAME, read_retained
 from wsnav.broker.credentials import write_credentials
-from wsnav.broker.embedded import BrokerProcess
-from wsnav.broker.retained_store import DB_NAME, read_retained
 from wsnav.schemas import topics
 from wsnav.schemas.site import load_site
 

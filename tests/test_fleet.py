@@ -15,7 +15,7 @@ import pytest
 
 from tests.conftest import SITES
 from tests.site_fixtures import tiny_site
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.experiments.fleet_sim import FleetError, SimFleet, start_poses
 from wsnav.experiments.single_run import BrokerAt
 from wsnav.navigation.behaviors.right_of_way import must_yield_to

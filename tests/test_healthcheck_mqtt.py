@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from tests.site_fixtures import tiny_site
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.healthcheck import main
 from wsnav.runtime.bus import Will
 from wsnav.runtime.mqtt_bus import MqttBus

@@ -14,7 +14,7 @@ import pytest
 
 from tests.conftest import SITES
 from tests.robot_agent_rig import connect
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.schemas import topics
 from wsnav.schemas.messages import ZoneState
 

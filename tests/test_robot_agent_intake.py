@@ -17,7 +17,7 @@ import pytest
 from tests.conftest import SITES
 from tests.site_fixtures import tiny_site
 from wsnav import firmware
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.navigation.costmap.inflation import InflationParams
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
 from wsnav.navigation.planning.offline_plan import frame_of

@@ -10,7 +10,7 @@ from typing import Any
 from tests.conftest import SITES
 from tests.ros_fixtures import RosMaster, WsnavChild, require_ros, wait_until
 from tests.test_ros_bridge_grid import bridge_args
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.ros_bridge.ros_env import LocalRosCore, master_alive
 from wsnav.schemas.site import load_site
 

@@ -25,7 +25,7 @@ import yaml
 from tests.conftest import SITES, require_tool
 from tests.costmap2d_model import StaticLayerModel
 from tests.ros_fixtures import RosMaster, WsnavChild, wait_until
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.ros_bridge.zone_feed import ZoneFeed
 from wsnav.runtime.bus import Message
 from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials

@@ -21,7 +21,7 @@ import pytest
 
 from tests.ros_fixtures import RosMaster, WsnavChild, wait_until
 from tests.test_ros_bridge_grid import bridge_args, slow_heartbeat_school
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
 from wsnav.schemas import topics
 from wsnav.schemas.messages import RobotStatus, ZoneState

@@ -24,7 +24,7 @@ import yaml
 from tests.conftest import SITES
 from tests.robot_agent_rig import connect, distance_to_polygon
 from tests.ros_fixtures import RosMaster, WsnavChild, require_ros, wait_until
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.ros_bridge.ros_env import free_port
 from wsnav.schemas import topics
 from wsnav.schemas.messages import SimObstacle, SimWorld, ZoneState

@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 
 from tests.site_fixtures import tiny_site
+from wsnav.broker.amqtt.embedded import BrokerThread
+from wsnav.broker.amqtt.server import BrokerStartError
 from wsnav.broker.credentials import write_credentials
-from wsnav.broker.embedded import BrokerThread
-from wsnav.broker.server import BrokerStartError
 from wsnav.runtime.bus import Message, Will
 from wsnav.runtime.clock import Clock, SimClock
 from wsnav.runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials

@@ -32,7 +32,7 @@ from tests.conftest import require_tool
 from tests.test_broker_helpers import Endpoint, client, free_port, wait_listening
 from tests.test_compose_stack import P2, ROBOT, SITE, UPPER, inside, write_site
 from wsnav.broker.credentials import write_credentials
-from wsnav.broker.mosquitto import CONF
+from wsnav.broker.mosquitto.config import CONF
 from wsnav.runtime.mqtt_bus import MqttBus
 from wsnav.schemas import topics
 from wsnav.schemas.credentials import load_credentials

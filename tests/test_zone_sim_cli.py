@@ -11,7 +11,7 @@ import pytest
 
 from tests.conftest import SITES
 from tests.zone_sim_fixtures import SITE, sim_site, subscriber
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.cli import main
 from wsnav.experiments.run_plan import plan_runs
 from wsnav.runtime.clock import SimClock

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from tests.zone_sim_fixtures import HEARTBEAT_S, drive, settle, sim_site, subscriber, wait_online
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.runtime.bus import Message
 from wsnav.runtime.clock import SimClock
 from wsnav.schemas import topics

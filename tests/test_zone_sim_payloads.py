@@ -7,7 +7,7 @@ import random
 from pathlib import Path
 
 from tests.zone_sim_fixtures import SITE, drive, settle, sim_site, subscriber, wait_online
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.runtime.clock import SimClock
 from wsnav.schemas import topics
 from wsnav.schemas.messages import NodeInfo, NodeStatus, ZoneState, parse_payload

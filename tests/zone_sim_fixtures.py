@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from tests.site_fixtures import tiny_site
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.runtime.bus import Message
 from wsnav.runtime.clock import Clock, SimClock
 from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials

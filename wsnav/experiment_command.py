@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from wsnav.broker.mosquitto_process import MosquittoError
+from wsnav.broker.mosquitto.process import MosquittoError
 from wsnav.experiments.cluster import ClusterError
 from wsnav.experiments.report import paths_figure
 from wsnav.experiments.run_plan import RunSpec, plan_runs

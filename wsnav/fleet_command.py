@@ -8,7 +8,7 @@ import math
 from collections.abc import Iterator
 from pathlib import Path
 
-from wsnav.broker.embedded import BrokerThread
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.experiments.fleet_report import summary_rows, write_fleet_report
 from wsnav.experiments.fleet_scenario import run_fleet
 from wsnav.experiments.fleet_sim import FleetError, SimFleet, start_poses

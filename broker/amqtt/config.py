@@ -2,7 +2,7 @@
 
 Only our own plugins are loaded (auth, ACL, retained store): amqtt's default AnonymousAuthPlugin admits any
 client that sends a username even with `allow_anonymous: false`, and its ACL plugin has no per-filter subscribe
-rules. The connection cap is ours too (broker.admission): amqtt's `max_connections` makes new sockets wait
+rules. The connection cap is ours too (wsnav.broker.amqtt.admission): amqtt's `max_connections` makes new sockets wait
 behind idle ones.
 """
 
@@ -13,8 +13,8 @@ from pathlib import Path
 from typing import Any
 
 from wsnav.broker.acl import site_rules
+from wsnav.broker.amqtt.packet_gate import MAX_PACKET_BYTES
 from wsnav.broker.credentials import PASSWORD_FILE, site_ids
-from wsnav.broker.packet_gate import MAX_PACKET_BYTES
 from wsnav.schemas.site_file import SiteFile
 
 
@@ -38,13 +38,13 @@ class BrokerOptions:
     ws_bind: tuple[str, int] | None = None
     tls: TlsListener | None = None
     max_connections: int = 0
-    """0: as many as the open-file limit allows (broker.admission keeps a reserve)."""
+    """0: as many as the open-file limit allows (wsnav.broker.amqtt.admission keeps a reserve)."""
     connect_timeout_s: float = 5.0
     """A socket that has not sent a whole CONNECT by then is closed."""
     max_packet_bytes: int = MAX_PACKET_BYTES
     """Bigger packets end the connection (and are never stored or delivered)."""
     gc_freeze_s: float = 0.0
-    """How often long-lived objects are frozen out of garbage collections (broker.gc_pacing); 0: never. The
+    """How often long-lived objects are frozen out of garbage collections (wsnav.broker.amqtt.gc_pacing); 0: never. The
     collector is the whole process's: `wsnav broker run` turns it on, a broker embedded in another program not."""
 
 
@@ -75,7 +75,7 @@ def amqtt_config(spec: SiteFile, credentials_dir: Path, options: BrokerOptions) 
             tls["cafile"] = str(options.tls.cafile)
         listeners["tls"] = tls
     plugins: dict[str, Any] = {
-        "wsnav.broker.auth.WsnavAuthPlugin": {
+        "wsnav.broker.amqtt.auth.WsnavAuthPlugin": {
             "password_file": str(credentials_dir / PASSWORD_FILE),
             "publish": rules.publish,
             "reserved_client_ids": site_ids(spec),
@@ -83,7 +83,7 @@ def amqtt_config(spec: SiteFile, credentials_dir: Path, options: BrokerOptions) 
         "wsnav.broker.acl.WsnavAclPlugin": {"publish": rules.publish, "subscribe": rules.subscribe},
     }
     if options.data_dir is not None:
-        plugins["wsnav.broker.retained_store.RetainedStorePlugin"] = {
+        plugins["wsnav.broker.amqtt.retained_store.RetainedStorePlugin"] = {
             "data_dir": str(options.data_dir),
             "flush_interval_s": options.flush_interval_s,
             "synchronous": options.synchronous,

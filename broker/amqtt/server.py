@@ -1,13 +1,13 @@
-"""Start, serve and stop the configured amqtt broker (our amqtt overrides live in broker.amqtt_patch).
+"""Start, serve and stop the configured amqtt broker (our amqtt overrides live in wsnav.broker.amqtt.patch).
 
 - A listener that cannot bind: amqtt keeps running with no listener; `start_broker` raises `BrokerStartError`
   with one line instead, after closing whatever did open, so the caller exits non-zero.
 - SIGTERM and SIGINT (the amqtt CLI dies on SIGTERM without shutdown): `serve` turns them into a clean
   `Broker.shutdown()`, which flushes the retained store.
-- Garbage collection: long-lived objects are frozen out of collections every few seconds (broker.gc_pacing),
+- Garbage collection: long-lived objects are frozen out of collections every few seconds (wsnav.broker.amqtt.gc_pacing),
   so a full collection does not stall every delivery for the walk over 1000 nodes' sessions.
 - Descriptors: the soft open-file limit is raised to the hard one, and the connection cap kept below it
-  (broker.admission).
+  (wsnav.broker.amqtt.admission).
 """
 
 from __future__ import annotations
@@ -24,11 +24,11 @@ from pathlib import Path
 from amqtt.broker import Broker
 from amqtt.errors import AMQTTError, BrokerError, PluginError, PluginLoadError
 
-from wsnav.broker.admission import Admission, connection_capacity, raise_descriptor_limit
-from wsnav.broker.amqtt_config import BrokerOptions, amqtt_config, bind_text
-from wsnav.broker.amqtt_patch import WsnavBroker, close_listeners
+from wsnav.broker.amqtt.admission import Admission, connection_capacity, raise_descriptor_limit
+from wsnav.broker.amqtt.config import BrokerOptions, amqtt_config, bind_text
+from wsnav.broker.amqtt.gc_pacing import pace_collections
+from wsnav.broker.amqtt.patch import WsnavBroker, close_listeners
 from wsnav.broker.credentials import PASSWORD_FILE, read_password_file
-from wsnav.broker.gc_pacing import pace_collections
 from wsnav.schemas.credentials import CredentialsError
 from wsnav.schemas.site_file import SiteFile
 

@@ -5,7 +5,7 @@ Replaces amqtt 0.12.1's AnonymousAuthPlugin, which admits any client that merely
 A connect is refused when:
 - there is no username, the user is unknown or the password is wrong;
 - the client id names another site id (client ids also live in their identity's namespace, see
-  broker.amqtt_patch.session_key, so this is a clear early refusal of a misconfigured device rather than the
+  wsnav.broker.amqtt.patch.session_key, so this is a clear early refusal of a misconfigured device rather than the
   only guard);
 - the last-will topic is not one the user may publish (else a will could bypass the ACL, which amqtt does not
   check for wills). Mosquitto 2 refuses such a will the same way.

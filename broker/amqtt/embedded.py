@@ -30,9 +30,9 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO
 
-from wsnav.broker.amqtt_config import BrokerOptions
+from wsnav.broker.amqtt.config import BrokerOptions
+from wsnav.broker.amqtt.server import RunningBroker, serve, start_broker
 from wsnav.broker.credentials import write_credentials
-from wsnav.broker.server import RunningBroker, serve, start_broker
 from wsnav.schemas.credentials import Credentials, load_credentials
 from wsnav.schemas.site import Site, load_site
 from wsnav.schemas.site_file import SiteFile

@@ -41,8 +41,8 @@ from amqtt.session import OUTGOING, IncomingApplicationMessage, OutgoingApplicat
 from amqtt.utils import gen_client_id
 from websockets.asyncio.server import ServerConnection
 
-from wsnav.broker.admission import Admission, Ticket
-from wsnav.broker.packet_gate import MAX_PACKET_BYTES, GateReader
+from wsnav.broker.amqtt.admission import Admission, Ticket
+from wsnav.broker.amqtt.packet_gate import MAX_PACKET_BYTES, GateReader
 
 log = logging.getLogger("wsnav.broker")
 

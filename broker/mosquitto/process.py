@@ -16,7 +16,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from wsnav.broker.mosquitto import CONF, MosquittoOptions, write_mosquitto_config
+from wsnav.broker.mosquitto.config import CONF, MosquittoOptions, write_mosquitto_config
 from wsnav.schemas.site_file import SiteFile
 
 START_ATTEMPTS = 3

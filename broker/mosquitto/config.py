@@ -20,8 +20,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from wsnav.broker.acl import AclRules, site_rules
+from wsnav.broker.amqtt.packet_gate import MAX_PACKET_BYTES
 from wsnav.broker.credentials import load_folder, secure_dir, write_private
-from wsnav.broker.packet_gate import MAX_PACKET_BYTES
 from wsnav.schemas.site_file import SiteFile
 
 CONF = "mosquitto.conf"
