@@ -22,7 +22,8 @@ import numpy as np
 
 from bench.benchmarks_md import write_section
 from wsnav.experiments.run_plan import plan_runs
-from wsnav.experiments.runner import RUN_BROKERS, progress_line, report_header, run_experiment, write_outputs
+from wsnav.experiments.runner import progress_line, report_header, run_experiment, write_outputs
+from wsnav.experiments.worker import RUN_BROKERS
 from wsnav.schemas.site import load_site
 
 REPO = Path(__file__).resolve().parent.parent

@@ -15,8 +15,8 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from wsnav.experiments.run_plan import RunSpec
-from wsnav.experiments.runner import quiet_worker_logs, run_with_own_broker
 from wsnav.experiments.single_run import RunResult
+from wsnav.experiments.worker import quiet_worker_logs, run_with_own_broker
 from wsnav.schemas.site import Site
 
 if TYPE_CHECKING:

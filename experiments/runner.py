@@ -5,12 +5,10 @@ client ids: amqtt in the worker's process, or Mosquitto beside it), a progress l
 
 from __future__ import annotations
 
-import logging
 import multiprocessing
 import os
 import platform
 import sys
-import tempfile
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -21,19 +19,13 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from wsnav.broker.amqtt.embedded import BrokerThread
-from wsnav.broker.credentials import write_credentials
-from wsnav.broker.mosquitto.process import mosquitto_process
 from wsnav.experiments.report import paths_figure, write_report
 from wsnav.experiments.run_plan import RunSpec
-from wsnav.experiments.single_run import COLUMNS, DT, BrokerAt, RunResult, run_once
+from wsnav.experiments.single_run import COLUMNS, DT, BrokerAt, RunResult
+from wsnav.experiments.worker import init_worker, work
 from wsnav.schemas.site import Site, load_site
-from wsnav.schemas.site_file import SiteFile
 
 Progress = Callable[[int, int], None]
-RUN_BROKERS = ("amqtt", "mosquitto")
-"""The broker each run starts for itself: amqtt (the Pi's broker) in the worker's process, or a Mosquitto
-process beside it, which takes the messages off the worker's GIL (same rows, 13-17% less wall time a run)."""
 
 
 @dataclass(frozen=True)
@@ -46,66 +38,6 @@ class Outcome:
     @property
     def simulated_s(self) -> float:
         return float(self.table["time_s"].to_numpy(dtype=np.float64).sum())
-
-
-_site: Site | None = None
-_site_dir: Path | None = None
-_broker: BrokerAt | None = None
-_run_broker = "amqtt"
-
-
-def quiet_worker_logs() -> None:
-    """Dropped retained messages of the previous run and the broker's chatter about clients that the last run
-    closed are expected: neither is worth a line on the console."""
-    logging.getLogger("amqtt").setLevel(logging.CRITICAL)
-    for component in ("wsnav.robot_agent", "wsnav.navigation", "wsnav.zones"):
-        logging.getLogger(component).setLevel(logging.ERROR)
-
-
-def _init_worker(site_dir: Path, broker: BrokerAt | None, run_broker: str = "amqtt") -> None:
-    global _site, _site_dir, _broker, _run_broker
-    quiet_worker_logs()
-    _site = load_site(site_dir)
-    _site_dir = site_dir
-    _broker = broker
-    _run_broker = run_broker
-
-
-def _work(spec: RunSpec) -> tuple[RunSpec, RunResult]:
-    """One run; without an external broker, on a fresh embedded one, so no retained message of an earlier
-    run reaches this one and the same seed gives the same row whatever ran before in this worker."""
-    assert _site is not None and _site_dir is not None
-    if _broker is not None:
-        return spec, run_once(_site, spec, _broker)
-    return run_with_own_broker(_site, spec, _run_broker)
-
-
-_credentials: dict[str, tuple[SiteFile, tempfile.TemporaryDirectory[str]]] = {}
-
-
-def _credentials_of(site: Site) -> Path:
-    """The site's credentials, written once per worker process: a run's broker is fresh (no retained message
-    of an earlier run), its passwords need not be (hashing them anew cost 75 ms a run)."""
-    known = _credentials.get(site.name)
-    if known is None or known[0] != site.spec:
-        known = (site.spec, tempfile.TemporaryDirectory(prefix="wsnav-credentials-"))
-        write_credentials(site.spec, Path(known[1].name))
-        _credentials[site.name] = known
-    return Path(known[1].name)
-
-
-def run_with_own_broker(site: Site, spec: RunSpec, kind: str = "amqtt") -> tuple[RunSpec, RunResult]:
-    """One run on a fresh broker of its own (`kind`, one of RUN_BROKERS; credentials in a temporary folder):
-    needs the parsed site only."""
-    if kind == "mosquitto":
-        creds = _credentials_of(site)
-        with (
-            tempfile.TemporaryDirectory(prefix="wsnav-run-") as tmp,
-            mosquitto_process(site.spec, creds, Path(tmp)) as mq,
-        ):
-            return spec, run_once(site, spec, BrokerAt(mq.host, mq.port, creds))
-    with BrokerThread(site) as own:
-        return spec, run_once(site, spec, BrokerAt(own.host, own.port, own.credentials_dir))
 
 
 def run_experiment(
@@ -131,17 +63,17 @@ def run_experiment(
 
         done = list(run_on_cluster(scheduler, load_site(site_dir), specs, arrived, run_broker).values())
     elif broker is not None or workers <= 1:
-        _init_worker(site_dir, broker, run_broker)
+        init_worker(site_dir, broker, run_broker)
         for spec in specs:
-            done.append(_work(spec))
+            done.append(work(spec))
             if progress is not None:
                 progress(len(done), len(specs))
     else:
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(
-            workers, ctx, initializer=_init_worker, initargs=(site_dir, None, run_broker)
+            workers, ctx, initializer=init_worker, initargs=(site_dir, None, run_broker)
         ) as pool:
-            futures = [pool.submit(_work, spec) for spec in specs]
+            futures = [pool.submit(work, spec) for spec in specs]
             for future in as_completed(futures):
                 done.append(future.result())
                 if progress is not None:

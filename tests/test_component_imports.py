@@ -103,3 +103,32 @@ def test_every_component_ships_in_the_wheel_and_the_image() -> None:
         assert link.is_symlink() and link.resolve() == (REPO / component).resolve(), f"wsnav/{component}"
         assert f"!{component}/" in context, f".dockerignore: {component}/ is left out of the image"
     assert "!wsnav/" in context
+
+
+def module_name(path: Path) -> str:
+    rel = path.relative_to(REPO).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(["wsnav", *parts] if parts[0] != "wsnav" else parts)
+
+
+def test_no_module_of_ours_imports_itself_back_through_others() -> None:
+    """A cycle (runner -> cluster -> runner was one) makes import order matter and hides what depends on
+    what; lazy imports inside functions count too."""
+    import graphlib
+
+    modules = {module_name(p): p for folder in [*COMPONENTS, "wsnav"] for p in python_files(REPO / folder)}
+    graph = {
+        name: {
+            dep
+            for imported in imported_names(path)
+            for dep in (imported, imported.rsplit(".", 1)[0])
+            if dep in modules and dep != name and not modules[dep].name == "__init__.py"
+        }
+        for name, path in modules.items()
+    }
+    try:
+        list(graphlib.TopologicalSorter(graph).static_order())
+    except graphlib.CycleError as exc:
+        pytest.fail(f"import cycle: {' -> '.join(exc.args[1])}")

@@ -13,8 +13,9 @@ import pytest
 from tests.conftest import REPO, SITES, require_tool
 from wsnav.cli import main
 from wsnav.experiments.run_plan import plan_runs
-from wsnav.experiments.runner import run_experiment, run_with_own_broker, write_outputs
+from wsnav.experiments.runner import run_experiment, write_outputs
 from wsnav.experiments.single_run import COLUMNS, NONDETERMINISTIC, peak_rss_mb, reset_peak_rss
+from wsnav.experiments.worker import run_with_own_broker
 from wsnav.schemas.site import load_site
 
 SCHOOL = SITES / "school"
