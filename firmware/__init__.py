@@ -9,6 +9,11 @@ package of that name.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the submodules load when imported, not with the package
+    from wsnav.firmware import board, build, cli, deploy, testing, unix_board
+
 import sys
 from collections.abc import Sequence
 from importlib import import_module
@@ -61,3 +66,16 @@ def _rename(module: ModuleType, name: str) -> None:
                 value.__module__ = qualified
             except (AttributeError, TypeError):
                 continue
+
+
+__all__ = [
+    "DEVICE_DIR",
+    "PURE_MODULES",
+    "board",
+    "build",
+    "cli",
+    "deploy",
+    "load_device_modules",
+    "testing",
+    "unix_board",
+]

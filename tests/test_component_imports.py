@@ -124,7 +124,7 @@ def test_no_module_of_ours_imports_itself_back_through_others() -> None:
             dep
             for imported in imported_names(path)
             for dep in (imported, imported.rsplit(".", 1)[0])
-            if dep in modules and dep != name and not modules[dep].name == "__init__.py"
+            if dep in modules and dep != name and modules[dep].name != "__init__.py"
         }
         for name, path in modules.items()
     }
