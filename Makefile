@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: demo experiment test lint typecheck pytest bench schemas school clean
+.PHONY: demo experiment test test-fast lint typecheck pytest bench schemas school clean
 
 $(STAMP): pyproject.toml constraints.txt scripts/bootstrap-venv
 	@./scripts/bootstrap-venv "$(PYTHON)" "$(VENV)"
@@ -31,6 +31,10 @@ pytest: $(STAMP)
 	@$(BIN)/pytest -q $(PYTEST_ARGS); rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest: no tests collected"; rc=0; fi; exit $$rc
 
 test: lint typecheck pytest
+
+# The tests without real process stacks (no slow marker): about a minute; `make test` still runs everything.
+test-fast: $(STAMP)
+	@$(BIN)/pytest -q -m "not slow" $(PYTEST_ARGS); rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest: no tests collected"; rc=0; fi; exit $$rc
 
 schemas: $(STAMP)
 	$(BIN)/python -m wsnav.schemas.export

@@ -23,3 +23,73 @@ def require_tool(name: str) -> str:
 
 
 pytest_plugins = ["tests.ros_fixtures"]
+
+SLOW_MODULES = {
+    "test_console_browser.py",
+    "test_compose_stack.py",
+    "test_stack_processes.py",
+    "test_ros_robot.py",
+    "test_experiments_cluster.py",
+    "test_firmware_update.py",
+    "test_firmware_node.py",
+}
+"""Every test here runs a process stack: docker, a browser, ROS, MicroPython boards, Dask processes."""
+SLOW_TESTS = {
+    "test_broker_credentials.py::test_mosquitto_keeps_messages_for_a_subscriber_that_stalls",
+    "test_broker_embedded.py::test_a_subscriber_that_never_acknowledges_costs_one_warning_line_not_a_traceback",
+    "test_broker_embedded.py::test_silent_client_is_dropped_and_its_will_published",
+    "test_broker_ha_discovery.py::test_the_operator_publishes_discovery_retained_and_a_node_cannot",
+    "test_broker_lockout.py::test_a_full_broker_makes_room_for_a_login_by_closing_idle_sockets",
+    "test_broker_lockout.py::test_a_socket_that_never_sends_connect_is_dropped_within_seconds",
+    "test_broker_lockout.py::test_a_stolen_credential_cannot_fill_the_slots_with_logins",
+    "test_broker_lockout.py::test_idle_sockets_and_churn_never_lock_a_node_out",
+    "test_broker_protocol.py::test_fuzzed_bytes_after_login",
+    "test_broker_security.py::test_refused_client_cannot_hijack_a_connected_clients_id",
+    "test_broker_storage.py::test_full_disk_is_loud_loses_nothing_while_running_and_counts_what_is_lost",
+    "test_experiments_run.py::test_a_row_of_the_published_experiment_comes_out_again_to_the_digit",
+    "test_experiments_run.py::test_a_run_on_its_own_mosquitto_gives_the_row_and_path_it_gives_on_amqtt",
+    "test_experiments_run.py::test_one_run_per_route_and_config_arrives_without_collisions_and_repeats_with_the_seed",
+    "test_firmware_mqtt.py::test_keepalive_pings_are_sent_by_the_node",
+    "test_firmware_mqtt.py::test_missing_pingresp_is_detected",
+    "test_fleet.py::test_an_agent_keeps_others_fresh_poses_only_and_drops_bad_statuses",
+    "test_fleet.py::test_two_robots_meeting_head_on_in_a_corridor_both_arrive_apart_and_the_later_one_says_it_yields",
+    "test_fleet_cli.py::test_fleet_experiment_writes_its_table_report_and_trails",
+    "test_fleet_cli.py::test_fleet_runs_all_ten_robots_of_the_school_and_sends_the_goals_given",
+    "test_healthcheck_mqtt.py::test_broker_check_needs_a_working_login",
+    "test_healthcheck_mqtt.py::test_nodes_check_names_the_nodes_not_online",
+    "test_healthcheck_mqtt.py::test_robot_check_wants_a_live_status_not_a_retained_one",
+    "test_plan_cli.py::test_bad_input_is_one_line_on_stderr",
+    "test_plan_cli.py::test_bad_site_and_unwritable_png_are_one_line",
+    "test_robot_agent_cli.py::test_a_goal_in_a_blocked_zone_exits_1_with_the_reason",
+    "test_robot_agent_cli.py::test_bad_input_is_one_line_and_exit_2",
+    "test_robot_agent_cli.py::test_ctrl_c_and_sigterm_stop_the_robot_cleanly",
+    "test_robot_agent_cli.py::test_robot_drives_to_a_near_goal_in_real_time_and_exits_0_on_arrival",
+    "test_robot_agent_e2e.py::test_every_way_blocked_waits_then_resumes_by_itself_when_a_zone_clears",
+    "test_robot_agent_e2e.py::test_z4_blocked_before_the_start_the_robot_plans_around_it_and_reaches_b",
+    "test_robot_agent_e2e.py::test_z4_blocked_while_driving_replans_at_once_before_the_lidar_could_see_it",
+    "test_robot_agent_escape.py::test_a_robot_in_a_zone_that_becomes_blocked_leaves_it_by_the_near_end_and_goes_round_to_its_goal",
+    "test_robot_agent_escape.py::test_with_the_only_way_on_through_the_zone_the_robot_leaves_it_and_waits_outside_until_it_clears",
+    "test_robot_agent_navigation.py::test_without_the_zone_layer_the_lidar_finds_the_obstacle_and_the_blocked_controller_replans",
+    "test_ros_bridge_faults.py::test_a_site_whose_map_is_not_the_robots_is_refused_in_one_line",
+    "test_ros_bridge_faults.py::test_the_bridge_comes_back_when_the_master_is_restarted",
+    "test_ros_bridge_grid.py::test_the_static_layer_grid_equals_the_zone_layer_after_100_random_events",
+    "test_ros_bridge_move_base.py::test_a_goal_in_a_blocked_zone_is_cancelled_whoever_sent_it",
+    "test_ros_bridge_move_base.py::test_a_zone_on_the_plan_makes_move_base_replan_at_once",
+    "test_runtime_bus.py::test_abort_publishes_the_will_and_a_restarted_broker_gets_the_subscriptions_again",
+    "test_site_check.py::test_render_draws_the_site",
+    "test_zone_sim_cli.py::test_zones_block_runs_the_nodes_and_a_robot_sees_the_zone_blocked",
+    "test_zone_sim_failures.py::test_a_hung_node_is_dropped_by_the_broker_after_one_and_a_half_keepalives",
+    "test_zone_sim_failures.py::test_a_killed_node_goes_stale_and_offline_and_comes_back_after_a_reboot",
+    "test_zone_sim_scenarios.py::test_a_scripted_obstacle_gives_clear_blocked_clear_on_the_zones_nodes_and_leaves_it_retained",
+    "test_zone_sim_scenarios.py::test_the_same_seed_gives_the_same_run_and_another_seed_another_raffle",
+}
+"""Tests that took over 1.5 s in a full run (brokers and processes of their own, real-time drives); a new slow
+test may say `@pytest.mark.slow` itself instead."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """`make test-fast` (`-m "not slow"`) runs the rest: the logic, in about a minute."""
+    for item in items:
+        module = item.path.name
+        if module in SLOW_MODULES or f"{module}::{item.originalname}" in SLOW_TESTS:  # type: ignore[attr-defined]
+            item.add_marker(pytest.mark.slow)

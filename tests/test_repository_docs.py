@@ -72,3 +72,16 @@ def test_the_architecture_page_says_where_every_command_lives() -> None:
     table = table[: table.index("\n\n", table.index("| command"))]
     missing = [p.prog for p in leaf_parsers(build_parser()) if p.prog.split()[-1] not in table]
     assert missing == []
+
+
+def test_every_test_the_slow_list_names_exists() -> None:
+    """A renamed slow test dropped from the list would slip into `make test-fast` unnoticed."""
+    from tests.conftest import SLOW_MODULES, SLOW_TESTS
+
+    defined = {
+        f"{p.name}::{m}"
+        for p in (REPO / "tests").glob("test_*.py")
+        for m in re.findall(r"def (test_\w+)", p.read_text())
+    }
+    assert sorted(SLOW_TESTS - defined) == []
+    assert sorted(m for m in SLOW_MODULES if not (REPO / "tests" / m).is_file()) == []
