@@ -18,11 +18,12 @@ from wsnav.navigation.costmap.inflation import InflationParams, inflate, static_
 from wsnav.navigation.costmap.layered_costmap import CHANGE_LOG, Bounds, LayeredCostmap
 from wsnav.navigation.planning.costmap_planner import PlannerWeights
 from wsnav.navigation.planning.global_planner import PlannerParams, plan_path, weights_for
-from wsnav.navigation.planning.offline_plan import frame_of, zone_lethal
+from wsnav.navigation.planning.offline_plan import zone_lethal
 from wsnav.schemas.messages import NodeStatus, OperatorBlock, ZoneState
 from wsnav.schemas.site import Site, load_site
 from wsnav.schemas.site_file import ZonePolicy
 from wsnav.zones.cost_values import FREE_SPACE, INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
+from wsnav.zones.geometry import GridFrame
 from wsnav.zones.zone_layer import ZoneLayer
 
 INFLATION = InflationParams(inscribed_radius=0.105, inflation_radius=1.0, cost_scaling_factor=3.0)
@@ -39,7 +40,7 @@ def tiny(tmp_path: Path) -> Site:
 
 
 def school_costmap(site: Site, policy: ZonePolicy | None = None) -> tuple[LayeredCostmap, ZoneLayer]:
-    layer = ZoneLayer(site.spec, frame_of(site), policy)
+    layer = ZoneLayer(site.spec, GridFrame.of_grid(site.grid), policy)
     return LayeredCostmap(site.grid, INFLATION, zone_layer=layer), layer
 
 

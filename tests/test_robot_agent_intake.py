@@ -20,14 +20,13 @@ from wsnav import firmware
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.navigation.costmap.inflation import InflationParams
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
-from wsnav.navigation.planning.offline_plan import frame_of
 from wsnav.runtime.bus import Message, Will
 from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
 from wsnav.schemas import topics
 from wsnav.schemas.messages import NodeStatus, OperatorBlock, ZoneState
 from wsnav.schemas.site import Site, load_site
 from wsnav.zones.cost_values import LETHAL_OBSTACLE
-from wsnav.zones.geometry import polygon_window
+from wsnav.zones.geometry import GridFrame, polygon_window
 from wsnav.zones.intake import ZoneIntake
 from wsnav.zones.zone_layer import ZoneLayer
 
@@ -46,7 +45,7 @@ class Agent:
     """The agent's zone pipeline: intake -> zone layer -> layered costmap."""
 
     def __init__(self, site: Site) -> None:
-        self.layer = ZoneLayer(site.spec, frame_of(site))
+        self.layer = ZoneLayer(site.spec, GridFrame.of_grid(site.grid))
         self.intake = ZoneIntake(site.spec, self.layer)
         self.costmap = LayeredCostmap(
             site.grid, InflationParams(), zone_layer=self.layer, obstacle_layer=False
@@ -339,7 +338,7 @@ def test_duplicate_keys_in_a_zone_state_are_dropped(school: Site) -> None:
 
 def test_a_block_edge_crossing_the_whole_map_is_clipped_not_lost(school: Site) -> None:
     """The outline of an edge that runs far outside the map is still marked where it crosses it."""
-    frame = frame_of(school)
+    frame = GridFrame.of_grid(school.grid)
     width_m, height_m = frame.width * frame.resolution, frame.height * frame.resolution
     y = frame.origin_y + height_m / 2
     far = [(-9_000.0, y), (9_000.0, y), (9_000.0, y + 0.001)]  # a sliver: only its long edge covers cells

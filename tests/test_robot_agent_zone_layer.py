@@ -6,11 +6,11 @@ from __future__ import annotations
 import pytest
 
 from tests.conftest import SITES
-from wsnav.navigation.planning.offline_plan import frame_of
 from wsnav.schemas.messages import NodeStatus, OperatorBlock, ZoneState
 from wsnav.schemas.site import Site, load_site
 from wsnav.schemas.site_file import ZonePolicy
 from wsnav.zones.cost_values import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION
+from wsnav.zones.geometry import GridFrame
 from wsnav.zones.zone_layer import ZoneLayer
 
 HEARTBEAT = 5.0  # the school's heartbeat_s
@@ -23,7 +23,9 @@ def school() -> Site:
 
 
 def layer_for(site: Site, **policy: object) -> ZoneLayer:
-    return ZoneLayer(site.spec, frame_of(site), ZonePolicy.model_validate(policy) if policy else None)
+    return ZoneLayer(
+        site.spec, GridFrame.of_grid(site.grid), ZonePolicy.model_validate(policy) if policy else None
+    )
 
 
 class Feed:
@@ -94,7 +96,7 @@ def test_a_per_node_heartbeat_override_sets_its_stale_time(school: Site) -> None
             ]
         }
     )
-    layer = ZoneLayer(spec, frame_of(school), ZonePolicy(stale="unknown"))
+    layer = ZoneLayer(spec, GridFrame.of_grid(school.grid), ZonePolicy(stale="unknown"))
     feed = Feed(layer)
     feed("z2", "n3", "clear", 0.0)
     feed("z3", "n4", "clear", 0.0)

@@ -27,14 +27,9 @@ from wsnav.zones.geometry import GridFrame, polygon_window
 from wsnav.zones.zone_layer import ZoneLayer
 
 
-def frame_of(site: Site) -> GridFrame:
-    grid = site.grid
-    return GridFrame(grid.width, grid.height, grid.resolution, grid.origin[0], grid.origin[1])
-
-
 def zone_lethal(site: Site, blocked: Sequence[str]) -> NDArray[np.bool_]:
     """Cells of the blocked zones (what the zone layer marks lethal)."""
-    frame = frame_of(site)
+    frame = GridFrame.of_grid(site.grid)
     mask = np.zeros((frame.height, frame.width), dtype=bool)
     for zone_id in blocked:
         window = polygon_window(site.spec.zone(zone_id).polygon, frame)
@@ -46,7 +41,7 @@ def zone_lethal(site: Site, blocked: Sequence[str]) -> NDArray[np.bool_]:
 def site_costmap(site: Site, blocked: Sequence[str], inflation: InflationParams) -> NDArray[np.uint8]:
     """The agent's global costmap for these zone states: the robot's own LayeredCostmap, each blocked zone set
     as an operator block (so a zone no node watches can be blocked too), no lidar."""
-    layer = ZoneLayer(site.spec, frame_of(site))
+    layer = ZoneLayer(site.spec, GridFrame.of_grid(site.grid))
     for zone_id in blocked:
         layer.on_operator_block(f"plan-{zone_id}", OperatorBlock(zone=zone_id), 0.0)
     return LayeredCostmap(site.grid, inflation, zone_layer=layer, obstacle_layer=False).master
