@@ -8,8 +8,12 @@ from pathlib import Path
 
 import pytest
 
+from wsnav.schemas.site import Site, load_site
+
 REPO = Path(__file__).resolve().parent.parent
 SITES = REPO / "sites"
+SCHOOL = SITES / "school"
+"""The paper's school site (map, seven zones, points A-D), the one most tests drive on."""
 
 
 def require_tool(name: str) -> str:
@@ -23,6 +27,13 @@ def require_tool(name: str) -> str:
 
 
 pytest_plugins = ["tests.ros_fixtures"]
+
+
+@pytest.fixture(scope="module")
+def school() -> Site:
+    """The school site, parsed once per test module."""
+    return load_site(SCHOOL)
+
 
 SLOW_MODULES = {
     "test_console_browser.py",

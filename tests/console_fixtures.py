@@ -15,10 +15,10 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
+from tests.broker_fixtures import wait_listening
 from tests.conftest import require_tool
-from tests.test_broker_helpers import free_port, wait_listening
-from tests.test_compose_stack import SITE
-from tests.test_stack_processes import HEARTBEAT_S, WSNAV, Proc, Stack
+from tests.stack_fixtures import HEARTBEAT_S, SITE, WSNAV, Proc, Stack
+from wsnav.broker.mosquitto.process import free_port
 from wsnav.runtime.bus import Will
 from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
 from wsnav.schemas import topics

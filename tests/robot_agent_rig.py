@@ -8,6 +8,7 @@ agent sees at each simulated instant does not depend on the machine's speed.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -17,8 +18,9 @@ from types import TracebackType
 import numpy as np
 from matplotlib.path import Path as MplPath
 
-from tests.conftest import SITES
+from tests.conftest import SCHOOL
 from wsnav.broker.amqtt.embedded import BrokerThread
+from wsnav.navigation.backend import LaserScan
 from wsnav.robot_agent.agent import RobotAgent
 from wsnav.robot_agent.agent_config import AgentConfig, load_agent_config
 from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
@@ -29,7 +31,6 @@ from wsnav.schemas import topics
 from wsnav.schemas.messages import RobotGoal, RobotStatus, SimObstacle, SimWorld, ZoneState, ZoneStateValue
 from wsnav.schemas.site import load_site
 
-SCHOOL = SITES / "school"
 DT = 0.05
 REAL_TIMEOUT_S = 20.0
 LIDAR_RANGE_M = 3.5
@@ -169,3 +170,11 @@ class Rig:
             ):
                 break
         return self.statuses
+
+
+def scan_from(pose: tuple[float, float, float], ranges: dict[int, float], beams: int = 360) -> LaserScan:
+    """An LDS-01-like sweep: beam i at yaw + i degrees; beams not given see nothing (+inf)."""
+    r = np.full(beams, np.inf, dtype=np.float32)
+    for i, value in ranges.items():
+        r[i] = value
+    return LaserScan(0.0, pose, 0.0, 2 * math.pi / beams, 0.12, 3.5, r)

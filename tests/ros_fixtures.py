@@ -8,6 +8,7 @@ environment). Without Debian's ROS packages these fixtures skip, and fail under 
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -17,8 +18,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+import yaml
 
-from tests.conftest import require_tool
+from tests.conftest import SITES, require_tool
+from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.ros_bridge.ros_env import LocalRosCore, stop_process_group
 
 
@@ -117,3 +120,28 @@ class WsnavChild:
     def stop(self) -> None:
         stop_process_group(self.proc)
         self._pump.join(5)
+
+
+def slow_heartbeat_school(directory: Path) -> Path:
+    """The school site with a 10-minute heartbeat and stale nodes read as unknown (-1 on the grid)."""
+    site_dir = directory / "school"
+    shutil.copytree(SITES / "school", site_dir)
+    spec = yaml.safe_load((site_dir / "site.yaml").read_text())
+    spec["heartbeat_s"] = 600.0
+    spec["policy"] = {**spec.get("policy", {}), "stale": "unknown"}
+    (site_dir / "site.yaml").write_text(yaml.safe_dump(spec, sort_keys=False))
+    return site_dir
+
+
+def bridge_args(site_dir: Path, broker: BrokerThread, *extra: str) -> list[str]:
+    return [
+        "--site",
+        str(site_dir),
+        "--broker",
+        f"{broker.host}:{broker.port}",
+        "--credentials",
+        str(broker.credentials_dir / "robot1.json"),
+        "--map-wait",
+        "0",
+        *extra,
+    ]

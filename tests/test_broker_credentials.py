@@ -15,9 +15,9 @@ import paho.mqtt.client as mqtt
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
+from tests.broker_fixtures import wait_listening
 from tests.conftest import require_tool
 from tests.site_fixtures import tiny_site
-from tests.test_broker_helpers import free_port, wait_listening
 from wsnav.broker.credentials import (
     PASSWORD_FILE,
     read_password_file,
@@ -32,6 +32,7 @@ from wsnav.broker.mosquitto.config import (
     mosquitto_hash,
     write_mosquitto_config,
 )
+from wsnav.broker.mosquitto.process import free_port
 from wsnav.schemas.credentials import Credentials, NodeConfig, load_credentials
 from wsnav.schemas.site import load_site
 

@@ -13,8 +13,8 @@ import paho.mqtt.client as mqtt
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
+from tests.broker_fixtures import TIMEOUT, Endpoint, client
 from tests.site_fixtures import tiny_site
-from tests.test_broker_helpers import TIMEOUT, Endpoint, client
 from wsnav.broker.amqtt.embedded import BrokerThread, embedded_broker
 from wsnav.schemas import topics
 

@@ -13,8 +13,8 @@ import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.reasoncodes import ReasonCode
 
+from tests.broker_fixtures import TIMEOUT
 from tests.site_fixtures import tiny_site
-from tests.test_broker_helpers import TIMEOUT
 from wsnav.broker.amqtt.config import BrokerOptions, TlsListener
 from wsnav.broker.amqtt.embedded import BrokerThread
 

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import pytest
 
+from tests.broker_fixtures import TIMEOUT, Client, Endpoint, client
 from tests.conftest import REPO
 from tests.site_fixtures import tiny_site
-from tests.test_broker_helpers import TIMEOUT, Client, Endpoint, client
 from wsnav.broker.amqtt.admission import MAX_PER_IDENTITY
 from wsnav.broker.amqtt.embedded import BrokerProcess
 from wsnav.broker.credentials import write_credentials

@@ -5,17 +5,13 @@ from __future__ import annotations
 
 import signal
 import socket
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
 
+from tests.broker_fixtures import TIMEOUT, Endpoint, client, wait_stored, wsnav
 from tests.site_fixtures import tiny_site
-from tests.test_broker_helpers import TIMEOUT, Endpoint, client
 from wsnav.broker.amqtt.embedded import BrokerProcess
-from wsnav.broker.amqtt.retained_store import read_retained
 from wsnav.broker.credentials import write_credentials
 from wsnav.schemas import topics
 from wsnav.schemas.site import load_site
@@ -32,12 +28,6 @@ def setup(tmp_path: Path) -> tuple[Path, Path]:
     creds = tmp_path / "creds"
     write_credentials(load_site(site).spec, creds)
     return site, creds
-
-
-def wsnav(*args: str | Path, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "wsnav.cli", *map(str, args)], capture_output=True, text=True, timeout=timeout
-    )
 
 
 def endpoint(proc: BrokerProcess) -> Endpoint:
@@ -67,17 +57,6 @@ def retained_after_restart(ep: Endpoint) -> dict[str, bytes]:
         n1.publish(sentinel, b"sentinel")
         after.wait_for(sentinel, b"sentinel")
         return {m.topic: m.payload for m in after.received if m.retain}
-
-
-def wait_stored(data: Path, expected: dict[str, bytes]) -> None:
-    """Until the store on disk holds exactly these topics (the flusher runs within its interval)."""
-    deadline = time.monotonic() + TIMEOUT
-    while time.monotonic() < deadline:
-        stored = {t: p for t, (p, _q) in read_retained(data).items()}
-        if stored == expected:
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"store holds {read_retained(data)}, expected {expected}")
 
 
 @pytest.mark.parametrize("stop", ["sigterm", "sigint", "kill-9"])

@@ -22,13 +22,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests.broker_fixtures import Endpoint, client, wait_listening
 from tests.conftest import require_tool
 from tests.site_fixtures import tiny_site
-from tests.test_broker_helpers import Endpoint, client, free_port, wait_listening
 from wsnav.broker.amqtt.embedded import BrokerProcess
 from wsnav.broker.amqtt.packet_gate import BadPacket, check_packet
 from wsnav.broker.credentials import write_credentials
 from wsnav.broker.mosquitto.config import CONF, MosquittoOptions, write_mosquitto_config
+from wsnav.broker.mosquitto.process import free_port
 from wsnav.schemas import topics
 from wsnav.schemas.site import load_site
 

@@ -16,20 +16,13 @@ from pathlib import Path
 
 import pytest
 
+from tests.broker_fixtures import TIMEOUT, Client, Endpoint, client, connect_reason, wait_listening
 from tests.conftest import require_tool
 from tests.site_fixtures import tiny_site
-from tests.test_broker_helpers import (
-    TIMEOUT,
-    Client,
-    Endpoint,
-    client,
-    connect_reason,
-    free_port,
-    wait_listening,
-)
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.broker.credentials import write_credentials
 from wsnav.broker.mosquitto.config import CONF, MosquittoOptions, write_mosquitto_config
+from wsnav.broker.mosquitto.process import free_port
 from wsnav.schemas import topics
 from wsnav.schemas.site import load_site
 

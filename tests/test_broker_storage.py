@@ -13,9 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.broker_fixtures import TIMEOUT, Endpoint, client, wait_stored, wsnav
 from tests.site_fixtures import tiny_site
-from tests.test_broker_helpers import TIMEOUT, Endpoint, client
-from tests.test_broker_process import wait_stored, wsnav
 from wsnav.broker.amqtt.embedded import BrokerProcess
 from wsnav.broker.amqtt.retained_store import DB_NAME, read_retained
 from wsnav.broker.credentials import write_credentials

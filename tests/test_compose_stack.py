@@ -16,7 +16,6 @@ import itertools
 import json
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import threading
@@ -27,9 +26,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
-import yaml
 
-from tests.conftest import REPO, SITES, require_tool
+from tests.conftest import REPO, require_tool
+from tests.stack_fixtures import P2, ROBOT, SITE, UPPER, inside, write_site
+from wsnav.broker.mosquitto.process import free_port
 from wsnav.runtime.mqtt_bus import BusError, MqttBus
 from wsnav.schemas import topics
 from wsnav.schemas.messages import PayloadError, RobotGoal, RobotStatus, parse_payload
@@ -38,14 +38,8 @@ pytestmark = pytest.mark.timeout(1500)
 
 BASE_IMAGE = os.environ.get("WSNAV_TEST_BASE_IMAGE", "wsnav-base:bookworm")
 IMAGE = "wsnav:compose-test"
-SITE = "sandbox_lanes"
-ROBOT = "robot1"
 # The sandbox's pillars stand in three rows; the direct way from P1 to P2 runs between the middle and the top
 # row. `upper` closes that lane at the centre pillar; the robot must take the lane below the middle row.
-UPPER = [[-0.3, 0.2], [0.3, 0.2], [0.3, 0.95], [-0.3, 0.95]]
-LOWER = [[-0.3, -0.95], [0.3, -0.95], [0.3, -0.2], [-0.3, -0.2]]
-P1 = (-2.0, 0.0, 0.0)
-P2 = (2.0, 0.0, 3.1416)
 
 
 def unavailable(reason: str) -> None:
@@ -182,41 +176,6 @@ def image(docker_daemon: None, tmp_path_factory: pytest.TempPathFactory, progres
     return IMAGE
 
 
-def write_site(directory: Path) -> Path:
-    """The TurtleBot3 sandbox (a real Nav2 map) with two zones closing the lanes beside the centre pillar."""
-    directory.mkdir(parents=True)
-    for name in ("tb3_sandbox.yaml", "tb3_sandbox.pgm"):
-        shutil.copy(SITES / "nav2_maps" / name, directory / name)
-    site = {
-        "name": SITE,
-        "map": "tb3_sandbox.yaml",
-        "heartbeat_s": 2.0,
-        "zones": [{"id": "upper", "polygon": UPPER}, {"id": "lower", "polygon": LOWER}],
-        "nodes": [
-            {"id": "s1", "zone": "upper", "sensor": {"type": "ir_beam", "pin": 4}},
-            {"id": "s2", "zone": "lower", "sensor": {"type": "pir", "pin": 5}},
-        ],
-        "robots": [{"id": ROBOT, "footprint_radius": 0.105}],
-        "points": {"P1": list(P1), "P2": list(P2)},
-        "routes": [{"from": "P1", "to": "P2", "raffle": [["upper"], ["lower"]]}],
-    }
-    (directory / "site.yaml").write_text(yaml.safe_dump(site, sort_keys=False))
-    # The containers run as an unprivileged user: the mounted site must be readable by others.
-    directory.chmod(0o755)
-    for path in directory.iterdir():
-        path.chmod(0o644)
-    return directory
-
-
-def inside(polygon: list[list[float]], x: float, y: float) -> bool:
-    """Ray casting; the zones here are convex and small, so this is exact enough."""
-    hit = False
-    for (x1, y1), (x2, y2) in zip(polygon, polygon[1:] + polygon[:1], strict=True):
-        if (y1 > y) != (y2 > y) and x < x1 + (y - y1) * (x2 - x1) / (y2 - y1):
-            hit = not hit
-    return hit
-
-
 def crosses(polygon: list[list[float]], path: list[list[float]], step_m: float = 0.02) -> bool:
     """Whether the polyline enters the polygon (a smoothed plan has few vertices: walk its segments)."""
     for (x1, y1), (x2, y2) in itertools.pairwise(path):
@@ -234,12 +193,6 @@ def offline_plan(site: Path, *blocked: str) -> list[list[float]]:
     result = json.loads(out.stdout)
     assert result["reachable"]
     return result["path"]
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 @dataclass

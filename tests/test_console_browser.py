@@ -18,8 +18,7 @@ import pytest
 
 from tests.conftest import require_tool
 from tests.console_fixtures import ConsoleStack, NodeS1, chromium, observer, start_console, until
-from tests.test_compose_stack import P2, SITE
-from tests.test_stack_processes import WSNAV, make_site, stack_on
+from tests.stack_fixtures import P2, SITE, WSNAV, make_site, stack_on
 from wsnav.schemas import topics
 from wsnav.schemas.messages import RobotStatus, parse_payload
 

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, cast
 import pandas as pd
 import pytest
 
-from tests.conftest import SITES
+from tests.conftest import SCHOOL
 from tests.dask_fixtures import DaskCluster, dask_cluster, free_port
 from wsnav.cli import main
 from wsnav.experiments.run_plan import plan_runs
@@ -26,7 +26,6 @@ if TYPE_CHECKING:
 
 __all__ = ["dask_cluster"]
 
-SCHOOL = SITES / "school"
 DETERMINISTIC = [c for c in COLUMNS if c not in NONDETERMINISTIC]
 
 

@@ -10,15 +10,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tests.conftest import REPO, SITES, require_tool
+from tests.conftest import REPO, SCHOOL, require_tool
 from wsnav.cli import main
 from wsnav.experiments.run_plan import plan_runs
 from wsnav.experiments.runner import run_experiment, write_outputs
 from wsnav.experiments.single_run import COLUMNS, NONDETERMINISTIC, peak_rss_mb, reset_peak_rss
 from wsnav.experiments.worker import run_with_own_broker
 from wsnav.schemas.site import load_site
-
-SCHOOL = SITES / "school"
 
 
 def test_one_run_per_route_and_config_arrives_without_collisions_and_repeats_with_the_seed(

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import SITES
+from tests.conftest import SCHOOL
 from tests.site_fixtures import tiny_site
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.experiments.fleet_sim import FleetError, SimFleet, start_poses
@@ -34,13 +34,7 @@ from wsnav.schemas.site import Site, load_site
 from wsnav.zones.cost_values import LETHAL_OBSTACLE
 from wsnav.zones.geometry import GridFrame
 
-SCHOOL = SITES / "school"
 REAL_TIMEOUT_S = 20.0
-
-
-@pytest.fixture(scope="module")
-def school() -> Site:
-    return load_site(SCHOOL)
 
 
 @pytest.fixture(scope="module")

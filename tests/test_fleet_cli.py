@@ -8,12 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import SITES
+from tests.cli_fixtures import error_line
+from tests.conftest import SCHOOL
 from tests.site_fixtures import tiny_site
-from tests.test_zone_sim_cli import error_line
 from wsnav.cli import main
-
-SCHOOL = SITES / "school"
 
 
 def test_fleet_runs_all_ten_robots_of_the_school_and_sends_the_goals_given(

@@ -5,20 +5,19 @@ from __future__ import annotations
 
 import json
 import signal
-import socket
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import SITES
+from tests.conftest import SCHOOL
 from tests.robot_agent_rig import connect
 from wsnav.broker.amqtt.embedded import BrokerThread
+from wsnav.broker.mosquitto.process import free_port
 from wsnav.schemas import topics
 from wsnav.schemas.messages import ZoneState
 
-SCHOOL = SITES / "school"
 WSNAV = [sys.executable, "-m", "wsnav.cli"]
 
 
@@ -54,12 +53,6 @@ def test_a_goal_in_a_blocked_zone_exits_1_with_the_reason() -> None:
     assert result.returncode == 1, result.stderr
     assert " cancelled " in result.stdout.splitlines()[-1]
     assert "z1" in result.stdout.splitlines()[-1]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.mark.parametrize(

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from tests.conftest import SITES
+from tests.robot_agent_rig import scan_from
 from tests.site_fixtures import tiny_site
-from wsnav.navigation.backend import LaserScan
 from wsnav.navigation.behaviors.escape import ZoneEscape
 from wsnav.navigation.costmap.inflation import InflationParams, inflate, static_layer
 from wsnav.navigation.costmap.layered_costmap import CHANGE_LOG, Bounds, LayeredCostmap
@@ -27,11 +27,6 @@ from wsnav.zones.geometry import GridFrame
 from wsnav.zones.zone_layer import ZoneLayer
 
 INFLATION = InflationParams(inscribed_radius=0.105, inflation_radius=1.0, cost_scaling_factor=3.0)
-
-
-@pytest.fixture(scope="module")
-def school() -> Site:
-    return load_site(SITES / "school")
 
 
 @pytest.fixture
@@ -261,14 +256,6 @@ def test_a_new_layer_is_one_class_in_the_stack_and_updates_only_its_bounds(schoo
     costmap.rebuild()
     assert np.array_equal(bounded, costmap.master), "the bounded update equals the whole-map recomputation"
     assert costmap.update() is None, "a layer with nothing new costs nothing"
-
-
-def scan_from(pose: tuple[float, float, float], ranges: dict[int, float], beams: int = 360) -> LaserScan:
-    """An LDS-01-like sweep: beam i at yaw + i degrees; beams not given see nothing (+inf)."""
-    r = np.full(beams, np.inf, dtype=np.float32)
-    for i, value in ranges.items():
-        r[i] = value
-    return LaserScan(0.0, pose, 0.0, 2 * math.pi / beams, 0.12, 3.5, r)
 
 
 def test_a_scan_marks_an_obstacle_and_a_later_scan_through_it_clears_it(tiny: Site) -> None:

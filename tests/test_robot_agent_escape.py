@@ -9,7 +9,6 @@ import math
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from tests.robot_agent_rig import SCHOOL, Rig, distance_to_polygon
 from wsnav.navigation.backend import LaserScan
@@ -30,11 +29,6 @@ INSIDE_Z1 = (17.5, 7.2)
 """Half a metre into z1 (x 17..19 across the south corridor) from its west end."""
 Z1_EAST_END = [(18.4, 5.9), (19.0, 5.9), (19.0, 8.5), (18.4, 8.5)]
 """What the nodes of z1 saw: something across the corridor at the zone's east end."""
-
-
-@pytest.fixture(scope="module")
-def school() -> Site:
-    return load_site(SCHOOL)
 
 
 def scan_from(pose: tuple[float, float, float], ranges: dict[int, float], beams: int = 360) -> LaserScan:

@@ -14,7 +14,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from tests.conftest import SITES
 from tests.site_fixtures import tiny_site
 from wsnav import firmware
 from wsnav.broker.amqtt.embedded import BrokerThread
@@ -34,11 +33,6 @@ from wsnav.zones.zone_layer import ZoneLayer
 NodeLogic: Any = firmware.load_device_modules("node_logic")["node_logic"].NodeLogic
 
 SCHOOL = "school"
-
-
-@pytest.fixture(scope="module")
-def school() -> Site:
-    return load_site(SITES / "school")
 
 
 class Agent:

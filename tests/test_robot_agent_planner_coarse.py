@@ -7,16 +7,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pytest
 
-from tests.conftest import SITES
 from wsnav.navigation.backend import LaserScan
 from wsnav.navigation.costmap.inflation import InflationParams
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
 from wsnav.navigation.planning.costmap_planner import GlobalPlanner, PlannerWeights
 from wsnav.navigation.planning.global_planner import PlannerParams, coarse_weights, plan_path, weights_for
 from wsnav.schemas.messages import ZoneState
-from wsnav.schemas.site import Site, load_site
+from wsnav.schemas.site import Site
 from wsnav.zones.cost_values import FREE_SPACE, LETHAL_OBSTACLE
 from wsnav.zones.geometry import Bounds, GridFrame
 from wsnav.zones.zone_layer import ZoneLayer
@@ -24,11 +22,6 @@ from wsnav.zones.zone_layer import ZoneLayer
 WHOLE = PlannerParams(coarse_above_cells=0)
 COARSE = PlannerParams(coarse_above_cells=100_000)
 INFLATION = InflationParams(inscribed_radius=0.105, inflation_radius=1.0, cost_scaling_factor=3.0)
-
-
-@pytest.fixture(scope="module")
-def school() -> Site:
-    return load_site(SITES / "school")
 
 
 def scan(pose: tuple[float, float, float], ranges: dict[int, float], beams: int = 360) -> LaserScan:

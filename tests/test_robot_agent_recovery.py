@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.robot_agent_rig import scan_from
 from tests.site_fixtures import tiny_site
-from tests.test_robot_agent_costmap import scan_from
 from wsnav.navigation.backend import Pose, Velocity
 from wsnav.navigation.behaviors.recovery import MoveBaseRecovery, RecoveryParams
 from wsnav.navigation.control.controller import ControlResult

@@ -5,9 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from tests.conftest import SITES
 from wsnav.schemas.messages import NodeStatus, OperatorBlock, ZoneState
-from wsnav.schemas.site import Site, load_site
+from wsnav.schemas.site import Site
 from wsnav.schemas.site_file import ZonePolicy
 from wsnav.zones.cost_values import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION
 from wsnav.zones.geometry import GridFrame
@@ -15,11 +14,6 @@ from wsnav.zones.zone_layer import ZoneLayer
 
 HEARTBEAT = 5.0  # the school's heartbeat_s
 STALE_AFTER = 3 * HEARTBEAT
-
-
-@pytest.fixture(scope="module")
-def school() -> Site:
-    return load_site(SITES / "school")
 
 
 def layer_for(site: Site, **policy: object) -> ZoneLayer:

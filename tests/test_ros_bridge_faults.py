@@ -7,14 +7,11 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
-from tests.conftest import SITES
-from tests.ros_fixtures import RosMaster, WsnavChild, require_ros, wait_until
-from tests.test_ros_bridge_grid import bridge_args
+from tests.conftest import SCHOOL
+from tests.ros_fixtures import RosMaster, WsnavChild, bridge_args, require_ros, wait_until
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.ros_bridge.ros_env import LocalRosCore, master_alive
 from wsnav.schemas.site import load_site
-
-SCHOOL = SITES / "school"
 
 
 def publish_map(topic: str, width: int, height: int, resolution: float, origin: tuple[float, float]) -> Any:

@@ -11,7 +11,6 @@ heartbeat is long, so staleness comes only from node wills, and nothing depends 
 from __future__ import annotations
 
 import random
-import shutil
 import subprocess
 import threading
 from collections.abc import Iterator
@@ -20,11 +19,10 @@ from typing import Any
 
 import numpy as np
 import pytest
-import yaml
 
-from tests.conftest import SITES, require_tool
+from tests.conftest import require_tool
 from tests.costmap2d_model import StaticLayerModel
-from tests.ros_fixtures import RosMaster, WsnavChild, wait_until
+from tests.ros_fixtures import RosMaster, WsnavChild, bridge_args, slow_heartbeat_school, wait_until
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.ros_bridge.zone_feed import ZoneFeed
 from wsnav.runtime.bus import Message
@@ -37,36 +35,11 @@ from wsnav.zones.geometry import GridFrame
 EVENTS = 100
 
 
-def slow_heartbeat_school(directory: Path) -> Path:
-    """The school site with a 10-minute heartbeat and stale nodes read as unknown (-1 on the grid)."""
-    site_dir = directory / "school"
-    shutil.copytree(SITES / "school", site_dir)
-    spec = yaml.safe_load((site_dir / "site.yaml").read_text())
-    spec["heartbeat_s"] = 600.0
-    spec["policy"] = {**spec.get("policy", {}), "stale": "unknown"}
-    (site_dir / "site.yaml").write_text(yaml.safe_dump(spec, sort_keys=False))
-    return site_dir
-
-
 @pytest.fixture
 def school_broker(tmp_path: Path) -> Iterator[tuple[Path, BrokerThread]]:
     site_dir = slow_heartbeat_school(tmp_path)
     with BrokerThread(site_dir) as broker:
         yield site_dir, broker
-
-
-def bridge_args(site_dir: Path, broker: BrokerThread, *extra: str) -> list[str]:
-    return [
-        "--site",
-        str(site_dir),
-        "--broker",
-        f"{broker.host}:{broker.port}",
-        "--credentials",
-        str(broker.credentials_dir / "robot1.json"),
-        "--map-wait",
-        "0",
-        *extra,
-    ]
 
 
 class StaticLayerPeer:

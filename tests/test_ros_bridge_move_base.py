@@ -19,8 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from tests.ros_fixtures import RosMaster, WsnavChild, wait_until
-from tests.test_ros_bridge_grid import bridge_args, slow_heartbeat_school
+from tests.ros_fixtures import RosMaster, WsnavChild, bridge_args, slow_heartbeat_school, wait_until
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
 from wsnav.schemas import topics

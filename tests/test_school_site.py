@@ -15,21 +15,15 @@ import numpy as np
 import pytest
 from scipy.ndimage import distance_transform_edt
 
-from tests.conftest import SITES
+from tests.conftest import SCHOOL
 from wsnav.cli import main
 from wsnav.navigation.costmap.inflation import InflationParams
 from wsnav.navigation.planning.global_planner import Plan, PlannerParams, densify, plan_path
 from wsnav.navigation.planning.offline_plan import site_costmap, zone_lethal
 from wsnav.robot_agent.sim.lidar import LidarParams
-from wsnav.schemas.site import Site, load_site
+from wsnav.schemas.site import Site
 
-SCHOOL = SITES / "school"
 ROUTES = [("A", "B", ["z1", "z4"]), ("B", "C", ["z4", "z5"]), ("C", "D", ["z1", "z5", "z3"])]
-
-
-@pytest.fixture(scope="module")
-def school() -> Site:
-    return load_site(SCHOOL)
 
 
 def plan(site: Site, start: str, goal: str, blocked: list[str]) -> Plan:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.cli_fixtures import error_line
 from tests.conftest import SITES
 from tests.zone_sim_fixtures import SITE, sim_site, subscriber
 from wsnav.broker.amqtt.embedded import BrokerThread
@@ -20,17 +21,6 @@ from wsnav.schemas.messages import SimWorld, ZoneState, parse_payload
 from wsnav.schemas.site import load_site
 from wsnav.zone_sim.raffle import draws
 from wsnav.zone_sim.scenario import ScenarioError, load_scenario
-
-
-def error_line(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
-    try:
-        code = main(argv)
-    except SystemExit as exit_:  # argparse's own errors leave through SystemExit
-        code = exit_.code
-    assert code == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "Traceback" not in err
-    return err.strip()
 
 
 @pytest.mark.parametrize(

@@ -10,6 +10,7 @@ import contextlib
 import queue
 import socket
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -20,6 +21,7 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.reasoncodes import ReasonCode
 
+from wsnav.broker.amqtt.retained_store import read_retained
 from wsnav.schemas.credentials import load_credentials
 
 TIMEOUT = 30.0
@@ -173,12 +175,6 @@ def connect_reason(
         c.close()
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 def wait_listening(host: str, port: int, proc: subprocess.Popen[bytes] | None = None) -> None:
     """Until a TCP connect succeeds (or the process died)."""
     deadline = time.monotonic() + TIMEOUT
@@ -190,3 +186,20 @@ def wait_listening(host: str, port: int, proc: subprocess.Popen[bytes] | None = 
             return
         time.sleep(0.05)
     raise TimeoutError(f"nothing listening on {host}:{port}")
+
+
+def wsnav(*args: str | Path, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "wsnav.cli", *map(str, args)], capture_output=True, text=True, timeout=timeout
+    )
+
+
+def wait_stored(data: Path, expected: dict[str, bytes]) -> None:
+    """Until the store on disk holds exactly these topics (the flusher runs within its interval)."""
+    deadline = time.monotonic() + TIMEOUT
+    while time.monotonic() < deadline:
+        stored = {t: p for t, (p, _q) in read_retained(data).items()}
+        if stored == expected:
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"store holds {read_retained(data)}, expected {expected}")
