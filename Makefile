@@ -25,7 +25,8 @@ lint: $(STAMP)
 
 typecheck: $(STAMP)
 	$(BIN)/pyright
-	@if [ -f firmware/device/pyrightconfig.json ]; then cd firmware/device && ../../$(BIN)/pyright -p pyrightconfig.json; fi
+	cd firmware/device && ../../$(BIN)/pyright -p pyrightconfig.json
+	cd firmware/host_stubs && ../../$(BIN)/pyright -p pyrightconfig.json
 
 pytest: $(STAMP)
 	@$(BIN)/pytest -q $(PYTEST_ARGS); rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest: no tests collected"; rc=0; fi; exit $$rc

