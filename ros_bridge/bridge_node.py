@@ -259,8 +259,7 @@ class ZoneBridgeNode:
     def _on_ros_status(self, msg: Any) -> None:
         assert self.supervisor is not None
         with self._lock:
-            for status in msg.status_list:
-                self.supervisor.on_status(status.goal_id.id, status.status)
+            self._act(self.supervisor.on_statuses([(s.goal_id.id, s.status) for s in msg.status_list]))
 
     def _on_ros_plan(self, msg: Any) -> None:
         assert self.supervisor is not None
@@ -301,6 +300,7 @@ class ZoneBridgeNode:
     def _act(self, actions: list[Action]) -> None:
         for action in actions:
             if isinstance(action, Cancel):
+                assert action.goal_id, "an empty goal id cancels every goal in actionlib"
                 print(f"cancel goal {action.goal_id}: {action.reason}", flush=True)
                 held = [
                     m

@@ -4,13 +4,18 @@ changes, and say so on MQTT, from what move_base's action topics show.
 Pure logic (no rospy): the ROS node feeds it the goals it sees on `move_base/goal` (whoever sent them: RViz, a
 script, the MQTT goal topic), the goal statuses, the global plan and the zone changes, and carries out the
 actions it returns. A re-sent goal (same target, new goal id) is how move_base is told to plan now rather than
-at its next `planner_frequency` tick.
+at its next `planner_frequency` tick; the re-sent goal becomes the one followed at once, so the PREEMPTED of the
+goal it replaces is not taken for a cancel.
+
+RViz's goals (`/move_base_simple/goal`) reach `move_base/goal` with an EMPTY goal id: move_base relays them to its
+own action server, which makes up an id. The supervisor follows such a goal without an id until a new id shows
+up in move_base's status, and never cancels by the empty id (to actionlib that means every goal).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -62,35 +67,56 @@ class MoveBaseSupervisor:
     _ours: set[str] = field(default_factory=set)
     """Goal ids this supervisor sent (MQTT goals, re-sends): already current when move_base echoes them."""
     _sent: int = 0
+    _listed: set[str] = field(default_factory=set)
+    """The goal ids of move_base's last status message: a goal id not among them is a new goal."""
+    _cancel_waiting: str | None = None
+    """A cancel for the current goal that waits for move_base to name it (an RViz goal has no id yet)."""
 
     # -- what move_base shows ------------------------------------------------------------------------------
 
     def on_goal(self, goal: Goal) -> list[Action]:
         """A goal seen on move_base/goal (RViz, a script, or our own); cancelled at once if it lies in a blocked
-        zone. Our own goals were made current when they were sent, so their echo changes nothing."""
-        if goal.goal_id in self._ours:
+        zone. Our own goals were made current when they were sent, so their echo changes nothing. An empty id
+        (RViz) is never taken as ours: every RViz goal is a new goal."""
+        if goal.goal_id and goal.goal_id in self._ours:
             return []
-        return self.sending(goal)
+        return self._follow(goal)
 
     def sending(self, goal: Goal) -> list[Action]:
         """Make `goal` current before it is sent (so the old goal's PREEMPTED status is not read as ours)."""
         self._ours.add(goal.goal_id)
-        self._plan_cells = np.zeros((0, 2), dtype=np.int64)
-        self.plan_length_m = None
-        self.goal = goal
-        self.state, self.reason = "navigating", None
-        return self._cancel_if_blocked()
+        return self._follow(goal)
 
     def cancel(self, reason: str) -> list[Action]:
         """The operator's cancel (MQTT): stop the current goal, if one is being navigated."""
         if self.goal is None or self.state != "navigating":
             return []
         self.state, self.reason = "cancelled", reason
-        return [Cancel(self.goal.goal_id, reason)]
+        return self._cancel_current(reason)
+
+    def on_statuses(self, statuses: list[tuple[str, int]]) -> list[Action]:
+        """One move_base/status message, (goal id, code) each. A goal followed without an id (RViz's) takes the
+        id of a goal that is new in this message; a cancel that waited for it goes out then."""
+        actions: list[Action] = []
+        if self.goal is not None and not self.goal.goal_id:
+            new = [
+                g
+                for g, code in statuses
+                if g not in self._listed and g not in self._ours and code in (PENDING, ACTIVE)
+            ]
+            if new:
+                self.goal = replace(self.goal, goal_id=new[-1])
+                if self._cancel_waiting is not None:
+                    actions.append(Cancel(new[-1], self._cancel_waiting))
+                    self._cancel_waiting = None
+        self._listed = {g for g, _ in statuses}
+        for goal_id, code in statuses:
+            self.on_status(goal_id, code)
+        return actions
 
     def on_status(self, goal_id: str, code: int) -> None:
         """One entry of move_base/status; only the current goal's counts."""
-        if self.goal is None or goal_id != self.goal.goal_id or self.state == "cancelled":
+        if self.goal is None or not goal_id or goal_id != self.goal.goal_id or self.state == "cancelled":
             return
         if code in (PENDING, ACTIVE):
             self.state = "navigating"
@@ -128,10 +154,11 @@ class MoveBaseSupervisor:
             return []
         self.replans += 1
         self._sent += 1
-        goal = Goal(
-            f"{self.goal.goal_id.split('#wsnav')[0]}#wsnav{self._sent}", self.goal.pose, self.goal.label
-        )
+        base = self.goal.goal_id.split("#wsnav")[0] or "wsnav-rviz"
+        goal = Goal(f"{base}#wsnav{self._sent}", self.goal.pose, self.goal.label)
         self._ours.add(goal.goal_id)
+        self.goal = goal  # followed from now on: the goal it preempts ends PREEMPTED, which is not a cancel
+        self._cancel_waiting = None
         why = "a zone on the plan changed" if on_plan else "a zone cleared"
         return [Resend(goal, why)]
 
@@ -154,6 +181,23 @@ class MoveBaseSupervisor:
 
     # -- internals -----------------------------------------------------------------------------------------
 
+    def _follow(self, goal: Goal) -> list[Action]:
+        self._plan_cells = np.zeros((0, 2), dtype=np.int64)
+        self.plan_length_m = None
+        self.goal = goal
+        self._cancel_waiting = None
+        self.state, self.reason = "navigating", None
+        return self._cancel_if_blocked()
+
+    def _cancel_current(self, reason: str) -> list[Action]:
+        """Cancel the current goal by its id; one without an id yet (RViz's) is cancelled once move_base names
+        it: an empty id would cancel every goal move_base has."""
+        assert self.goal is not None
+        if not self.goal.goal_id:
+            self._cancel_waiting = reason
+            return []
+        return [Cancel(self.goal.goal_id, reason)]
+
     def _cancel_if_blocked(self) -> list[Action]:
         if self.goal is None:
             return []
@@ -165,7 +209,7 @@ class MoveBaseSupervisor:
             return []
         label = self.goal.label if isinstance(self.goal.label, str) else f"[{x:.2f}, {y:.2f}]"
         self.state, self.reason = "cancelled", f"goal {label} lies in blocked zone {', '.join(zones)}"
-        return [Cancel(self.goal.goal_id, self.reason)]
+        return self._cancel_current(self.reason)
 
     def _crosses(self, change: ZoneChange) -> bool:
         w = change.window

@@ -3,13 +3,18 @@
 
 move_base is not packaged for Debian, so a minimal actionlib server (the real actionlib, MoveBaseAction) stands in
 for it here and only here: it accepts goals, publishes an L-shaped global plan along the school's south and middle
-corridors, and never arrives. The robot's pose comes from a real tf2 static transform.
+corridors, and arrives only when the test says so. Like move_base it relays `/move_base_simple/goal` (what RViz
+publishes) to its own action server with an empty goal id, which actionlib then names. What it leaves out:
+planning, the costmaps, control and recoveries (a plan is a fixed line, not navfn's), so what these tests check is
+the bridge's goal tracking over move_base's real action interface, not where move_base drives. The robot's pose
+comes from a real tf2 static transform.
 """
 
 from __future__ import annotations
 
 import itertools
 import json
+import subprocess
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -36,6 +41,8 @@ class FakeMoveBase:
     goals: list[tuple[str, float, float]] = field(default_factory=list)
     preempted: list[str] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
+    arrive: bool = False
+    """Set by a test: the goal in progress ends SUCCEEDED."""
 
     def start(self) -> FakeMoveBase:
         import actionlib
@@ -49,6 +56,18 @@ class FakeMoveBase:
             "/move_base", MoveBaseAction, self._execute, auto_start=False
         )
         self.server.start()
+        from geometry_msgs.msg import PoseStamped
+        from move_base_msgs.msg import MoveBaseActionGoal
+
+        relay = rospy.Publisher("/move_base/goal", MoveBaseActionGoal, queue_size=5)
+
+        def rviz_goal(msg: Any) -> None:  # move_base.cpp's goalCB: the goal id is left empty
+            action_goal = MoveBaseActionGoal()
+            action_goal.header.stamp = rospy.Time.now()
+            action_goal.goal.target_pose = msg
+            relay.publish(action_goal)
+
+        self._rviz = rospy.Subscriber("/move_base_simple/goal", PoseStamped, rviz_goal, queue_size=5)
         return self
 
     def _execute(self, goal: Any) -> None:
@@ -77,6 +96,10 @@ class FakeMoveBase:
             path.poses.append(pose)
         self._plan_pub.publish(path)
         while not rospy.is_shutdown():
+            if self.arrive:
+                self.arrive = False
+                self.server.set_succeeded()
+                return
             if self.server.is_preempt_requested():
                 self.preempted.append(goal_id)
                 self.server.set_preempted()
@@ -231,3 +254,87 @@ def test_a_goal_in_a_blocked_zone_is_cancelled_whoever_sent_it(
     )  # type: ignore[index]
     assert status.reason is not None and "z5" in status.reason
     assert np.isfinite(status.pose).all()
+
+
+def rviz_goal(ros_node: RosMaster, x: float, y: float) -> None:
+    """What RViz's 2D Nav Goal publishes, sent by the real ROS tool."""
+    pose = f"{{header: {{frame_id: map}}, pose: {{position: {{x: {x}, y: {y}}}, orientation: {{w: 1.0}}}}}}"
+    subprocess.run(
+        ["rostopic", "pub", "-1", "/move_base_simple/goal", "geometry_msgs/PoseStamped", pose],
+        env=ros_node.env(),
+        check=True,
+        capture_output=True,
+        timeout=60,
+    )
+
+
+def test_after_a_replan_the_re_sent_goal_is_followed_to_its_arrival(
+    rig: tuple[WsnavChild, Operator, dict[str, MqttBus]], move_base: FakeMoveBase
+) -> None:
+    """The re-sent goal is the one followed: the PREEMPTED of the goal it replaced made the robot `cancelled`
+    while move_base drove on, and nothing after (no cancel, no arrival) reached MQTT."""
+    _bridge, operator, nodes = rig
+    before = len(move_base.goals)
+    send_goal(operator, "B")
+    wait_until(lambda: len(move_base.goals) > before, 15, "the MQTT goal at move_base")
+    first_id = move_base.goals[-1][0]
+    operator.wait_status("navigating to B", lambda s: s.state == "navigating" and s.goal == "B")
+    time.sleep(0.5)  # the plan reaches the bridge
+    zone_state(nodes["n1"], "z1", "n1", "blocked", 200)
+    wait_until(lambda: first_id in move_base.preempted, 10, "the old goal preempted by the re-sent one")
+    time.sleep(1.5)  # several of move_base's status messages (5 Hz) list the old goal PREEMPTED
+    status = operator.wait_status("a status after the preemption", lambda s: s.replans >= 1)
+    assert (status.state, status.reason) == ("navigating", None), status
+    move_base.arrive = True
+    status = operator.wait_status("arrived", lambda s: s.state != "navigating")
+    assert (status.state, status.goal) == ("arrived", "B"), status
+
+
+def test_rviz_goals_are_followed_replanned_and_arrive_by_the_id_move_base_gives_them(
+    rig: tuple[WsnavChild, Operator, dict[str, MqttBus]], move_base: FakeMoveBase, ros_node: RosMaster
+) -> None:
+    """`rostopic pub /move_base_simple/goal` as RViz does: the goal reaches move_base/goal with an empty id. The
+    bridge tracked "", ignored every later RViz goal as its own, re-sent the first target on a zone change and
+    never saw the arrival."""
+    bridge, operator, nodes = rig
+    before = len(move_base.goals)
+    rviz_goal(ros_node, 14.0, 7.2)
+    wait_until(lambda: len(move_base.goals) > before, 15, "the first RViz goal at move_base")
+    operator.wait_status(
+        "navigating to the first",
+        lambda s: s.state == "navigating" and s.goal is not None and s.goal[0] == 14.0,
+    )  # type: ignore[index]
+    rviz_goal(ros_node, 29.0, 22.8)
+    wait_until(lambda: len(move_base.goals) > before + 1, 15, "the second RViz goal at move_base")
+    second_id = move_base.goals[-1][0]
+    assert second_id, "actionlib names a goal that came without an id"
+    operator.wait_status("the second goal followed", lambda s: s.goal is not None and s.goal[0] == 29.0)  # type: ignore[index]
+    time.sleep(0.5)  # the plan reaches the bridge
+    zone_state(nodes["n1"], "z1", "n1", "blocked", 300)
+    wait_until(lambda: len(move_base.goals) > before + 2, 10, "the RViz goal re-sent after z1 was blocked")
+    _resent_id, rx, ry = move_base.goals[-1]
+    assert (rx, ry) == (29.0, 22.8), "the user's latest goal is re-sent, not the first RViz target"
+    assert second_id in move_base.preempted
+    time.sleep(1.0)
+    move_base.arrive = True
+    status = operator.wait_status("arrived", lambda s: s.state != "navigating")
+    assert status.state == "arrived", status
+    assert not any("cancel goal :" in line or "cancel goal  " in line for line in bridge.lines), bridge.lines
+
+
+def test_an_rviz_goal_in_a_blocked_zone_is_cancelled_by_its_own_id_and_no_other(
+    rig: tuple[WsnavChild, Operator, dict[str, MqttBus]], move_base: FakeMoveBase, ros_node: RosMaster
+) -> None:
+    """A cancel with an empty id cancels every goal in actionlib: the bridge waits for move_base to name the
+    RViz goal and cancels that one."""
+    bridge, operator, nodes = rig
+    zone_state(nodes["n7"], "z5", "n7", "blocked", 400)
+    operator.wait_status("z5 blocked", lambda s: "z5" in s.blocked_zones)
+    before = len(move_base.goals)
+    rviz_goal(ros_node, 27.8, 7.2)
+    wait_until(lambda: len(move_base.goals) > before, 15, "the RViz goal in z5 at move_base")
+    goal_id = move_base.goals[-1][0]
+    wait_until(lambda: goal_id in move_base.preempted, 10, "move_base told to cancel the RViz goal by its id")
+    status = operator.wait_status("cancelled", lambda s: s.state == "cancelled")
+    assert status.reason is not None and "lies in blocked zone z5" in status.reason, status
+    assert any(f"cancel goal {goal_id}:" in line for line in bridge.lines), bridge.lines
