@@ -30,7 +30,7 @@ from wsnav.schemas.credentials import (
 )
 from wsnav.schemas.site_file import SiteFile
 
-PASSWORD_FILE = "wsnav.broker.passwd"
+PASSWORD_FILE = "broker.passwd"
 """`username:<argon2 hash>` lines; the format amqtt's FileAuthPlugin also reads."""
 OPERATOR = "operator"
 

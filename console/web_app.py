@@ -224,7 +224,7 @@ class ConsoleApp:
     async def static(self, request: Request) -> Response:
         name = request.path_params["name"]
         path = STATIC / name
-        if name not in {"wsnav.console.js", "wsnav.console.css", "login.js"} or not path.is_file():
+        if name not in {"console.js", "console.css", "login.js"} or not path.is_file():
             raise Refused(404, "no such file")
         return FileResponse(path)
 

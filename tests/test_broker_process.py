@@ -164,8 +164,8 @@ def test_bad_input_is_one_line(
 
 def test_broken_password_file_is_one_line(setup: tuple[Path, Path]) -> None:
     site, creds = setup
-    (creds / "wsnav.broker.passwd").write_text("n1 has no hash\n")
+    (creds / "broker.passwd").write_text("n1 has no hash\n")
     result = wsnav("broker", "run", "--site", site, "--credentials", creds, "--bind", "127.0.0.1:0")
     assert result.returncode != 0
     assert len(result.stderr.splitlines()) == 1, result.stderr
-    assert "wsnav.broker.passwd: line 1" in result.stderr
+    assert "broker.passwd: line 1" in result.stderr
