@@ -13,7 +13,7 @@ from pydantic import ValidationError
 
 from wsnav.schemas import topics
 from wsnav.schemas.ids import ID_PATTERN
-from wsnav.schemas.messages import OperatorBlock, RobotGoal
+from wsnav.schemas.messages import MAX_YAW_RAD, OperatorBlock, RobotGoal
 from wsnav.schemas.ros_map import FREE
 from wsnav.schemas.site import Site
 
@@ -122,6 +122,8 @@ def goal(site: Site, robot: str, target: str | tuple[float, float, float]) -> Pu
         row, col = site.grid.world_to_cell(x, y)
         if int(site.grid.data[row, col]) != FREE:
             raise CommandError(f"goal [{x:g}, {y:g}] lies in a wall or unknown space")
+        if not abs(yaw) <= MAX_YAW_RAD:
+            raise CommandError(f"goal yaw {yaw:g}: expected radians within +-{MAX_YAW_RAD:g}")
         msg = RobotGoal(goal=(round(x, 3), round(y, 3), round(yaw, 3)))
     return Publication(topics.robot_goal(site.name, robot), msg.to_payload(), False)
 

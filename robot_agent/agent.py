@@ -13,6 +13,7 @@ zones), QoS 0 for the 2 Hz repeats in between.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -50,6 +51,8 @@ from wsnav.schemas.site import Site
 from wsnav.zones.geometry import GridFrame
 from wsnav.zones.intake import ZoneIntake
 from wsnav.zones.zone_layer import ZoneLayer
+
+log = logging.getLogger(__name__)
 
 
 def path_ahead(path: NDArray[np.float64], x: float, y: float) -> list[tuple[float, float]] | None:
@@ -171,6 +174,13 @@ class RobotAgent:
         self.sim_world = sim_world
         self.on_status = on_status
         self.stats = AgentStats()
+        self._logged_drops: set[tuple[str, str]] = set()
+        self._retained_poses: set[str] = set()
+        """Robots whose pose held now came retained (a last word from before): the next live one replaces it."""
+        self._yielding_since: dict[str, float] = {}
+        """The robot this one yields to now, and since when (at most one)."""
+        self._yielded_enough: set[str] = set()
+        """Robots yielded to for `max_yield_s`: no longer given the right of way until a new goal."""
         self.zone_reactions: list[ZoneReaction] = []
         self.status_topic = topics.robot_status(site.name, self.robot_id)
         self.goal_topic = topics.robot_goal(site.name, self.robot_id)
@@ -243,6 +253,7 @@ class RobotAgent:
 
     def set_goal(self, goal: Pose, label: GoalLabel, now: float) -> None:
         self.stats.goals += 1
+        self._yielded_enough.clear()
         self.navigator.set_goal(goal, label, now)
 
     # -- the loop -----------------------------------------------------------------------------------------
@@ -362,23 +373,46 @@ class RobotAgent:
             self.stats.dropped["robot_status_invalid"] += 1
             return
         x, y, yaw = status.pose
-        if status.robot != robot or not all(math.isfinite(v) for v in (x, y, yaw)):
+        if status.robot != robot:
             self.stats.dropped["robot_status_invalid"] += 1
+            return
+        if not self.site.grid.contains(x, y):
+            self._drop_status("robot_status_off_map", robot, f"pose [{x:g}, {y:g}] lies off the map")
             return
         # Judged by the older of arrival and making: a retained status from a robot long gone is not kept.
         made = min(message.received_at, status.t if status.t is not None else math.inf)
         priority, site_radius = self.fleet[robot]
+        before = self.robots_layer.robots.get(robot)
+        if before is not None and robot not in self._retained_poses:  # a retained word is no baseline
+            made_before = before.expires_at - self.config.robot_pose_timeout_s
+            reach = self.config.max_robot_speed_mps * max(made - made_before, 0.0) + 2 * site_radius
+            if math.hypot(x - before.pose[0], y - before.pose[1]) > reach:
+                self._drop_status(
+                    "robot_status_jump", robot, f"pose [{x:g}, {y:g}] jumped farther than it can drive"
+                )
+                return
+        if message.retain:
+            self._retained_poses.add(robot)
+        else:
+            self._retained_poses.discard(robot)
         self.robots_layer.put(
             OtherRobot(
                 robot=robot,
                 pose=(x, y, yaw),
-                radius=status.footprint_radius or site_radius,
+                radius=site_radius,  # the site's, not the status's: a status cannot make a robot wider
                 state=status.state,
                 priority=priority,
                 expires_at=made + self.config.robot_pose_timeout_s,
             )
         )
         self.stats.robot_statuses += 1
+
+    def _drop_status(self, reason: str, robot: str, detail: str) -> None:
+        """A status not believed: counted, and logged once per robot and reason (not once per message)."""
+        self.stats.dropped[reason] += 1
+        if (robot, reason) not in self._logged_drops:
+            self._logged_drops.add((robot, reason))
+            log.warning("%s's status dropped: %s", robot, detail)
 
     def _update_fleet(self, now: float) -> None:
         """Other robots: expire old poses, fold the layer's changes into the costmap, apply the right of way."""
@@ -389,12 +423,22 @@ class RobotAgent:
         nav = self.navigator
         if self.config.yield_distance_m <= 0 or nav.state not in ("navigating", "waiting"):
             return
-        other = must_yield_to(
-            self.backend.pose(),
-            self.priority,
-            self.robots_layer.robots.values(),
-            self.config.yield_distance_m,
-        )
+        others = [o for o in self.robots_layer.robots.values() if o.robot not in self._yielded_enough]
+        other = must_yield_to(self.backend.pose(), self.priority, others, self.config.yield_distance_m)
+        if other is not None:
+            since = self._yielding_since.setdefault(other.robot, now)
+            if now - since > self.config.max_yield_s:
+                self._yielded_enough.add(other.robot)
+                log.warning(
+                    "%s: yielded to %s for %.0f s; planning round it instead",
+                    self.robot_id,
+                    other.robot,
+                    now - since,
+                )
+                other = None
+        for robot in list(self._yielding_since):
+            if other is None or robot != other.robot:
+                del self._yielding_since[robot]
         if other is not None:
             nav.hold(now, yield_reason(other))
         elif nav.holding is not None:

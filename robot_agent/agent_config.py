@@ -125,6 +125,11 @@ class AgentConfig(_Strict):
     """Another robot's pose is forgotten this long after its status was made (statuses come at 2 Hz)."""
     yield_distance_m: Annotated[float, Field(ge=0, le=20)] = 1.5
     """Yield to a robot with right of way coming this way within this distance (0: never yield)."""
+    max_yield_s: Annotated[float, Field(gt=0, le=3600)] = 30.0
+    """Yield to one robot at most this long; after that it is an obstacle to plan round, not a right of way (a
+    stolen robot credential claiming `navigating` in front of a robot stopped it for as long as it liked)."""
+    max_robot_speed_mps: Annotated[float, Field(gt=0, le=20)] = 2.0
+    """Another robot's pose that moved faster than this since its last status is not believed (dropped)."""
     inflation: InflationSection = InflationSection()
     planner: PlannerSection = PlannerSection()
     recovery: RecoverySection = RecoverySection()

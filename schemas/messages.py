@@ -32,6 +32,8 @@ MAX_COORDINATE_M = 1e7
 MAX_AREA_EXTENT_M = 10_000.0
 """An operator block or simulated obstacle spans at most 10 km in x and in y (cheap to clip and rasterise)."""
 Coordinate = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)]
+MAX_YAW_RAD = 1e6
+"""Headings may be unwrapped; any finite one this size is still an angle to sin and cos."""
 Point2 = tuple[Coordinate, Coordinate]
 
 
@@ -42,11 +44,16 @@ def _check_extent(polygon: list[Point2] | None) -> None:
             raise ValueError(f"polygon spans more than {MAX_AREA_EXTENT_M:g} m")
 
 
-Pose = tuple[float, float, float]
+Yaw = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_YAW_RAD, le=MAX_YAW_RAD)]
+Pose = tuple[Coordinate, Coordinate, Yaw]
+"""A robot's or a goal's [x, y, yaw]: bounded like every point, so no reader's arithmetic overflows on it."""
 
 
 class _Message(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """Every payload of the contract: unknown fields refused, and no NaN or infinity in any number (one retained
+    NaN made the console's JSON invalid, and 1.7e308 in a pose overflowed every other robot's agent)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     v: Literal[1] = CONTRACT_VERSION
 
@@ -166,7 +173,7 @@ class OperatorBlock(_Message):
 
 
 class SimObstacle(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     id: Id
     zone: Id | None = None

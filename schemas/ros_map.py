@@ -6,6 +6,7 @@ origin (the image's bottom row), so cell (row, col) covers world x = origin_x + 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -81,6 +82,12 @@ class OccupancyGrid:
         )
 
     def contains(self, x: float, y: float) -> bool:
+        """Whether a world point lies on the map; compared in metres, so any float (1e308, NaN) is an answer."""
+        if not (math.isfinite(x) and math.isfinite(y)):
+            return False
+        x0, y0, x1, y1 = self.bounds
+        if not (x0 <= x < x1 + self.resolution and y0 <= y < y1 + self.resolution):
+            return False
         row, col = self.world_to_cell(x, y)
         return 0 <= row < self.height and 0 <= col < self.width
 

@@ -131,6 +131,8 @@ def test_malformed_requests_get_a_clear_4xx_and_change_nothing(page: Any, site_s
         ("POST", "/api/robots/robot9/goal", {"point": "P2"}, 400, "unknown robot 'robot9'"),
         ("POST", "/api/robots/robot1/goal", {"point": "Q7"}, 400, "unknown point 'Q7'"),
         ("POST", "/api/robots/robot1/goal", {"pose": [50, 50]}, 400, "outside the map"),
+        ("POST", "/api/robots/robot1/goal", {"pose": [1e308, 5]}, 400, "outside the map"),
+        ("POST", "/api/robots/robot1/goal", {"pose": [2.0, 0.0, 1e308]}, 400, "expected radians"),
         ("POST", "/api/robots/robot1/goal", {"pose": [0.0, 0.0]}, 400, "in a wall"),
         ("POST", "/api/robots/robot1/goal", {"pose": [1, "a"]}, 400, "finite number"),
         ("POST", "/api/robots/robot1/goal", {}, 400, "give 'point'"),

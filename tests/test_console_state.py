@@ -214,3 +214,29 @@ def test_operator_requests_are_checked_against_the_site(site: Site) -> None:
         with pytest.raises(CommandError, match=words):
             call()
     assert commands.unblock(site, "b1").payload == b""
+
+
+def test_numbers_no_json_can_carry_or_no_map_can_hold_are_refused_and_the_state_stays_valid_json(
+    site: Site,
+) -> None:
+    """A retained status with NaN made GET /api/state answer 500 and the event stream emit invalid JSON; a
+    goal of 1e308 (or a yaw of 1e308) from `wsnav goal` or the page raised instead of a one-line refusal."""
+    import json
+
+    view = SiteView(site)
+    status = topics.robot_status("tiny", "robot1")
+    for payload in (
+        b'{"v":1,"robot":"robot1","state":"idle","pose":[0,0,0],"t":NaN}',
+        b'{"v":1,"robot":"robot1","state":"idle","pose":[1.7e308,0,0]}',
+        b'{"v":1,"robot":"robot1","state":"idle","pose":[1,1,Infinity]}',
+    ):
+        assert view.apply(status, payload, 1.0) == set()
+    assert sum(view.dropped.values()) == 3
+    json.dumps(view.snapshot(2.0), allow_nan=False)  # what the web app and `status --json` send
+    for target, why in (
+        ((1e308, 2.0, 0.0), "lies outside the map"),
+        ((2.0, 2.0, 1e308), "expected radians"),
+        ((float("nan"), 2.0, 0.0), "finite"),
+    ):
+        with pytest.raises(CommandError, match=why):
+            commands.goal(site, "robot1", target)

@@ -161,15 +161,17 @@ def test_an_agent_keeps_others_fresh_poses_only_and_drops_bad_statuses(
             bus.wait(0.05)
             agent.step(clock.now())
         assert set(agent.robots_layer.robots) == {"robot3"}  # robot2's retained status is 990 s old
-        assert agent.robots_layer.robots["robot3"].radius == 0.3
+        assert agent.robots_layer.robots["robot3"].radius == 0.105, (
+            "the site's footprint, not the status's 0.3"
+        )
         assert (
             agent.dropped()["robot_status_invalid"] == 2
         )  # an unknown state; robot2's name on robot3's topic
-        assert agent.costmap.in_lethal(12.0 + 0.35, 7.2)
+        assert agent.costmap.in_lethal(12.0 + 0.15, 7.2)
         clock.advance(2.5)
         agent.step(clock.now())
         assert not agent.robots_layer.robots  # robot3 went silent: forgotten
-        assert not agent.costmap.in_lethal(12.0 + 0.35, 7.2)
+        assert not agent.costmap.in_lethal(12.0 + 0.15, 7.2)
     finally:
         robot2.publish(topics.robot_status(school.name, "robot2"), b"", qos=1, retain=True)
         for b in (bus, robot2, robot3, operator):
@@ -253,3 +255,117 @@ def test_a_fleet_needs_a_start_point_for_every_robot(tmp_path: Path) -> None:
     site = load_site(tiny_site(tmp_path / "tiny"))
     with pytest.raises(FleetError, match="robot1 has no start point"):
         start_poses(site)
+
+
+@pytest.mark.slow
+def test_no_status_another_robot_publishes_stops_an_agent_or_widens_a_robot(
+    school: Site, broker: BrokerThread
+) -> None:
+    """A robot credential is enough to publish these on its own topic. A pose of 1.7e308 (retained: at every
+    start) killed every other agent with OverflowError; a 2 m footprint ahead of robot1 held it in place. Each is
+    dropped and counted, or held to the site's footprint, and the agent goes on."""
+    clock = SimClock(1000.0)
+    robot3 = connect(broker, "robot3")
+    status3 = topics.robot_status(school.name, "robot3")
+    robot3.publish(
+        status3, b'{"v":1,"robot":"robot3","state":"navigating","pose":[1.7e308,0,0]}', qos=1, retain=True
+    )
+    world = SimWorldGrid(school.grid)
+    bus = connect(broker, "robot1", clock)
+    agent = RobotAgent(
+        school, load_agent_config("full"), SimTurtleBot3("robot1", world, (9.0, 7.2, 0.0)), bus, clock
+    )
+    assert agent.robots_layer is not None
+    operator = connect(broker, "operator")
+    try:
+        operator.publish(topics.sim_world(school.name), SimWorld(t=0.0).to_payload(), qos=1, retain=True)
+        deadline = time.monotonic() + REAL_TIMEOUT_S
+        while agent.stats.sim_worlds == 0 and time.monotonic() < deadline:
+            bus.wait(0.05)
+            agent.step(clock.now())
+        attacks = [
+            b'{"v":1,"robot":"robot3","state":"navigating","pose":[0,0,1e308]}',
+            b'{"v":1,"robot":"robot3","state":"navigating","pose":[12,7.2,0],"t":NaN}',
+            b'{"v":1,"robot":"robot3","state":"navigating","pose":[5000,7.2,0],"t":1000}',
+        ]
+        for payload in attacks:
+            robot3.publish(status3, payload, qos=1)
+        wide = RobotStatus(
+            robot="robot3", state="navigating", pose=(11.0, 7.2, math.pi), t=1000.0, footprint_radius=2.0
+        )
+        robot3.publish(status3, wide.to_payload(), qos=1)
+        deadline = time.monotonic() + REAL_TIMEOUT_S
+        while "robot3" not in agent.robots_layer.robots and time.monotonic() < deadline:
+            bus.wait(0.05)
+            agent.step(clock.now())
+        assert agent.robots_layer.robots["robot3"].radius == 0.105
+        dropped = agent.dropped()
+        assert dropped["robot_status_invalid"] == 3, dropped  # the retained overflow, the huge yaw, the NaN
+        assert dropped["robot_status_off_map"] == 1, dropped
+        assert not agent.costmap.in_lethal(9.5, 7.2), "2 m of claimed footprint does not reach robot1"
+        clock.advance(0.5)
+        jump = RobotStatus(robot="robot3", state="navigating", pose=(30.0, 7.2, 0.0), t=1000.5)
+        robot3.publish(status3, jump.to_payload(), qos=1)
+        deadline = time.monotonic() + REAL_TIMEOUT_S
+        while agent.dropped()["robot_status_jump"] == 0 and time.monotonic() < deadline:
+            bus.wait(0.05)
+            agent.step(clock.now())
+        assert agent.robots_layer.robots["robot3"].pose[0] == 11.0, "19 m in half a second is not believed"
+        agent.step(clock.now())
+        assert agent.status(clock.now()).state == "idle"  # the agent is alive and answers
+    finally:
+        robot3.publish(status3, b"", qos=1, retain=True)
+        for b in (bus, robot3, operator):
+            b.close()
+
+
+@pytest.mark.slow
+def test_a_robot_yields_to_another_for_a_bounded_time_then_plans_round_it(
+    school: Site, broker: BrokerThread
+) -> None:
+    """A stolen robot1 credential publishing `navigating` just ahead of robot3 kept it yielding for as long as it
+    published (40 s seen). After `max_yield_s` (30 s) robot3 takes robot1 for an obstacle and drives on."""
+    for other in ("robot1", "robot2"):  # earlier tests' robots left their last statuses retained
+        link = connect(broker, other)
+        link.publish_confirmed(topics.robot_status(school.name, other), b"", retain=True)
+        link.close()
+    clock = SimClock(1000.0)
+    world = SimWorldGrid(school.grid)
+    bus = connect(broker, "robot3", clock)
+    agent = RobotAgent(
+        school, load_agent_config("full"), SimTurtleBot3("robot3", world, (9.0, 7.2, 0.0)), bus, clock
+    )
+    fake = connect(broker, "robot1")
+    operator = connect(broker, "operator")
+    status1 = topics.robot_status(school.name, "robot1")
+    try:
+        operator.publish(topics.sim_world(school.name), SimWorld(t=0.0).to_payload(), qos=1, retain=True)
+        deadline = time.monotonic() + REAL_TIMEOUT_S
+        while agent.stats.sim_worlds == 0 and time.monotonic() < deadline:
+            bus.wait(0.05)
+            agent.step(clock.now())
+        agent.set_goal(school.point("A"), "A", clock.now())
+        states: list[tuple[float, str, str | None]] = []
+        while clock.now() < 1040.0:
+            claim = RobotStatus(robot="robot1", state="navigating", pose=(10.2, 7.2, math.pi), t=clock.now())
+            fake.publish(status1, claim.to_payload(), qos=1)
+            seen = agent.stats.robot_statuses
+            deadline = time.monotonic() + REAL_TIMEOUT_S
+            while agent.stats.robot_statuses == seen and time.monotonic() < deadline:
+                bus.wait(0.05)
+                agent.step(clock.now())
+            status = agent.status(clock.now())
+            states.append((clock.now(), status.state, status.reason))
+            clock.advance(0.5)
+            agent.step(clock.now())
+        yielding = [
+            t for t, _, reason in states if reason is not None and reason.startswith("yielding to robot1")
+        ]
+        assert yielding and yielding[0] < 1002.0, states[:6]
+        assert 1029.0 <= yielding[-1] <= 1032.0, (
+            "held for max_yield_s (30 s), not for as long as robot1 claims"
+        )
+        assert states[-1][1] == "navigating" and not (states[-1][2] or "").startswith("yielding"), states[-1]
+    finally:
+        for b in (bus, fake, operator):
+            b.close()

@@ -268,6 +268,7 @@ def rviz_goal(ros_node: RosMaster, x: float, y: float) -> None:
     )
 
 
+@pytest.mark.slow
 def test_after_a_replan_the_re_sent_goal_is_followed_to_its_arrival(
     rig: tuple[WsnavChild, Operator, dict[str, MqttBus]], move_base: FakeMoveBase
 ) -> None:
@@ -290,6 +291,7 @@ def test_after_a_replan_the_re_sent_goal_is_followed_to_its_arrival(
     assert (status.state, status.goal) == ("arrived", "B"), status
 
 
+@pytest.mark.slow
 def test_rviz_goals_are_followed_replanned_and_arrive_by_the_id_move_base_gives_them(
     rig: tuple[WsnavChild, Operator, dict[str, MqttBus]], move_base: FakeMoveBase, ros_node: RosMaster
 ) -> None:
@@ -322,6 +324,7 @@ def test_rviz_goals_are_followed_replanned_and_arrive_by_the_id_move_base_gives_
     assert not any("cancel goal :" in line or "cancel goal  " in line for line in bridge.lines), bridge.lines
 
 
+@pytest.mark.slow
 def test_an_rviz_goal_in_a_blocked_zone_is_cancelled_by_its_own_id_and_no_other(
     rig: tuple[WsnavChild, Operator, dict[str, MqttBus]], move_base: FakeMoveBase, ros_node: RosMaster
 ) -> None:
