@@ -383,15 +383,19 @@ class _FullGridOnSubscribe:
 
 
 def map_mismatch(frame: GridFrame, info: Any) -> str | None:
-    """How a ROS map's MapMetaData differs from the site's grid, or None if it matches."""
+    """How a ROS map's MapMetaData differs from the site's grid, or None if it matches exactly.
+
+    costmap_2d's StaticLayer compares size, resolution and origin with `!=` and, on any difference, resizes the
+    master costmap and wipes what the static map put there (seen: a master with no walls), so nothing is
+    tolerated here: not half a cell, not a rounding. The resolution travels as float32 on the wire, so it is
+    compared as float32."""
     if (info.width, info.height) != (frame.width, frame.height):
         return f"size {info.width}x{info.height} cells, the site's is {frame.width}x{frame.height}"
-    if not math.isclose(info.resolution, frame.resolution, rel_tol=1e-6):
-        return f"resolution {info.resolution:g} m, the site's is {frame.resolution:g} m"
-    dx, dy = info.origin.position.x - frame.origin_x, info.origin.position.y - frame.origin_y
-    if math.hypot(dx, dy) > frame.resolution / 2:
+    if np.float32(info.resolution) != np.float32(frame.resolution):
         return (
-            f"origin ({info.origin.position.x:g}, {info.origin.position.y:g}), the site's is "
-            f"({frame.origin_x:g}, {frame.origin_y:g})"
+            f"resolution {np.float32(info.resolution)!s} m, the site's is {np.float32(frame.resolution)!s} m"
         )
+    x, y = info.origin.position.x, info.origin.position.y
+    if (x, y) != (frame.origin_x, frame.origin_y):
+        return f"origin ({x!r}, {y!r}), the site's is ({frame.origin_x!r}, {frame.origin_y!r})"
     return None

@@ -115,3 +115,33 @@ def test_a_lifted_block_outside_the_zones_is_a_way_that_may_open() -> None:
     assert placed and not any(c.cheaper for c in placed)
     lifted = feed.take([Message(topic, b"", True, 2.0)], 2.0)
     assert lifted and any(c.cheaper for c in lifted)
+
+
+def test_a_map_that_differs_from_the_site_by_any_amount_is_refused() -> None:
+    """costmap_2d compares /map's metadata with `!=` and, on a difference, resizes and wipes its static layer:
+    the bridge allowed half a cell of origin error, which put a master costmap with no walls under move_base."""
+    from types import SimpleNamespace
+
+    from wsnav.ros_bridge.bridge_node import map_mismatch
+    from wsnav.zones.geometry import GridFrame
+
+    frame = GridFrame(200, 100, 0.05, -10.0, -5.0)
+
+    def info(
+        width: int = 200, resolution: float = 0.05, x: float = -10.0, y: float = -5.0
+    ) -> SimpleNamespace:
+        return SimpleNamespace(
+            width=width,
+            height=100,
+            resolution=resolution,
+            origin=SimpleNamespace(position=SimpleNamespace(x=x, y=y)),
+        )
+
+    assert map_mismatch(frame, info()) is None
+    assert map_mismatch(frame, info(resolution=float(np.float32(0.05)))) is None  # as the wire carries it
+    assert (
+        map_mismatch(frame, info(x=-10.0 + 0.0125)) == "origin (-9.9875, -5.0), the site's is (-10.0, -5.0)"
+    )
+    assert map_mismatch(frame, info(y=-5.0 - 1e-9)) is not None
+    assert map_mismatch(frame, info(resolution=0.051)) is not None
+    assert map_mismatch(frame, info(width=201)) == "size 201x100 cells, the site's is 200x100"
