@@ -94,9 +94,16 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     mosq.add_argument(
         "--bind", type=host_port, default=("0.0.0.0", 1883), help="HOST:PORT (default 0.0.0.0:1883)"
     )
-    mosq.add_argument("--data", type=Path, default=Path("/var/lib/mosquitto"), help="persistence folder")
     mosq.add_argument(
-        "--user", help="system user Mosquitto drops to when started as root (default: mosquitto)"
+        "--data",
+        type=Path,
+        default=Path("/var/lib/mosquitto"),
+        help="persistence folder, created if missing (and given to --user)",
+    )
+    mosq.add_argument(
+        "--user",
+        help="system user Mosquitto drops to when started as root; the files and --data are given to it "
+        "(default: none written: Mosquitto then drops to `mosquitto`, which cannot read root's 0600 files)",
     )
     mosq.add_argument(
         "--shared-client-ids",

@@ -143,6 +143,40 @@ def test_mosquitto_config_files(tmp_path: Path) -> None:
     assert all(mode(p) == 0o600 for p in out.iterdir())
 
 
+def test_mosquitto_config_creates_the_persistence_folder_for_the_brokers_user(tmp_path: Path) -> None:
+    """Without its --data folder Mosquitto logged "No such file or directory" every minute and lost an operator
+    block at a restart; as root, the folder and the files go to --user (Mosquitto reads them as that user)."""
+    import os
+    import pwd
+
+    site = tiny_site(tmp_path / "site")
+    creds, out, data = tmp_path / "creds", tmp_path / "mosq", tmp_path / "var" / "lib" / "mq"
+    assert wsnav("broker", "credentials", "--site", site, "--out", creds).returncode == 0
+    args = [
+        "broker",
+        "mosquitto-config",
+        "--site",
+        site,
+        "--credentials",
+        creds,
+        "--out",
+        out,
+        "--data",
+        data,
+    ]
+    as_root = os.geteuid() == 0
+    result = wsnav(*args, *(["--user", "nobody"] if as_root else []))
+    assert result.returncode == 0, result.stderr
+    assert data.is_dir() and mode(data) == 0o700
+    assert f"persistence_location {data}/" in (out / CONF).read_text().splitlines()
+    if as_root:
+        nobody = pwd.getpwnam("nobody").pw_uid
+        assert {p.stat().st_uid for p in [data, out, *out.iterdir()]} == {nobody}
+        wrong = wsnav(*args, "--user", "no-such-user-here")
+        assert wrong.returncode == 2 and wrong.stderr.count("\n") == 1
+        assert "--user no-such-user-here: no such system user" in wrong.stderr
+
+
 @pytest.mark.parametrize("broken", ["missing", "bad"])
 def test_mosquitto_config_bad_credentials_is_one_line(tmp_path: Path, broken: str) -> None:
     site = tiny_site(tmp_path / "site")

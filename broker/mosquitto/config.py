@@ -22,6 +22,7 @@ from pathlib import Path
 from wsnav.broker.acl import AclRules, site_rules
 from wsnav.broker.amqtt.packet_gate import MAX_PACKET_BYTES
 from wsnav.broker.credentials import load_folder, secure_dir, write_private
+from wsnav.schemas.credentials import CredentialsError
 from wsnav.schemas.site_file import SiteFile
 
 CONF = "mosquitto.conf"
@@ -115,18 +116,30 @@ def write_mosquitto_config(
     }
     for path, text in files.items():
         write_private(path, text)
+    if options.data_dir.exists() and not options.data_dir.is_dir():
+        raise CredentialsError(f"{options.data_dir}: the persistence folder is a file")
+    try:
+        options.data_dir.mkdir(mode=0o700, parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CredentialsError(
+            f"{options.data_dir}: cannot create the persistence folder: {exc.strerror}"
+        ) from None
     if options.user is not None and options.user != "root" and os.geteuid() == 0:
-        _hand_over(list(files), options.user)
+        _hand_over([*files, options.data_dir], options.user)
     return list(files)
 
 
 def _hand_over(paths: list[Path], user: str) -> None:
-    """Mosquitto reads its password and ACL files after dropping to `user`: give them to it (still 0600)."""
+    """Mosquitto reads its password and ACL files, and saves its retained messages, after dropping to `user`:
+    give them to it (still 0600/0700). Without the folder it logged "No such file or directory" every minute
+    and an operator block was gone after a restart."""
     import pwd
 
     try:
         entry = pwd.getpwnam(user)
     except KeyError:
-        return
+        raise CredentialsError(
+            f"--user {user}: no such system user (create it, or start Mosquitto as it)"
+        ) from None
     for path in [paths[0].parent, *paths]:
         os.chown(path, entry.pw_uid, entry.pw_gid)
