@@ -4,7 +4,7 @@
   (its diagnostics), and may read back the first two (e.g. to resume its `seq` after a reboot);
 - a robot reads zones, nodes, operator topics, other robots' status and the simulated world, and publishes only
   under `robots/<itself>/`;
-- the operator publishes `operator/...`, robot goals and the simulated world (`sim/...`, used by the zone
+- the operator publishes `operator/...`, robot goals, robot statuses (to clear a retained one) and the simulated world (`sim/...`, used by the zone
   simulator), and reads everything of the site; it also publishes and reads Home Assistant's discovery configs
   (`homeassistant/#`, `wsnav broker ha-discovery`).
 Nothing else outside `wsn/<site>/` is allowed to anyone. The same `AclRules` feed the amqtt plugin below and the
@@ -61,7 +61,13 @@ def site_rules(spec: SiteFile) -> AclRules:
             topics.all_robot_statuses(site),
             f"{root}/sim/#",
         ]
-    publish[OPERATOR] = [f"{root}/operator/#", f"{root}/robots/+/goal", f"{root}/sim/#", HA_DISCOVERY]
+    publish[OPERATOR] = [
+        f"{root}/operator/#",
+        f"{root}/robots/+/goal",
+        topics.all_robot_statuses(site),  # to clear a retained status (`wsnav clear-status`)
+        f"{root}/sim/#",
+        HA_DISCOVERY,
+    ]
     subscribe[OPERATOR] = [f"{root}/#", HA_DISCOVERY]
     return AclRules(publish=publish, subscribe=subscribe)
 

@@ -1,4 +1,4 @@
-"""The operator's commands: `wsnav console` (the web page) and `wsnav status|watch|block|unblock|goal|cancel`.
+"""The operator's commands: `wsnav console` (the web page) and `wsnav status|watch|block|unblock|goal|cancel|clear-status`.
 
 Each takes the site, the broker and the operator's credentials file; the work lives in console.terminal and
 console.serve, imported only when a command runs.
@@ -79,11 +79,19 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     cancel.add_argument("robot", metavar="ROBOT")
     cancel.set_defaults(func=_run("terminal", "cancel_command"))
 
+    clear = sub.add_parser(
+        "clear-status",
+        help="make the broker forget a robot's retained status (a robot gone, or a forged status)",
+    )
+    _common(clear)
+    clear.add_argument("robot", metavar="ROBOT")
+    clear.set_defaults(func=_run("terminal", "clear_status_command"))
+
 
 def _run(module: str, name: str):
     def run(args: argparse.Namespace) -> int:
         import importlib
 
-        return int(getattr(importlib.import_module(f"console.{module}"), name)(args) or 0)
+        return int(getattr(importlib.import_module(f"wsnav.console.{module}"), name)(args) or 0)
 
     return run

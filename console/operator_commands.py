@@ -133,6 +133,13 @@ def cancel(site: Site, robot: str) -> Publication:
     return Publication(topics.robot_goal(site.name, robot), RobotGoal(cancel=True).to_payload(), False)
 
 
+def clear_status(site: Site, robot: str) -> Publication:
+    """An empty retained message on the robot's status topic: the broker forgets the status it keeps, so a
+    robot taken out of service (or a forged status) no longer greets every agent and console that starts."""
+    _robot(site, robot)
+    return Publication(topics.robot_status(site.name, robot), b"", True)
+
+
 def _finite(v: float) -> bool:
     return v == v and abs(v) != float("inf")
 

@@ -245,6 +245,12 @@ def goal_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def clear_status_command(args: argparse.Namespace) -> int:
+    _publish(args, "clear-status", lambda link: commands.clear_status(link.site, args.robot))
+    print(f"{args.robot}'s retained status cleared (its agent, if running, publishes a new one)")
+    return 0
+
+
 def cancel_command(args: argparse.Namespace) -> int:
     _publish(args, "cancel", lambda link: commands.cancel(link.site, args.robot))
     print(f"cancel sent to {args.robot}")

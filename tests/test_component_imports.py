@@ -132,3 +132,19 @@ def test_no_module_of_ours_imports_itself_back_through_others() -> None:
         list(graphlib.TopologicalSorter(graph).static_order())
     except graphlib.CycleError as exc:
         pytest.fail(f"import cycle: {' -> '.join(exc.args[1])}")
+
+
+def test_commands_run_outside_the_checkout_where_only_wsnav_is_importable(tmp_path: Path) -> None:
+    """From the checkout, the folders are importable by their bare names too, which hid a dynamic import of
+    `console.terminal`: installed, every `wsnav status|watch|block|...` failed with ModuleNotFoundError."""
+    import subprocess
+    import sys
+
+    (tmp_path / "creds.json").write_text("{}")
+    proc = subprocess.run(
+        [sys.executable, "-m", "wsnav.cli", "status", "--site", str(REPO / "sites" / "school"),
+         "--credentials", str(tmp_path / "creds.json"), "--broker", "127.0.0.1:1"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.count("\n") == 1 and "creds.json" in proc.stderr, proc.stderr
