@@ -12,6 +12,7 @@ with backoff and then re-executes itself; the MQTT side reconnects by itself and
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import os
 import sys
@@ -35,6 +36,8 @@ from wsnav.schemas.credentials import Credentials
 from wsnav.schemas.messages import PayloadError, RobotGoal, parse_payload
 from wsnav.schemas.site import Site, SiteError, load_site
 from wsnav.zones.geometry import Bounds, GridFrame
+
+log = logging.getLogger(__name__)
 
 STATUS_PERIOD_S = 0.5
 MASTER_CHECK_PERIOD_S = 2.0
@@ -84,9 +87,13 @@ def bridge_command(args: argparse.Namespace) -> int:
     wait_for_master(uri)
     host, port = args.broker
     try:
-        bus = connect_with_credentials(host, port, creds, clock=WallClock(), timeout_s=args.connect_timeout)
+        bus = connect_with_credentials(host, port, creds, clock=WallClock(), wait=False)
     except BusError as exc:
         raise CliError(str(exc)) from None
+    bus.wait_answered(args.connect_timeout)
+    if bus.refusal is not None:  # a wrong password is a set-up to fix, not an outage to ride out
+        bus.abort()
+        raise CliError(f"MQTT broker {host}:{port} refused the login: {bus.refusal} (check the credentials)")
     try:
         restart = ZoneBridgeNode(site, creds, bus, codec, options).run(uri)
     finally:
@@ -144,15 +151,18 @@ class ZoneBridgeNode:
         self.update_pub = rospy.Publisher(f"{ns}/zone_grid_updates", OccupancyGridUpdate, queue_size=20)
         if self.supervisor is not None:
             self._wire_move_base(rospy)
-        print(
+        say(
             f"zone bridge for site {self.site.name}: {ns}/zone_grid ({self.frame.width}x{self.frame.height} cells, "
             f"frame {self.options.frame_id})"
-            + (f", supervising {self.options.move_base} for {self.options.robot}" if self.supervisor else ""),
-            flush=True,
+            + (f", supervising {self.options.move_base} for {self.options.robot}" if self.supervisor else "")
         )
         next_status = 0.0
         next_master_check = time.monotonic() + MASTER_CHECK_PERIOD_S
+        link = LinkWatch(self.site.spec.policy.stale, time.monotonic())
         while not rospy.is_shutdown():
+            said = link.check(self.bus.connected, time.monotonic())
+            if said is not None:
+                say(said, warn=True)
             self.bus.wait(0.05)
             now = self.clock.now()
             messages = self.bus.poll()
@@ -176,7 +186,7 @@ class ZoneBridgeNode:
             if time.monotonic() >= next_master_check:
                 next_master_check = time.monotonic() + MASTER_CHECK_PERIOD_S
                 if not master_alive(uri):
-                    print(f"lost the ROS master at {uri}", flush=True)
+                    say(f"lost the ROS master at {uri}", warn=True)
                     rospy.signal_shutdown("master lost")
                     wait_for_master(uri)
                     return True
@@ -191,9 +201,9 @@ class ZoneBridgeNode:
                 self.options.map_topic, occupancy_grid, timeout=self.options.map_wait_s
             )
         except rospy.ROSException:
-            print(
+            say(
                 f"no map on {self.options.map_topic} within {self.options.map_wait_s:g} s: not checked against the site's",
-                flush=True,
+                warn=True,
             )
             return
         problem = map_mismatch(self.frame, msg.info)
@@ -275,15 +285,15 @@ class ZoneBridgeNode:
         try:
             msg = parse_payload(RobotGoal, payload)
         except PayloadError as exc:
-            print(f"goal dropped: {exc}", flush=True)
+            say(f"goal dropped: {exc}", warn=True)
             return
-        print(f"MQTT goal: {payload.decode(errors='replace')[:200]}", flush=True)
+        say(f"MQTT goal: {payload.decode(errors='replace')[:200]}")
         if msg.cancel:
             self._act(self.supervisor.cancel("cancelled by the operator"))
             return
         if isinstance(msg.goal, str):
             if msg.goal not in self.site.spec.points:
-                print(f"goal dropped: {msg.goal!r} is not a point of site {self.site.name}", flush=True)
+                say(f"goal dropped: {msg.goal!r} is not a point of site {self.site.name}", warn=True)
                 return
             pose, label = self.site.point(msg.goal), msg.goal
         else:
@@ -293,7 +303,7 @@ class ZoneBridgeNode:
         goal = Goal(f"wsnav-mqtt-{self._mqtt_goals}-{time.time():.3f}", pose, label)
         cancel = self.supervisor.sending(goal)
         if cancel:  # the goal lies in a blocked zone: move_base never sees it
-            print(f"goal {goal.goal_id} not sent: {cancel[0].reason}", flush=True)
+            say(f"goal {goal.goal_id} not sent: {cancel[0].reason}", warn=True)
             return
         self._send_goal(goal)
 
@@ -301,7 +311,7 @@ class ZoneBridgeNode:
         for action in actions:
             if isinstance(action, Cancel):
                 assert action.goal_id, "an empty goal id cancels every goal in actionlib"
-                print(f"cancel goal {action.goal_id}: {action.reason}", flush=True)
+                say(f"cancel goal {action.goal_id}: {action.reason}")
                 held = [
                     m
                     for _p, m in self._outbox
@@ -312,13 +322,13 @@ class ZoneBridgeNode:
                 else:
                     self._outbox.append((self.cancel_pub, self._goal_id_type(id=action.goal_id)))
             elif isinstance(action, Resend):
-                print(f"replan now ({action.reason}): goal re-sent as {action.goal.goal_id}", flush=True)
+                say(f"replan now ({action.reason}): goal re-sent as {action.goal.goal_id}")
                 self._send_goal(action.goal)
 
     def _send_goal(self, goal: Goal) -> None:
         import rospy
 
-        print(f"goal {goal.goal_id} -> {self.options.move_base}: {goal.pose}", flush=True)
+        say(f"goal {goal.goal_id} -> {self.options.move_base}: {goal.pose}")
         msg = self._goal_type()
         now = rospy.Time.now()
         msg.header.stamp = now
@@ -338,9 +348,9 @@ class ZoneBridgeNode:
             ours = 1 if publisher is self.goal_pub else 0  # our own subscriber that watches move_base/goal
             if publisher.get_num_connections() <= ours:
                 if not self._told_unconnected:
-                    print(
+                    say(
                         f"move_base is not listening on {publisher.resolved_name}: holding goals until it is",
-                        flush=True,
+                        warn=True,
                     )
                     self._told_unconnected = True
                 return
@@ -365,6 +375,41 @@ class ZoneBridgeNode:
             status = self.supervisor.status(self._pose, time.time())
         self.bus.publish(
             topics.robot_status(self.site.name, self.options.robot), status.to_payload(), qos=1, retain=True
+        )
+
+
+def say(text: str, *, warn: bool = False) -> None:
+    """Log as a ROS node does: through rospy, to /rosout and the console (the node is initialised by then)."""
+    import rospy
+
+    (rospy.logwarn if warn else rospy.loginfo)(text)
+
+
+class LinkWatch:
+    """Says, loudly and once per change, when the MQTT link is down (the grid still serves its last states, read
+    by the site's stale policy) and when it is back: a bridge without its broker must keep the grid up, or a
+    StaticLayer waiting for its map holds move_base's start."""
+
+    REPEAT_S = 60.0
+
+    def __init__(self, stale_policy: str, now: float) -> None:
+        self.stale_policy = stale_policy
+        self.up: bool | None = None
+        self._said_at = now
+
+    def check(self, connected: bool, now: float) -> str | None:
+        if connected == self.up and (connected or now - self._said_at < self.REPEAT_S):
+            return None
+        was, self.up, self._said_at = self.up, connected, now
+        if connected:
+            return (
+                "MQTT broker connected: zone states are live"
+                if was is None
+                else "MQTT broker back: zone states are live again"
+            )
+        return (
+            "MQTT broker unreachable: the zone grid is served but not updated; zones whose nodes fall silent "
+            f"are read by the site's stale policy ({self.stale_policy!r})"
         )
 
 

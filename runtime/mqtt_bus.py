@@ -83,13 +83,32 @@ class MqttBus:
         self._client.on_message = self._on_message
         self._client.on_subscribe = self._on_subscribe
 
-    def connect(self, timeout_s: float = 30.0) -> MqttBus:
-        """Connect and wait for the broker's answer; afterwards the bus keeps reconnecting by itself."""
+    def start(self) -> MqttBus:
+        """Begin connecting in the background and keep at it (for a process that must serve while the broker
+        is down, as the ROS bridge must); `connected`, `refusal` and `wait_answered` tell how it goes."""
         try:
             self._client.connect_async(self._host, self._port, keepalive=self._keepalive)
         except (OSError, ValueError) as exc:
             raise BusError(f"cannot reach MQTT broker {self._host}:{self._port}: {exc}") from None
         self._client.loop_start()
+        return self
+
+    def wait_answered(self, timeout_s: float) -> bool:
+        """Wait for the broker's first answer (yes or no); False when none came in time."""
+        return self._answered.wait(timeout_s)
+
+    @property
+    def refusal(self) -> str | None:
+        """The broker's reason for refusing the login, if it did."""
+        return self._refused
+
+    @property
+    def address(self) -> str:
+        return f"{self._host}:{self._port}"
+
+    def connect(self, timeout_s: float = 30.0) -> MqttBus:
+        """Connect and wait for the broker's answer; afterwards the bus keeps reconnecting by itself."""
+        self.start()
         self._answered.wait(timeout_s)
         if not self._connected.is_set():
             self._client.loop_stop()
@@ -232,13 +251,15 @@ def connect_with_credentials(
     will: Will | None = None,
     birth: Will | None = None,
     timeout_s: float = 30.0,
+    wait: bool = True,
 ) -> MqttBus:
-    """A connected bus that logs in with one id's credentials (client id: its username unless given).
+    """A connected bus that logs in with one id's credentials (client id: its username unless given); with
+    `wait=False`, a bus still connecting in the background (MqttBus.start).
 
     Takes the loaded credentials, not their file: the loader is broker.credentials', which runtime does not
     import (callers: `load_credentials(path)` or BrokerThread.credentials(ident)).
     """
-    return MqttBus(
+    bus = MqttBus(
         host,
         port,
         client_id=client_id if client_id is not None else credentials.username,
@@ -247,4 +268,5 @@ def connect_with_credentials(
         clock=clock,
         will=will,
         birth=birth,
-    ).connect(timeout_s=timeout_s)
+    )
+    return bus.connect(timeout_s=timeout_s) if wait else bus.start()

@@ -7,6 +7,8 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from tests.conftest import SCHOOL
 from tests.ros_fixtures import RosMaster, WsnavChild, bridge_args, require_ros, wait_until
 from wsnav.broker.amqtt.embedded import BrokerThread
@@ -80,3 +82,36 @@ def test_the_bridge_comes_back_when_the_master_is_restarted(tmp_path: Path) -> N
         finally:
             bridge.stop()
             core.stop()
+
+
+@pytest.mark.slow
+def test_without_its_broker_the_bridge_serves_the_grid_says_so_and_picks_the_broker_up_later(
+    ros_node: RosMaster, tmp_path: Path
+) -> None:
+    """The bridge gave up after 30 s without its broker and never published the grid, so a StaticLayer waiting
+    for its map held move_base's start. It now serves the site's grid at once, says the broker is unreachable
+    (and which stale policy applies), and goes live when the broker comes."""
+    import rospy
+    from nav_msgs.msg import OccupancyGrid
+
+    from wsnav.broker.credentials import write_credentials
+    from wsnav.broker.mosquitto.process import free_port
+
+    creds = tmp_path / "creds"
+    write_credentials(load_site(SCHOOL).spec, creds)
+    port = free_port()
+    args = [
+        "--site", str(SCHOOL), "--broker", f"127.0.0.1:{port}", "--credentials", str(creds / "robot1.json"),
+        "--map-wait", "0", "--connect-timeout", "2",
+    ]  # fmt: skip
+    bridge = WsnavChild(["ros", "bridge", *args], ros_node.env())
+    try:
+        bridge.wait_for("MQTT broker unreachable", 60)
+        assert "stale policy ('keep')" in bridge.wait_for("MQTT broker unreachable", 1)
+        grid = rospy.wait_for_message("/wsn/zone_grid", OccupancyGrid, timeout=30)
+        assert (grid.info.width, grid.info.height) == (1040, 640)
+        with BrokerThread(SCHOOL, port=port, credentials_dir=creds):
+            bridge.wait_for("MQTT broker back", 60)
+        assert bridge.proc.poll() is None
+    finally:
+        bridge.stop()
