@@ -3,9 +3,8 @@
 over move_base and the robot's status on MQTT.
 
 One rospy node. MQTT comes in through the same validating intake the robot agent uses (ZoneFeed); each change
-goes out as one OccupancyGridUpdate of the changed window. The whole grid is sent once to every subscriber when
-it connects (latched in effect, but always the current grid, where a latched publisher would replay the first
-one). rospy cannot register again with a restarted master, so when the master goes away the bridge waits for it
+goes out as one OccupancyGridUpdate of the changed window. The grid topic is latched (rosbag play and relays keep
+it latched too), and the latched message is the grid as it is when a subscriber connects, never an old one. rospy cannot register again with a restarted master, so when the master goes away the bridge waits for it
 with backoff and then re-executes itself; the MQTT side reconnects by itself and its retained state comes back.
 """
 
@@ -144,10 +143,10 @@ class ZoneBridgeNode:
         )
         self._check_map(rospy, OccupancyGrid)
         ns = self.options.namespace
-        listener = _FullGridOnSubscribe(self)
-        self.grid_pub = rospy.Publisher(
-            f"{ns}/zone_grid", OccupancyGrid, queue_size=1, subscriber_listener=listener
-        )
+        # Latched, so rosbag play, relays and late subscribers get it; the latched message is one that serializes
+        # the grid as it is when a subscriber connects, so it is never a stale grid (changes go as updates).
+        self.grid_pub = rospy.Publisher(f"{ns}/zone_grid", OccupancyGrid, queue_size=1, latch=True)
+        self.grid_pub.publish(current_grid_message(self))
         self.update_pub = rospy.Publisher(f"{ns}/zone_grid_updates", OccupancyGridUpdate, queue_size=20)
         if self.supervisor is not None:
             self._wire_move_base(rospy)
@@ -413,18 +412,19 @@ class LinkWatch:
         )
 
 
-class _FullGridOnSubscribe:
-    """rospy SubscribeListener: a new subscriber gets the current whole grid, as if latched."""
+def current_grid_message(node: ZoneBridgeNode) -> Any:
+    """An OccupancyGrid that is filled with the node's current grid each time rospy serializes it: latched, it is
+    what every new subscriber gets, and it is never the grid of some earlier moment."""
+    from nav_msgs.msg import OccupancyGrid
 
-    def __init__(self, node: ZoneBridgeNode) -> None:
-        self._node = node
+    class CurrentGrid(OccupancyGrid):
+        def serialize(self, buff: Any) -> None:
+            with node._lock:
+                now = node.full_grid_message()
+            self.header, self.info, self.data = now.header, now.info, now.data
+            super().serialize(buff)
 
-    def peer_subscribe(self, _topic: str, _publish_all: Any, peer_publish: Any) -> None:
-        with self._node._lock:
-            peer_publish(self._node.full_grid_message())
-
-    def peer_unsubscribe(self, _topic: str, _num_peers: int) -> None:
-        pass
+    return CurrentGrid()
 
 
 def map_mismatch(frame: GridFrame, info: Any) -> str | None:

@@ -52,6 +52,7 @@ class StaticLayerPeer:
 
         self.layer = StaticLayerModel()
         self.grids = 0
+        self.latching: str | None = None
         self.update_cells: list[int] = []
         self.size = (0, 0)
         self.lock = threading.Lock()
@@ -65,6 +66,7 @@ class StaticLayerPeer:
     def _grid(self, msg: Any) -> None:
         with self.lock:
             self.grids += 1
+            self.latching = msg._connection_header.get("latching")
             self.size = (msg.info.width, msg.info.height)
             self.layer.incoming_map(msg.info.width, msg.info.height, msg.data)
 
@@ -164,6 +166,7 @@ def test_the_static_layer_grid_equals_the_zone_layer_after_100_random_events(
                 f"event {i} ({kind}) to reach the StaticLayer",
             )
         assert peer.grids == 1, "a change must travel as an update, never as the whole grid again"
+        assert peer.latching == "1", "latched, so rosbag play and relays latch it for late subscribers too"
         whole = grid.width * grid.height
         # one zone's window, or the box around the two zones a moved operator block touched at once
         assert peer.update_cells and float(np.median(peer.update_cells)) < whole / 100, peer.update_cells
