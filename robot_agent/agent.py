@@ -165,6 +165,7 @@ class RobotAgent:
                 replan_rate_hz=config.replan_rate_hz,
                 waiting_retry_s=config.waiting_retry_s,
                 blocked_replan_interval_s=config.blocked_replan_interval_s,
+                zone_replan_interval_s=config.zone_replan_interval_s,
                 local_costmap_size_m=config.local_costmap_size_m,
                 recovery=config.recovery.params(),
             ),

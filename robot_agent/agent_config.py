@@ -118,6 +118,10 @@ class AgentConfig(_Strict):
     """While waiting for a way, also retry planning this often (0: only when a zone changes)."""
     blocked_replan_interval_s: Annotated[float, Field(gt=0)] = 0.5
     """At most one replan per this interval when the controller reports the path blocked."""
+    zone_replan_interval_s: Annotated[float, Field(ge=0, le=60)] = 0.5
+    """At most one replan for zone changes per this interval (a flapping node cannot make the robot replan
+    without end); the changes in between are planned for at its end, and a goal that became blocked is
+    cancelled at once."""
     fleet_layer: bool = True
     """On a site with several robots: the others' published poses as a costmap layer, and the right-of-way rule
     (wsnav.navigation.behaviors.right_of_way). A site with one robot has neither."""
