@@ -71,6 +71,8 @@ class MoveBaseSupervisor:
     """The goal ids of move_base's last status message: a goal id not among them is a new goal."""
     _cancel_waiting: str | None = None
     """A cancel for the current goal that waits for move_base to name it (an RViz goal has no id yet)."""
+    _listed_current: bool = False
+    """move_base has listed the current goal in its status: once it stops listing it, the goal is gone."""
 
     # -- what move_base shows ------------------------------------------------------------------------------
 
@@ -110,6 +112,13 @@ class MoveBaseSupervisor:
                     actions.append(Cancel(new[-1], self._cancel_waiting))
                     self._cancel_waiting = None
         self._listed = {g for g, _ in statuses}
+        if self.goal is not None and self.goal.goal_id:
+            if self.goal.goal_id in self._listed:
+                self._listed_current = True
+            elif self._listed_current and self.state == "navigating":
+                # actionlib lists a goal until some seconds after it ends: an active goal that vanishes went with
+                # a move_base that restarted. Its target is not re-sent on the next zone change.
+                self.state, self.reason = "cancelled", "move_base lost the goal (restarted?)"
         for goal_id, code in statuses:
             self.on_status(goal_id, code)
         return actions
@@ -158,6 +167,7 @@ class MoveBaseSupervisor:
         goal = Goal(f"{base}#wsnav{self._sent}", self.goal.pose, self.goal.label)
         self._ours.add(goal.goal_id)
         self.goal = goal  # followed from now on: the goal it preempts ends PREEMPTED, which is not a cancel
+        self._listed_current = False
         self._cancel_waiting = None
         why = "a zone on the plan changed" if on_plan else "a zone cleared"
         return [Resend(goal, why)]
@@ -185,6 +195,8 @@ class MoveBaseSupervisor:
         self._plan_cells = np.zeros((0, 2), dtype=np.int64)
         self.plan_length_m = None
         self.goal = goal
+        self.replans = 0  # per goal, as the agent counts them
+        self._listed_current = False
         self._cancel_waiting = None
         self.state, self.reason = "navigating", None
         return self._cancel_if_blocked()

@@ -1,0 +1,75 @@
+"""The supervisor's goal tracking as pure logic, fed what move_base's topics show (goal, status lists, plan)
+exactly as the bridge feeds it; the same rules run against a real roscore in test_ros_bridge_move_base.py."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tests.conftest import SCHOOL
+from wsnav.ros_bridge.move_base_supervisor import (
+    ACTIVE,
+    PREEMPTED,
+    SUCCEEDED,
+    Cancel,
+    Goal,
+    MoveBaseSupervisor,
+    Resend,
+)
+from wsnav.ros_bridge.zone_feed import ZoneFeed
+from wsnav.runtime.bus import Message
+from wsnav.schemas import topics
+from wsnav.schemas.messages import ZoneState
+from wsnav.schemas.site import load_site
+from wsnav.zones.geometry import GridFrame
+
+PLAN = np.array([(12.0 + 0.05 * i, 7.2) for i in range(200)])
+"""A -> east along the south corridor, through z1."""
+
+
+def supervisor() -> tuple[MoveBaseSupervisor, ZoneFeed]:
+    site = load_site(SCHOOL)
+    feed = ZoneFeed(site.spec, GridFrame.of_grid(site.grid))
+    return MoveBaseSupervisor("robot1", feed), feed
+
+
+def block(feed: ZoneFeed, zone: str, node: str, t: float, state: str = "blocked") -> list:  # type: ignore[type-arg]
+    payload = ZoneState(zone=zone, node=node, state=state, seq=int(t * 10) + 1).to_payload()  # type: ignore[arg-type]
+    return feed.take([Message(topics.zone_state("school", zone, node), payload, True, t)], t)
+
+
+def test_the_re_sent_goal_is_followed_and_replans_count_per_goal() -> None:
+    sup, feed = supervisor()
+    assert sup.on_goal(Goal("g1", (29.0, 22.8, 0.0), "B")) == []
+    sup.on_statuses([("g1", ACTIVE)])
+    sup.on_plan(PLAN)
+    [resend] = sup.on_zones_changed(block(feed, "z1", "n1", 1.0))
+    assert isinstance(resend, Resend) and sup.goal == resend.goal and sup.replans == 1
+    sup.on_statuses([("g1", PREEMPTED), (resend.goal.goal_id, ACTIVE)])
+    assert (sup.state, sup.reason) == ("navigating", None)
+    sup.on_statuses([("g1", PREEMPTED), (resend.goal.goal_id, SUCCEEDED)])
+    assert sup.state == "arrived"
+    sup.on_goal(Goal("g2", (14.0, 7.2, 0.0), (14.0, 7.2, 0.0)))
+    assert sup.replans == 0, "replans count per goal"
+
+
+def test_an_rviz_goal_takes_the_id_move_base_gives_it_and_is_never_cancelled_by_the_empty_id() -> None:
+    sup, feed = supervisor()
+    sup.on_statuses([("old", SUCCEEDED)])
+    block(feed, "z5", "n7", 1.0)
+    assert sup.on_goal(Goal("", (27.8, 7.2, 0.0), (27.8, 7.2, 0.0))) == [], "no cancel by the empty id"
+    assert sup.state == "cancelled"
+    assert sup.on_statuses([("old", SUCCEEDED), ("/move_base-7-123.4", ACTIVE)]) == [
+        Cancel("/move_base-7-123.4", "goal [27.80, 7.20] lies in blocked zone z5")
+    ]
+
+
+def test_a_goal_move_base_stops_listing_while_active_is_lost_and_never_re_sent() -> None:
+    """move_base restarted: the goal is gone; re-sending its target on the next zone change would start a drive
+    nobody asked for any more."""
+    sup, feed = supervisor()
+    sup.on_goal(Goal("g1", (29.0, 22.8, 0.0), "B"))
+    sup.on_plan(PLAN)
+    sup.on_statuses([("g1", ACTIVE)])
+    sup.on_statuses([])
+    assert (sup.state, sup.reason) == ("cancelled", "move_base lost the goal (restarted?)")
+    assert sup.on_zones_changed(block(feed, "z1", "n1", 2.0)) == []
