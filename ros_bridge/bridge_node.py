@@ -39,6 +39,8 @@ from wsnav.zones.geometry import Bounds, GridFrame
 log = logging.getLogger(__name__)
 
 STATUS_PERIOD_S = 0.5
+HOLD_GOALS_S = 30.0
+"""How long goals wait for move_base to listen before they are dropped (and the robot's goal cancelled)."""
 MASTER_CHECK_PERIOD_S = 2.0
 
 
@@ -123,6 +125,8 @@ class ZoneBridgeNode:
         self._mqtt_goals = 0
         self._outbox: list[tuple[Any, Any]] = []
         """(publisher, message) of goals and cancels not yet sent: see _flush_outbox."""
+        self._held_since: float | None = None
+        """Since when the outbox has waited for move_base (monotonic seconds)."""
         self._told_unconnected = False
         for topic_filter in self.feed.subscriptions():
             bus.subscribe(topic_filter, qos=1)
@@ -346,6 +350,18 @@ class ZoneBridgeNode:
             publisher, msg = self._outbox[0]
             ours = 1 if publisher is self.goal_pub else 0  # our own subscriber that watches move_base/goal
             if publisher.get_num_connections() <= ours:
+                now = time.monotonic()
+                self._held_since = self._held_since if self._held_since is not None else now
+                if (
+                    now - self._held_since > HOLD_GOALS_S
+                ):  # a goal sent much later would start a drive nobody awaits
+                    self._outbox.clear()
+                    self._held_since = None
+                    if self.supervisor is not None and self.supervisor.state == "navigating":
+                        self.supervisor.state = "cancelled"
+                        self.supervisor.reason = f"move_base did not listen within {HOLD_GOALS_S:g} s"
+                    say(f"goals held for move_base dropped after {HOLD_GOALS_S:g} s", warn=True)
+                    return
                 if not self._told_unconnected:
                     say(
                         f"move_base is not listening on {publisher.resolved_name}: holding goals until it is",
@@ -356,6 +372,7 @@ class ZoneBridgeNode:
             publisher.publish(msg)
             self._outbox.pop(0)
         self._told_unconnected = False
+        self._held_since = None
 
     def _publish_status(self) -> None:
         import rospy

@@ -115,3 +115,52 @@ def test_without_its_broker_the_bridge_serves_the_grid_says_so_and_picks_the_bro
         assert bridge.proc.poll() is None
     finally:
         bridge.stop()
+
+
+@pytest.mark.slow
+def test_a_goal_held_for_a_move_base_that_never_listens_is_dropped_and_the_robot_says_so(
+    ros_node: RosMaster,
+) -> None:
+    """Goals wait for move_base to listen (rospy drops what nobody hears), but not for ever: sent minutes later,
+    one would start a drive nobody awaits any more."""
+    import json
+
+    from wsnav.runtime.mqtt_bus import connect_with_credentials
+    from wsnav.schemas import topics
+    from wsnav.schemas.messages import RobotStatus
+
+    import rospy
+    import tf2_ros
+    from geometry_msgs.msg import TransformStamped
+
+    tf = TransformStamped()  # where the robot is: the bridge's status needs a pose
+    tf.header.stamp = rospy.Time.now()
+    tf.header.frame_id, tf.child_frame_id = "map", "base_footprint"
+    tf.transform.translation.x, tf.transform.translation.y = 12.0, 7.2
+    tf.transform.rotation.w = 1.0
+    broadcaster = tf2_ros.StaticTransformBroadcaster()
+    broadcaster.sendTransform(tf)
+    with BrokerThread(SCHOOL) as broker:
+        op = connect_with_credentials(broker.host, broker.port, broker.credentials("operator"))
+        op.subscribe(topics.robot_status("school", "robot1"))
+        bridge = WsnavChild(
+            ["ros", "bridge", *bridge_args(SCHOOL, broker, "--robot", "robot1", "--move-base", "/nobody")],
+            ros_node.env(),
+        )
+        try:
+            bridge.wait_for("supervising /nobody for robot1", 30)
+            op.publish(topics.robot_goal("school", "robot1"), json.dumps({"goal": "B"}).encode(), qos=1)
+            bridge.wait_for("holding goals until it is", 30)
+            bridge.wait_for("goals held for move_base dropped after 30 s", 60)
+            seen: list[RobotStatus] = []
+
+            def cancelled() -> bool:
+                seen.extend(RobotStatus.model_validate_json(m.payload) for m in op.poll() if m.payload)
+                return any(s.state == "cancelled" for s in seen)
+
+            wait_until(cancelled, 10, "the robot's status to say the goal is cancelled")
+            status = next(s for s in seen if s.state == "cancelled")
+            assert status.reason == "move_base did not listen within 30 s", status
+        finally:
+            bridge.stop()
+            op.close()
