@@ -264,10 +264,35 @@ class ZoneBridgeNode:
     def _on_ros_goal(self, msg: Any) -> None:
         p = msg.goal.target_pose.pose
         yaw = 2 * math.atan2(p.orientation.z, p.orientation.w)
-        pose = (p.position.x, p.position.y, yaw)
+        pose = self._in_map_frame(msg.goal.target_pose.header.frame_id, (p.position.x, p.position.y, yaw))
         assert self.supervisor is not None
         with self._lock:
             self._act(self.supervisor.on_goal(Goal(msg.goal_id.id, pose, pose)))
+
+    def _in_map_frame(self, frame: str, pose: tuple[float, float, float]) -> tuple[float, float, float]:
+        """A goal's pose in the site map's frame (`--frame`): move_base transforms a goal given in another frame
+        (`odom`, a robot's frame), so the zone check must too. Without the transform, the pose is taken as is,
+        with a warning."""
+        frame = frame.lstrip("/")
+        if not frame or frame == self.options.frame_id.lstrip("/"):
+            return pose
+        import rospy
+
+        try:
+            t = self.tf_buffer.lookup_transform(
+                self.options.frame_id, frame, rospy.Time(0), rospy.Duration(1.0)
+            )
+        except Exception as exc:  # tf2's lookup, connectivity and extrapolation errors
+            say(
+                f"goal in frame {frame!r}: no transform to {self.options.frame_id!r} ({exc}); taken as is",
+                warn=True,
+            )
+            return pose
+        tr, q = t.transform.translation, t.transform.rotation
+        turn = 2 * math.atan2(q.z, q.w)
+        x, y, yaw = pose
+        c, s = math.cos(turn), math.sin(turn)
+        return (tr.x + c * x - s * y, tr.y + s * x + c * y, yaw + turn)
 
     def _on_ros_status(self, msg: Any) -> None:
         assert self.supervisor is not None

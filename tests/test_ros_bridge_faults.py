@@ -125,13 +125,13 @@ def test_a_goal_held_for_a_move_base_that_never_listens_is_dropped_and_the_robot
     one would start a drive nobody awaits any more."""
     import json
 
-    from wsnav.runtime.mqtt_bus import connect_with_credentials
-    from wsnav.schemas import topics
-    from wsnav.schemas.messages import RobotStatus
-
     import rospy
     import tf2_ros
     from geometry_msgs.msg import TransformStamped
+
+    from wsnav.runtime.mqtt_bus import connect_with_credentials
+    from wsnav.schemas import topics
+    from wsnav.schemas.messages import RobotStatus
 
     tf = TransformStamped()  # where the robot is: the bridge's status needs a pose
     tf.header.stamp = rospy.Time.now()

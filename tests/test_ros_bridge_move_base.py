@@ -341,3 +341,38 @@ def test_an_rviz_goal_in_a_blocked_zone_is_cancelled_by_its_own_id_and_no_other(
     status = operator.wait_status("cancelled", lambda s: s.state == "cancelled")
     assert status.reason is not None and "lies in blocked zone z5" in status.reason, status
     assert any(f"cancel goal {goal_id}:" in line for line in bridge.lines), bridge.lines
+
+
+@pytest.mark.slow
+def test_a_goal_given_in_another_frame_is_checked_where_it_lies_on_the_map(
+    rig: tuple[WsnavChild, Operator, dict[str, MqttBus]], move_base: FakeMoveBase, ros_node: RosMaster
+) -> None:
+    """move_base transforms a goal stamped in `odom` into its global frame; the bridge took the numbers as map
+    coordinates, so a goal in a blocked zone was not cancelled (and one beside it would have been)."""
+    import rospy
+    from geometry_msgs.msg import TransformStamped
+
+    _bridge, operator, nodes = rig
+    transforms = []
+    for child, (x, y) in (("base_footprint", PLAN[0]), ("odom", (10.0, 0.0))):
+        tf = TransformStamped()
+        tf.header.stamp = rospy.Time.now()
+        tf.header.frame_id, tf.child_frame_id = "map", child
+        tf.transform.translation.x, tf.transform.translation.y = x, y
+        tf.transform.rotation.w = 1.0
+        transforms.append(tf)
+    move_base.tf_broadcaster.sendTransform(transforms)  # type: ignore[attr-defined]
+    zone_state(nodes["n7"], "z5", "n7", "blocked", 500)
+    operator.wait_status("z5 blocked", lambda s: "z5" in s.blocked_zones)
+    before = len(move_base.goals)
+    pose = "{header: {frame_id: odom}, pose: {position: {x: 17.8, y: 7.2}, orientation: {w: 1.0}}}"
+    subprocess.run(
+        ["rostopic", "pub", "-1", "/move_base_simple/goal", "geometry_msgs/PoseStamped", pose],
+        env=ros_node.env(), check=True, capture_output=True, timeout=60,
+    )  # fmt: skip
+    wait_until(lambda: len(move_base.goals) > before, 15, "the goal in odom at move_base")
+    goal_id = move_base.goals[-1][0]
+    wait_until(lambda: goal_id in move_base.preempted, 10, "the goal (27.8, 7.2 on the map, in z5) cancelled")
+    status = operator.wait_status("cancelled", lambda s: s.state == "cancelled")
+    assert status.reason is not None and "lies in blocked zone z5" in status.reason, status
+    assert status.goal is not None and abs(status.goal[0] - 27.8) < 1e-6  # type: ignore[index]
