@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from wsnav.ros_bridge.move_base_supervisor import Action, Cancel, Goal, MoveBaseSupervisor, Resend
 from wsnav.ros_bridge.ros_env import master_alive, master_uri, require_rospy, wait_for_master
@@ -34,6 +35,7 @@ from wsnav.schemas import topics
 from wsnav.schemas.credentials import Credentials
 from wsnav.schemas.messages import PayloadError, RobotGoal, parse_payload
 from wsnav.schemas.site import Site, SiteError, load_site
+from wsnav.zones.cost_values import LETHAL_OBSTACLE
 from wsnav.zones.geometry import Bounds, GridFrame
 
 log = logging.getLogger(__name__)
@@ -55,6 +57,7 @@ class BridgeOptions:
     move_base: str
     plan_topic: str
     base_frame: str
+    master_costmap: str = "/move_base/global_costmap/costmap"
 
 
 def bridge_command(args: argparse.Namespace) -> int:
@@ -83,6 +86,7 @@ def bridge_command(args: argparse.Namespace) -> int:
         move_base=args.move_base.rstrip("/"),
         plan_topic=args.plan_topic,
         base_frame=args.base_frame,
+        master_costmap=args.master_costmap,
     )
     uri = master_uri()
     wait_for_master(uri)
@@ -125,6 +129,8 @@ class ZoneBridgeNode:
         self._mqtt_goals = 0
         self._outbox: list[tuple[Any, Any]] = []
         """(publisher, message) of goals and cancels not yet sent: see _flush_outbox."""
+        self._master_frame: GridFrame | None = None
+        """move_base's global costmap's cells (from its `costmap` topic), to read its updates."""
         self._held_since: float | None = None
         """Since when the outbox has waited for move_base (monotonic seconds)."""
         self._told_unconnected = False
@@ -181,7 +187,9 @@ class ZoneBridgeNode:
                     for m in messages:
                         if m.topic == goal_topic:
                             self._mqtt_goal(m.payload)
-                    self._act(self.supervisor.on_zones_changed(changes))
+                    waits = self._master_updates.get_num_connections() > 0
+                    self._act(self.supervisor.on_zones_changed(changes, now, wait_for_master=waits))
+                    self._act(self.supervisor.tick(now))
                     self._flush_outbox()
             if self.supervisor is not None and (now >= next_status or changes):
                 self._publish_status()
@@ -248,8 +256,9 @@ class ZoneBridgeNode:
     def _wire_move_base(self, rospy: Any) -> None:
         import tf2_ros
         from actionlib_msgs.msg import GoalID, GoalStatusArray
+        from map_msgs.msg import OccupancyGridUpdate
         from move_base_msgs.msg import MoveBaseActionGoal
-        from nav_msgs.msg import Path
+        from nav_msgs.msg import OccupancyGrid, Path
 
         mb = self.options.move_base
         self._goal_type, self._goal_id_type = MoveBaseActionGoal, GoalID
@@ -258,6 +267,11 @@ class ZoneBridgeNode:
         rospy.Subscriber(f"{mb}/goal", MoveBaseActionGoal, self._on_ros_goal, queue_size=10)
         rospy.Subscriber(f"{mb}/status", GoalStatusArray, self._on_ros_status, queue_size=10)
         rospy.Subscriber(self.options.plan_topic, Path, self._on_ros_plan, queue_size=2)
+        master = self.options.master_costmap
+        rospy.Subscriber(master, OccupancyGrid, self._on_master_costmap, queue_size=1)
+        self._master_updates = rospy.Subscriber(
+            f"{master}_updates", OccupancyGridUpdate, self._on_master_update, queue_size=20
+        )
         self.tf_buffer = tf2_ros.Buffer()
         self._tf_listener = tf2_ros.TransformListener(self.tf_buffer)
 
@@ -293,6 +307,23 @@ class ZoneBridgeNode:
         x, y, yaw = pose
         c, s = math.cos(turn), math.sin(turn)
         return (tr.x + c * x - s * y, tr.y + s * x + c * y, yaw + turn)
+
+    def _on_master_costmap(self, msg: Any) -> None:
+        info = msg.info
+        with self._lock:
+            self._master_frame = GridFrame(
+                info.width, info.height, info.resolution, info.origin.position.x, info.origin.position.y
+            )
+
+    def _on_master_update(self, msg: Any) -> None:
+        """An update of move_base's master costmap: if it shows the changes a replan waits for, re-send now."""
+        assert self.supervisor is not None
+        with self._lock:
+            waiting, master = self.supervisor.waiting, self._master_frame
+            if waiting is None or master is None:
+                return
+            if master_shows(master, self.frame, waiting.window, self.feed.costs, msg):
+                self._act(self.supervisor.master_caught_up())
 
     def _on_ros_status(self, msg: Any) -> None:
         assert self.supervisor is not None
@@ -467,6 +498,46 @@ def current_grid_message(node: ZoneBridgeNode) -> Any:
             super().serialize(buff)
 
     return CurrentGrid()
+
+
+MASTER_LETHAL = 99
+"""costmap_2d publishes its costs translated: 100 lethal, 99 inscribed (the robot's centre there collides)."""
+
+
+def master_shows(
+    master: GridFrame, zones: GridFrame, window: Bounds, costs: NDArray[np.uint8], update: Any
+) -> bool:
+    """Whether an update of move_base's master costmap covers the zone-grid `window`, and (when both grids share
+    their cells) shows every cell the zone layer holds lethal there as lethal or inscribed: then a plan made now
+    is made over the change."""
+    # by cell centres: a cell's edge may round to either side in the other grid (float32 resolution)
+    row0, col0 = master.world_to_cell(*zones.cell_to_world(window.row0, window.col0))
+    row1, col1 = master.world_to_cell(*zones.cell_to_world(window.row1 - 1, window.col1 - 1))
+    if not (
+        update.x <= col0
+        and col1 < update.x + update.width
+        and update.y <= row0
+        and row1 < update.y + update.height
+    ):
+        return False
+    if not same_cells(master, zones):
+        return True  # other cells: covering the change is all that can be told
+    data = np.asarray(update.data, dtype=np.int16).reshape(update.height, update.width)
+    shown = data[
+        window.row0 - update.y : window.row1 - update.y, window.col0 - update.x : window.col1 - update.x
+    ]
+    lethal = costs[window.rows, window.cols] == LETHAL_OBSTACLE
+    return bool(np.all(shown[lethal] >= MASTER_LETHAL))
+
+
+def same_cells(a: GridFrame, b: GridFrame) -> bool:
+    """The same grid of cells (the resolution as the float32 a ROS message carries it)."""
+    return (
+        (a.width, a.height) == (b.width, b.height)
+        and np.float32(a.resolution) == np.float32(b.resolution)
+        and abs(a.origin_x - b.origin_x) < 1e-6
+        and abs(a.origin_y - b.origin_y) < 1e-6
+    )
 
 
 def map_mismatch(frame: GridFrame, info: Any) -> str | None:

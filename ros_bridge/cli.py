@@ -48,6 +48,11 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         "--plan-topic", default="/move_base/NavfnROS/plan", help="the global planner's nav_msgs/Path"
     )
     bridge.add_argument("--base-frame", default="base_footprint", help="the robot's frame for its pose")
+    bridge.add_argument(
+        "--master-costmap",
+        default="/move_base/global_costmap/costmap",
+        help="move_base's global costmap (and its _updates): a replan waits until it shows the zone change",
+    )
     bridge.add_argument("--connect-timeout", type=float, default=10.0, metavar="S", help="MQTT, default 10")
     bridge.set_defaults(func=bridge_command)
 

@@ -73,3 +73,18 @@ def test_a_goal_move_base_stops_listing_while_active_is_lost_and_never_re_sent()
     sup.on_statuses([])
     assert (sup.state, sup.reason) == ("cancelled", "move_base lost the goal (restarted?)")
     assert sup.on_zones_changed(block(feed, "z1", "n1", 2.0)) == []
+
+
+def test_a_replan_waits_for_the_master_costmap_and_goes_out_anyway_after_a_second() -> None:
+    sup, feed = supervisor()
+    sup.on_goal(Goal("g1", (29.0, 22.8, 0.0), "B"))
+    sup.on_statuses([("g1", ACTIVE)])
+    sup.on_plan(PLAN)
+    assert sup.on_zones_changed(block(feed, "z1", "n1", 1.0), 1.0, wait_for_master=True) == []
+    assert sup.waiting is not None and sup.tick(1.5) == []
+    [resend] = sup.master_caught_up()
+    assert isinstance(resend, Resend) and resend.reason == "a zone on the plan changed"
+    assert sup.on_zones_changed(block(feed, "z1", "n1", 3.0, "clear"), 3.0, wait_for_master=True) == []
+    [late] = sup.tick(4.0)
+    assert isinstance(late, Resend) and "did not show it within 1 s" in late.reason
+    assert sup.replans == 2 and sup.waiting is None
