@@ -208,6 +208,9 @@ def test_an_operator_block_detours_the_robot_and_its_removal_brings_it_back(tmp_
             accepted = intake.accepted
             rig.operator.publish(topic, payload, qos=1, retain=True)
             rig.settle(lambda a=accepted: intake.accepted > a, f"the operator block ({length})")
+            # zone replans come at most every 0.5 s: the second change may wait for the interval's end
+            until = rig.clock.now() + 0.6
+            rig.drive(lambda: rig.clock.now() >= until)  # noqa: B023  (called before `until` changes)
             plan = rig.agent.navigator.plan_length_m
             assert plan is not None
             assert (plan > 45.0) if length == "detour" else (plan < 35.0)
