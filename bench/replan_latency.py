@@ -104,7 +104,9 @@ def measure(host: str, port: int, creds_dir: Path, downsample: int, changes: int
                 if agent.navigator.plans > plans and last_plan is not None:
                     plan.append(last_plan.plan_ms)
                 replanned += reaction.replanned
-            time.sleep(0.05)  # let the robot drive a little between changes
+            # let the robot drive between changes, and past the agent's zone replan interval: a change within it
+            # is planned for at the interval's end (a flapping node's cap), not at once
+            time.sleep(max(0.05, config.zone_replan_interval_s))
     finally:
         stop.set()
         loop.join(5.0)
@@ -148,7 +150,8 @@ def main(argv: list[str] | None = None) -> int:
 ./.venv/bin/python -m bench.replan_latency
 ```
 
-Node n5 publishes z4 (on the robot's route A -> B) alternately `blocked` and `clear`, one change at a time
+Node n5 publishes z4 (on the robot's route A -> B) alternately `blocked` and `clear`, one change at a time, each
+after the agent's zone replan interval (0.5 s: changes within it are planned for at its end)
 ({args.changes} changes after {WARMUP} warm-up, QoS 1), through `wsnav broker run` as its own process; the
 agent runs in real time (`RobotAgent.run`, the simulated TurtleBot3 stepped in the same loop, as `wsnav robot
 --sim` runs it). Timed from just before `publish()` to the navigator holding its new plan; "delivery" is the

@@ -84,7 +84,14 @@ class MoveBaseSupervisor:
     """Goal ids this supervisor sent (MQTT goals, re-sends): already current when move_base echoes them."""
     _sent: int = 0
     _listed: set[str] = field(default_factory=set)
-    """The goal ids of move_base's last status message: a goal id not among them is a new goal."""
+    """The goal ids of move_base's last status message."""
+    _statuses: int = 0
+    _first_listed: dict[str, int] = field(default_factory=dict)
+    """Goal id -> the status message (count) that first listed it, for the ids still listed."""
+    _active: set[str] = field(default_factory=set)
+    """Goal ids move_base lists as pending or active now."""
+    _followed: set[str] = field(default_factory=set)
+    """Ids of goals followed before the current one: never the id of a new RViz goal."""
     _cancel_waiting: str | None = None
     """A cancel for the current goal that waits for move_base to name it (an RViz goal has no id yet)."""
     waiting: WaitingReplan | None = None
@@ -116,20 +123,13 @@ class MoveBaseSupervisor:
 
     def on_statuses(self, statuses: list[tuple[str, int]]) -> list[Action]:
         """One move_base/status message, (goal id, code) each. A goal followed without an id (RViz's) takes the
-        id of a goal that is new in this message; a cancel that waited for it goes out then."""
-        actions: list[Action] = []
-        if self.goal is not None and not self.goal.goal_id:
-            new = [
-                g
-                for g, code in statuses
-                if g not in self._listed and g not in self._ours and code in (PENDING, ACTIVE)
-            ]
-            if new:
-                self.goal = replace(self.goal, goal_id=new[-1])
-                if self._cancel_waiting is not None:
-                    actions.append(Cancel(new[-1], self._cancel_waiting))
-                    self._cancel_waiting = None
+        id of a goal newly listed as pending or active; a cancel that waited for it goes out then."""
+        self._statuses += 1
         self._listed = {g for g, _ in statuses}
+        self._first_listed = {g: self._first_listed.get(g, self._statuses) for g in self._listed}
+        self._active = {g for g, code in statuses if code in (PENDING, ACTIVE)}
+        self._followed &= self._listed
+        actions = self._name_rviz_goal()
         if self.goal is not None and self.goal.goal_id:
             if self.goal.goal_id in self._listed:
                 self._listed_current = True
@@ -244,7 +244,31 @@ class MoveBaseSupervisor:
 
     # -- internals -----------------------------------------------------------------------------------------
 
+    def _name_rviz_goal(self) -> list[Action]:
+        """Give the current goal without an id (RViz's) the id of the goal move_base listed most recently as
+        pending or active, within its last few status messages (the goal and its first status come on different
+        connections, in either order), and send the cancel that waited for it."""
+        if self.goal is None or self.goal.goal_id:
+            return []
+        recent = [
+            (first, g)
+            for g, first in self._first_listed.items()
+            if first >= self._statuses - 2
+            and g in self._active
+            and g not in self._ours
+            and g not in self._followed
+        ]
+        if not recent:
+            return []
+        self.goal = replace(self.goal, goal_id=max(recent)[1])
+        if self._cancel_waiting is None:
+            return []
+        reason, self._cancel_waiting = self._cancel_waiting, None
+        return [Cancel(self.goal.goal_id, reason)]
+
     def _follow(self, goal: Goal) -> list[Action]:
+        if self.goal is not None and self.goal.goal_id:
+            self._followed.add(self.goal.goal_id)
         self._plan_cells = np.zeros((0, 2), dtype=np.int64)
         self.plan_length_m = None
         self.goal = goal
@@ -253,7 +277,7 @@ class MoveBaseSupervisor:
         self._listed_current = False
         self._cancel_waiting = None
         self.state, self.reason = "navigating", None
-        return self._cancel_if_blocked()
+        return self._cancel_if_blocked() + self._name_rviz_goal()
 
     def _cancel_current(self, reason: str) -> list[Action]:
         """Cancel the current goal by its id; one without an id yet (RViz's) is cancelled once move_base names

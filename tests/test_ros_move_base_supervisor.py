@@ -88,3 +88,18 @@ def test_a_replan_waits_for_the_master_costmap_and_goes_out_anyway_after_a_secon
     [late] = sup.tick(4.0)
     assert isinstance(late, Resend) and "did not show it within 1 s" in late.reason
     assert sup.replans == 2 and sup.waiting is None
+
+
+def test_an_rviz_goal_is_named_even_when_its_first_status_comes_before_the_goal() -> None:
+    """The goal (move_base/goal) and its status (move_base/status) come on different connections: CI saw the
+    status first, and the goal was never named, so its cancel never went out."""
+    sup, feed = supervisor()
+    sup.on_goal(Goal("g1", (14.0, 7.2, 0.0), (14.0, 7.2, 0.0)))
+    sup.on_statuses([("g1", ACTIVE)])
+    block(feed, "z5", "n7", 1.0)
+    sup.on_statuses([("g1", PREEMPTED), ("/move_base-9-5.0", ACTIVE)])
+    assert sup.on_goal(Goal("", (27.8, 7.2, 0.0), (27.8, 7.2, 0.0))) == [
+        Cancel("/move_base-9-5.0", "goal [27.80, 7.20] lies in blocked zone z5")
+    ]
+    sup.on_statuses([("g1", PREEMPTED), ("/move_base-9-5.0", ACTIVE)])
+    assert sup.goal is not None and sup.goal.goal_id == "/move_base-9-5.0"
