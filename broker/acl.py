@@ -2,8 +2,8 @@
 
 - a node publishes only `zones/<its zone>/state/<itself>`, `nodes/<itself>/status` and `nodes/<itself>/info`
   (its diagnostics), and may read back the first two (e.g. to resume its `seq` after a reboot);
-- a robot reads zones, nodes, operator topics, other robots' status and the simulated world, and publishes only
-  under `robots/<itself>/`;
+- a robot reads zones, nodes, operator topics, robots' statuses, its goal and the simulated world, and publishes
+  only its status (one topic: it can hold one retained message, never fill the store);
 - the operator publishes `operator/...`, robot goals, robot statuses (to clear a retained one) and the simulated world (`sim/...`, used by the zone
   simulator), and reads everything of the site; it also publishes and reads Home Assistant's discovery configs
   (`homeassistant/#`, `wsnav broker ha-discovery`).
@@ -52,12 +52,12 @@ def site_rules(spec: SiteFile) -> AclRules:
         publish[node.id] = [*own, topics.node_info(site, node.id)]
         subscribe[node.id] = own
     for robot in spec.robots:
-        publish[robot.id] = [f"{root}/robots/{robot.id}/#"]
+        publish[robot.id] = [topics.robot_status(site, robot.id)]
         subscribe[robot.id] = [
             f"{root}/zones/#",
             f"{root}/nodes/#",
             f"{root}/operator/#",
-            f"{root}/robots/{robot.id}/#",
+            topics.robot_goal(site, robot.id),
             topics.all_robot_statuses(site),
             f"{root}/sim/#",
         ]

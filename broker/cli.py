@@ -4,10 +4,17 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import math
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from wsnav.broker.identity_limits import (
+    MAX_SUBSCRIPTIONS,
+    NODE_PUBLISH_RATE,
+    SESSION_EXPIRY_S,
+    IdentityLimits,
+)
 from wsnav.runtime.cli_support import CliError, host_port
 
 if TYPE_CHECKING:
@@ -72,6 +79,25 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         type=float,
         default=10.0,
         help="seconds between freezing long-lived objects out of garbage collections (0: never)",
+    )
+    run.add_argument(
+        "--max-subscriptions",
+        type=int,
+        default=MAX_SUBSCRIPTIONS,
+        help="topic filters one session may hold; more are refused",
+    )
+    run.add_argument(
+        "--node-publish-rate",
+        type=float,
+        default=NODE_PUBLISH_RATE,
+        help="messages per second a node may publish (bursts of 100); over it QoS 0 is dropped and QoS 1 "
+        "ends the connection; 0 = no limit",
+    )
+    run.add_argument(
+        "--session-expiry",
+        type=float,
+        default=SESSION_EXPIRY_S,
+        help="seconds a disconnected persistent session is kept",
     )
     run.set_defaults(func=run_command)
 
@@ -158,6 +184,17 @@ def run_command(args: argparse.Namespace) -> int:
         raise CliError("--max-connections must be >= 0")
     if not 0 <= args.gc_freeze <= 3600:
         raise CliError("--gc-freeze must be >= 0 and <= 3600 seconds")
+    if not 1 <= args.max_subscriptions <= 100_000:
+        raise CliError("--max-subscriptions must be between 1 and 100000")
+    if not 0 <= args.node_publish_rate <= 100_000:
+        raise CliError("--node-publish-rate must be >= 0 and <= 100000 per second")
+    if not 1 <= args.session_expiry <= 365 * 86400:
+        raise CliError("--session-expiry must be between 1 second and a year")
+    limits = IdentityLimits(
+        max_subscriptions=args.max_subscriptions,
+        session_expiry_s=math.ceil(args.session_expiry),
+        node_publish_rate=args.node_publish_rate or None,
+    )
     options = BrokerOptions(
         bind=args.bind,
         data_dir=args.data,
@@ -169,6 +206,7 @@ def run_command(args: argparse.Namespace) -> int:
         connect_timeout_s=args.connect_timeout,
         max_packet_bytes=args.max_packet_bytes,
         gc_freeze_s=args.gc_freeze,
+        limits=limits,
     )
 
     def ready(running: RunningBroker) -> None:

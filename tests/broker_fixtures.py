@@ -102,9 +102,10 @@ class Client:
         except queue.Empty:
             raise TimeoutError("no CONNACK") from None
 
-    def subscribe(self, topic: str, qos: int = 1) -> list[int]:
-        """Subscribe and wait for SUBACK; returns the granted QoS codes (128 = refused)."""
-        result, mid = self.mqtt.subscribe(topic, qos)
+    def subscribe(self, topic: str | list[str], qos: int = 1) -> list[int]:
+        """Subscribe (several filters go in one SUBSCRIBE) and wait for SUBACK; returns the granted QoS codes
+        (128 = refused)."""
+        result, mid = self.mqtt.subscribe(topic if isinstance(topic, str) else [(t, qos) for t in topic], qos)
         assert result == mqtt.MQTT_ERR_SUCCESS and mid is not None
         event = self._subacks.setdefault(mid, threading.Event())
         assert event.wait(TIMEOUT), f"no SUBACK for {topic}"

@@ -8,13 +8,14 @@ behind idle ones.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from wsnav.broker.acl import site_rules
 from wsnav.broker.amqtt.packet_gate import MAX_PACKET_BYTES
 from wsnav.broker.credentials import PASSWORD_FILE, site_ids
+from wsnav.broker.identity_limits import IdentityLimits
 from wsnav.schemas.site_file import SiteFile
 
 
@@ -46,6 +47,8 @@ class BrokerOptions:
     gc_freeze_s: float = 0.0
     """How often long-lived objects are frozen out of garbage collections (wsnav.broker.amqtt.gc_pacing); 0: never. The
     collector is the whole process's: `wsnav broker run` turns it on, a broker embedded in another program not."""
+    limits: IdentityLimits = field(default_factory=IdentityLimits)
+    """Subscriptions, parked sessions and a node's publish rate per identity (wsnav.broker.identity_limits)."""
 
 
 def bind_text(host: str, port: int) -> str:
@@ -88,4 +91,8 @@ def amqtt_config(spec: SiteFile, credentials_dir: Path, options: BrokerOptions) 
             "flush_interval_s": options.flush_interval_s,
             "synchronous": options.synchronous,
         }
-    return {"listeners": listeners, "plugins": plugins}
+    return {
+        "listeners": listeners,
+        "plugins": plugins,
+        "session_expiry_interval": options.limits.session_expiry_s,
+    }

@@ -33,11 +33,15 @@ from typing import IO
 from wsnav.broker.amqtt.config import BrokerOptions
 from wsnav.broker.amqtt.server import RunningBroker, serve, start_broker
 from wsnav.broker.credentials import write_credentials
+from wsnav.broker.identity_limits import IdentityLimits
 from wsnav.schemas.credentials import Credentials, load_credentials
 from wsnav.schemas.site import Site, load_site
 from wsnav.schemas.site_file import SiteFile
 
 SiteLike = Site | SiteFile | Path | str
+
+SIMULATION_LIMITS = IdentityLimits(node_publish_rate=None)
+"""Simulated nodes run as fast as the experiment's clock goes, far above a real node's rate."""
 
 
 @dataclass
@@ -88,7 +92,9 @@ async def embedded_broker(
     spec = _spec(site)
     temporaries: list[tempfile.TemporaryDirectory[str]] = []
     creds = _credentials(spec, credentials_dir, temporaries)
-    options = BrokerOptions(bind=(host, port), data_dir=data_dir, flush_interval_s=flush_interval_s)
+    options = BrokerOptions(
+        bind=(host, port), data_dir=data_dir, flush_interval_s=flush_interval_s, limits=SIMULATION_LIMITS
+    )
     running = await start_broker(spec, creds, options)
     try:
         yield _info(running, creds, spec)
@@ -124,7 +130,7 @@ class BrokerThread:
         self._temporaries: list[tempfile.TemporaryDirectory[str]] = []
         self._creds = _credentials(self._spec, credentials_dir, self._temporaries)
         self._options = options or BrokerOptions(
-            bind=(host, port), data_dir=data_dir, flush_interval_s=flush_interval_s
+            bind=(host, port), data_dir=data_dir, flush_interval_s=flush_interval_s, limits=SIMULATION_LIMITS
         )
         self._timeout = start_timeout_s
         self._ready = threading.Event()

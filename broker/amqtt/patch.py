@@ -12,6 +12,8 @@ is pinned to amqtt==0.12.1 (pyproject.toml) and to a test; docs/broker-amqtt.md 
 | `WsnavBroker._publish_retained_messages_for_subscription` | a new client gets retained messages matching *other* clients' filters; retained QoS 0 delivered at the subscriber's QoS | tests/test_broker_security.py, tests/test_broker_embedded.py |
 | `WsnavBroker._client_message_loop` | QoS 1 messages acknowledged (PUBACK sent when queued) but still queued when the client disconnects are dropped without a word | tests/test_broker_delivery.py |
 | `WsnavProtocolHandler._handle_qos1_message_flow` | PUBACK waiter registered after PUBLISH is sent: a fast PUBACK is lost and the send hangs 5 s | tests/test_broker_embedded.py |
+| `WsnavBroker.add_subscription`, `_del_subscription` | no limit on the filters one session holds (100,000 from one robot: node -> robot latency 7 s) | tests/test_broker_limits.py |
+| `WsnavBroker._initialize_client_session` (again) | persistent sessions of one identity never expire and have no cap (2,000 parked by one node) | tests/test_broker_limits.py |
 | `handle_read_timeout` on each handler | keepalive never enforced: a silent client is never dropped and its will never fires | tests/test_broker_embedded.py |
 """
 
@@ -21,6 +23,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import time
 from collections.abc import Callable
 from functools import partial
 from typing import Any
@@ -44,6 +47,7 @@ from websockets.asyncio.server import ServerConnection
 
 from wsnav.broker.amqtt.admission import Admission, Ticket
 from wsnav.broker.amqtt.packet_gate import MAX_PACKET_BYTES, GateReader
+from wsnav.broker.identity_limits import IdentityLimits, PublishBudget
 
 log = logging.getLogger("wsnav.broker")
 
@@ -130,11 +134,22 @@ class WsnavBroker(Broker):
         *,
         max_packet_bytes: int = MAX_PACKET_BYTES,
         connect_timeout_s: float = 5.0,
+        limits: IdentityLimits | None = None,
+        nodes: frozenset[str] = frozenset(),
     ) -> None:
         super().__init__(config)
         self.admission = admission
         self.max_packet_bytes = max_packet_bytes
         self.connect_timeout_s = connect_timeout_s
+        self.limits = limits or IdentityLimits()
+        rate = self.limits.node_publish_rate
+        self.publish_budget = (
+            None if rate is None else PublishBudget(rate, self.limits.node_publish_burst, nodes)
+        )
+        self._subscription_count: dict[str | None, int] = {}
+        self.refused_subscriptions = 0
+        self.dropped_sessions = 0
+        self._last_limit_report = 0.0
 
     async def stream_connected(
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, listener_name: str
@@ -167,6 +182,9 @@ class WsnavBroker(Broker):
             reader, reject, max_bytes=self.max_packet_bytes, connect_timeout_s=self.connect_timeout_s
         )
         setattr(gate, "ticket", ticket)  # noqa: B010  (read back in _initialize_client_session)
+        budget = self.publish_budget
+        if budget is not None:
+            gate.publish_allowed = lambda: budget.allow(ticket.identity)
         try:
             await self._client_connected(listener_name, gate, writer)
         finally:
@@ -208,7 +226,9 @@ class WsnavBroker(Broker):
         session.client_id = session_key(username, session.client_id)
         if session.clean_session:
             await self._delete_session(session.client_id)
-        elif session.client_id in self._sessions:
+        elif session.client_id not in self._sessions:
+            await self._make_room_for_session(username)
+        else:
             existing, _ = self._sessions[session.client_id]
             for name in ("will_flag", "will_message", "will_topic", "will_qos", "will_retain", "keep_alive"):
                 setattr(existing, name, getattr(session, name))
@@ -221,6 +241,59 @@ class WsnavBroker(Broker):
             setattr(handler, "handle_read_timeout", partial(_drop_silent_client, handler))  # noqa: B010
         setattr(session, _PREAUTHORIZED, True)
         return handler, session
+
+    async def _make_room_for_session(self, username: str) -> None:
+        """A new persistent session of `username`: drop its longest-parked ones beyond `max_sessions`.
+
+        amqtt keeps persistent sessions (and their queued messages) forever; one node credential parked 2,000 of
+        them under distinct client ids. Connected sessions are never dropped (admission caps those)."""
+        own = [
+            (s.last_disconnect_time or 0.0, key)
+            for key, (s, _) in self._sessions.items()
+            if s.username == username and not s.clean_session and s.transitions.state == "disconnected"
+        ]
+        excess = len(own) + 1 - self.limits.max_sessions
+        for _, key in sorted(own)[: max(excess, 0)]:
+            await self._delete_session(key)
+            self.dropped_sessions += 1
+            self._report_limits(f"{username!r} parked over {self.limits.max_sessions} sessions")
+
+    async def add_subscription(self, subscription: tuple[str, int], session: Session) -> int:
+        """amqtt's, refused (0x80) once the session holds `max_subscriptions` filters."""
+        topic_filter, _ = subscription
+        held = self._subscription_count.get(session.client_id, 0)
+        already = any(s.client_id == session.client_id for s, _ in self._subscriptions.get(topic_filter, []))
+        if not already and held >= self.limits.max_subscriptions:
+            self.refused_subscriptions += 1
+            self._report_limits(
+                f"{session.username!r} asked for over {self.limits.max_subscriptions} subscriptions"
+            )
+            return 0x80
+        granted = await super().add_subscription(subscription, session)
+        if granted != 0x80 and not already:
+            self._subscription_count[session.client_id] = held + 1
+        return granted
+
+    def _del_subscription(self, a_filter: str, session: Session) -> int:
+        deleted = super()._del_subscription(a_filter, session)
+        if deleted:
+            left = self._subscription_count.get(session.client_id, 0) - deleted
+            if left > 0:
+                self._subscription_count[session.client_id] = left
+            else:
+                self._subscription_count.pop(session.client_id, None)
+        return deleted
+
+    def _report_limits(self, what: str) -> None:
+        """One warning per 10 s at most: an identity hammering a limit must not fill the log."""
+        now = time.monotonic()
+        if now - self._last_limit_report < 10.0:
+            return
+        self._last_limit_report = now
+        log.warning(
+            f"identity limit: {what} (refused {self.refused_subscriptions} subscription(s), dropped "
+            f"{self.dropped_sessions} parked session(s) so far)"
+        )
 
     async def _client_message_loop(self, client_session: Session, handler: BrokerProtocolHandler) -> None:
         """amqtt's loop, then every message the client published and was acknowledged but not yet handled.

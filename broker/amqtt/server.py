@@ -89,6 +89,8 @@ async def start_broker(spec: SiteFile, credentials_dir: Path, options: BrokerOpt
             Admission(capacity),
             max_packet_bytes=options.max_packet_bytes,
             connect_timeout_s=options.connect_timeout_s,
+            limits=options.limits,
+            nodes=frozenset(node.id for node in spec.nodes),
         )
     except (AMQTTError, PluginError, PluginLoadError, OSError, ValueError) as exc:
         raise BrokerStartError(f"cannot configure the broker: {_root_cause(exc)}") from None

@@ -22,6 +22,7 @@ from pathlib import Path
 from wsnav.broker.acl import AclRules, site_rules
 from wsnav.broker.amqtt.packet_gate import MAX_PACKET_BYTES
 from wsnav.broker.credentials import load_folder, secure_dir, write_private
+from wsnav.broker.identity_limits import SESSION_EXPIRY_S
 from wsnav.schemas.credentials import CredentialsError
 from wsnav.schemas.site_file import SiteFile
 
@@ -89,6 +90,8 @@ def conf_text(out: Path, options: MosquittoOptions) -> str:
         f"autosave_interval {options.autosave_interval_s}",
         "max_qos 1",
         f"max_queued_messages {options.max_queued_messages}",
+        "# a persistent session parked for a day is dropped (with its queued messages)",
+        f"persistent_client_expiration {SESSION_EXPIRY_S // 3600}h",
         "log_dest stderr",
         "log_type error",
         "log_type warning",

@@ -1,0 +1,92 @@
+"""What one identity may hold on the broker: subscriptions, parked sessions, and a node's publish rate.
+
+An insider with one credential passes the ACL, so the ACL alone does not bound what it costs the broker:
+100,000 subscription filters from one robot made node -> robot latency 7 s on amqtt, 2,000 parked persistent
+sessions from one node never expired, and one node's QoS 0 flood delayed every other node's updates by
+seconds. Retained messages need no limit of their own: every identity but the operator may publish to a fixed
+handful of topics (wsnav.broker.acl), so it holds at most that many retained messages of at most the packet cap.
+The numbers are far above what the site's own clients use (an agent holds 6 subscriptions, a node publishes a
+few messages a minute) and far below what hurt.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+log = logging.getLogger("wsnav.broker")
+
+MAX_SUBSCRIPTIONS = 64
+"""Topic filters one session holds (the console and agents hold under 10)."""
+
+SESSION_EXPIRY_S = 24 * 3600
+"""A disconnected persistent session is dropped after this (a node or robot off for a day starts afresh)."""
+
+MAX_SESSIONS = 16
+"""Disconnected persistent sessions one identity keeps parked (as many as it may hold connections)."""
+
+NODE_PUBLISH_RATE = 20.0
+"""Messages per second a node may publish on average (one real node sends a few a minute)."""
+
+NODE_PUBLISH_BURST = 100
+"""Messages a node may send at once before the rate applies (a reconnect sends its state, status and info)."""
+
+
+@dataclass(frozen=True)
+class IdentityLimits:
+    """The per-identity limits amqtt enforces (Mosquitto 2.0 offers only the session expiry of these)."""
+
+    max_subscriptions: int = MAX_SUBSCRIPTIONS
+    session_expiry_s: int = SESSION_EXPIRY_S
+    max_sessions: int = MAX_SESSIONS
+    node_publish_rate: float | None = NODE_PUBLISH_RATE
+    """None: no rate limit (a broker serving simulated nodes whose clock runs faster than real time)."""
+    node_publish_burst: int = NODE_PUBLISH_BURST
+
+
+@dataclass
+class _Bucket:
+    tokens: float
+    at: float
+
+
+@dataclass
+class PublishBudget:
+    """A token bucket per node identity, shared by all its connections (16 connections get no more)."""
+
+    rate: float
+    burst: int
+    nodes: frozenset[str]
+    dropped: int = 0
+    _buckets: dict[str, _Bucket] = field(default_factory=dict[str, _Bucket])
+    _last_report: float = 0.0
+    _reported: int = 0
+
+    def allow(self, identity: str | None, now: float | None = None) -> bool:
+        """True if `identity` may publish one more message now; every refusal is counted."""
+        if identity not in self.nodes:
+            return True
+        assert identity is not None
+        now = time.monotonic() if now is None else now
+        bucket = self._buckets.get(identity)
+        if bucket is None:
+            bucket = self._buckets[identity] = _Bucket(float(self.burst), now)
+        bucket.tokens = min(float(self.burst), bucket.tokens + (now - bucket.at) * self.rate)
+        bucket.at = now
+        if bucket.tokens >= 1.0:
+            bucket.tokens -= 1.0
+            return True
+        self.dropped += 1
+        self._report(identity, now)
+        return False
+
+    def _report(self, identity: str, now: float) -> None:
+        """One warning per 10 s at most, however hard a node floods."""
+        if now - self._last_report < 10.0:
+            return
+        log.warning(
+            f"node {identity!r} publishes faster than {self.rate:g}/s: dropped {self.dropped - self._reported} "
+            "message(s) over the rate since the last report (QoS 0 dropped, QoS 1 ends the connection)"
+        )
+        self._last_report, self._reported = now, self.dropped

@@ -1,0 +1,214 @@
+"""What one identity may hold on the broker, tried as an insider with one credential would.
+
+Measured before these limits: 100,000 subscription filters from one robot (node -> robot latency p50 7 s on
+amqtt), 2,000 parked persistent sessions from one node (never expired), 45,000 x 16 KB retained messages from one
+robot (68 -> 738 MB), one node's QoS 0 flood delaying the other nodes' updates by seconds. Retained messages are
+bounded by the ACL on both brokers; the other limits are amqtt's (Mosquitto 2.0 has no per-client subscription
+cap or publish rate: docs/security.md says what that leaves open).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import queue
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import paho.mqtt.client as mqtt
+import pytest
+from paho.mqtt.enums import CallbackAPIVersion
+
+from tests.broker_fixtures import TIMEOUT, Endpoint, client, wait_listening, wsnav
+from tests.conftest import require_tool
+from tests.site_fixtures import tiny_site
+from wsnav.broker.amqtt.config import BrokerOptions
+from wsnav.broker.amqtt.embedded import BrokerThread
+from wsnav.broker.credentials import write_credentials
+from wsnav.broker.identity_limits import IdentityLimits
+from wsnav.broker.mosquitto.config import CONF, MosquittoOptions, write_mosquitto_config
+from wsnav.broker.mosquitto.process import free_port
+from wsnav.schemas import topics
+from wsnav.schemas.site import load_site
+
+SITE = "tiny"
+RATE, BURST = 50.0, 20
+LIMITS = IdentityLimits(
+    max_subscriptions=64, session_expiry_s=2, node_publish_rate=RATE, node_publish_burst=BURST
+)
+
+
+@pytest.fixture(scope="module")
+def site_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tiny_site(tmp_path_factory.mktemp("site"))
+
+
+@pytest.fixture(scope="module")
+def creds_dir(site_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("creds") / "creds"
+    write_credentials(load_site(site_dir).spec, out)
+    return out
+
+
+@pytest.fixture(scope="module")
+def amqtt(site_dir: Path, creds_dir: Path) -> Iterator[Endpoint]:
+    options = BrokerOptions(bind=("127.0.0.1", 0), limits=LIMITS)
+    with BrokerThread(site_dir, creds_dir, options=options) as broker:
+        yield Endpoint("amqtt", broker.host, broker.port, creds_dir)
+
+
+@pytest.fixture(scope="module")
+def mosquitto(
+    site_dir: Path, creds_dir: Path, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[Endpoint]:
+    binary = require_tool("mosquitto")
+    work = tmp_path_factory.mktemp("mosquitto")
+    port = free_port()
+    options = MosquittoOptions(
+        bind=("127.0.0.1", port), data_dir=work / "data", user="root" if os.geteuid() == 0 else None
+    )
+    write_mosquitto_config(load_site(site_dir).spec, creds_dir, work / "conf", options)
+    proc = subprocess.Popen([binary, "-c", str(work / "conf" / CONF)], stderr=subprocess.PIPE)
+    try:
+        wait_listening("127.0.0.1", port, proc)
+        yield Endpoint("mosquitto", "127.0.0.1", port, creds_dir)
+    finally:
+        proc.terminate()
+        proc.wait(30)
+        if proc.stderr:
+            proc.stderr.close()
+
+
+@pytest.fixture(params=["amqtt", "mosquitto"])
+def endpoint(request: pytest.FixtureRequest) -> Endpoint:
+    return request.getfixturevalue(request.param)
+
+
+def test_a_robot_holds_one_retained_message_however_many_topics_it_tries(endpoint: Endpoint) -> None:
+    """The robot credential used to publish anywhere under robots/<itself>/: 45,000 retained messages."""
+    status = topics.robot_status(SITE, "robot1")
+    with client(endpoint, "robot1", "robot1") as robot:
+        for i in range(50):
+            robot.publish(f"wsn/{SITE}/robots/robot1/junk/{i}", b"x" * 1000, qos=1, retain=True)
+        robot.publish(status, b'{"marker": 1}', qos=1, retain=True)
+    with client(endpoint, "operator", "operator-limits") as watcher:
+        watcher.subscribe(f"wsn/{SITE}/robots/#")
+        watcher.wait_for(status)
+        time.sleep(1.0)  # any other retained message comes with the status's batch
+        assert watcher.topics() == [status]
+    with client(endpoint, "operator", "operator-limits") as operator:
+        operator.publish(status, b"", qos=1, retain=True)
+
+
+def test_one_session_is_granted_at_most_its_subscriptions_and_the_site_still_flows(amqtt: Endpoint) -> None:
+    state = topics.zone_state(SITE, "z1", "n1")
+    with client(amqtt, "robot1", "robot1") as greedy, client(amqtt, "robot1", "robot1-legit") as legit:
+        filters = [f"wsn/{SITE}/zones/z1/state/x{i}" for i in range(200)]
+        codes = greedy.subscribe(filters)
+        assert (
+            codes.count(1) == LIMITS.max_subscriptions and codes.count(128) == 200 - LIMITS.max_subscriptions
+        )
+        assert codes[: LIMITS.max_subscriptions] == [1] * LIMITS.max_subscriptions
+        assert greedy.subscribe(f"wsn/{SITE}/zones/#") == [128]
+        assert legit.subscribe(f"wsn/{SITE}/zones/#") == [1]  # the limit is per session, not per identity
+        greedy.mqtt.unsubscribe(filters[:10])
+        deadline = time.monotonic() + TIMEOUT
+        while greedy.subscribe(f"wsn/{SITE}/zones/#") != [1]:  # unsubscribing gives the room back
+            assert time.monotonic() < deadline, "room not given back after UNSUBSCRIBE"
+            time.sleep(0.1)
+        with client(amqtt, "n1", "n1") as node:
+            node.publish(state, b'{"marker": 2}', qos=1)
+        legit.wait_for(state, b'{"marker": 2}')
+        greedy.wait_for(state, b'{"marker": 2}')
+
+
+def session_present(endpoint: Endpoint, ident: str, client_id: str) -> bool:
+    """Log in with a persistent session and disconnect: did the broker still hold one for this client id?"""
+    answers: queue.Queue[bool] = queue.Queue()
+    c = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=False)
+    c.username_pw_set(ident, endpoint.password(ident))
+    c.on_connect = lambda _c, _u, flags, reason, _p: answers.put(bool(flags.session_present))
+    c.connect(endpoint.host, endpoint.port)
+    c.loop_start()
+    try:
+        present = answers.get(timeout=TIMEOUT)
+        c.subscribe(
+            topics.zone_state(SITE, "z1", ident) if ident.startswith("n") else f"wsn/{SITE}/zones/#", 1
+        )
+        time.sleep(0.1)
+        return present
+    finally:
+        with contextlib.suppress(Exception):
+            c.disconnect()
+        c.loop_stop()
+
+
+def test_one_node_parks_at_most_its_share_of_persistent_sessions(amqtt: Endpoint) -> None:
+    """40 persistent sessions under distinct client ids: the oldest parked ones make way (2,000 stayed before)."""
+    ids = [f"n1-parked-{i}" for i in range(40)]
+    for cid in ids:
+        assert not session_present(amqtt, "n1", cid)
+    kept = [cid for cid in reversed(ids) if session_present(amqtt, "n1", cid)]
+    assert 0 < len(kept) <= LIMITS.max_sessions
+    assert ids[-1] in kept and ids[0] not in kept
+
+
+def test_a_parked_session_expires(amqtt: Endpoint) -> None:
+    assert not session_present(amqtt, "robot1", "robot1-expiry")
+    assert session_present(amqtt, "robot1", "robot1-expiry")  # kept while within the expiry
+    time.sleep(LIMITS.session_expiry_s + 2.5)  # amqtt's monitor looks once a second, on whole seconds
+    assert not session_present(amqtt, "robot1", "robot1-expiry")
+
+
+def test_a_flooding_node_is_held_to_its_rate_and_the_other_node_gets_through(amqtt: Endpoint) -> None:
+    flood_topic = topics.zone_state(SITE, "z1", "n1")
+    other_topic = topics.zone_state(SITE, "z2", "n2")
+    with client(amqtt, "operator", "operator-flood") as watcher, client(amqtt, "n2", "n2") as other:
+        watcher.subscribe([f"wsn/{SITE}/zones/#", f"wsn/{SITE}/sim/#"])
+        with client(amqtt, "n1", "n1") as flooder:
+            t0 = time.monotonic()
+            for i in range(3000):
+                flooder.mqtt.publish(flood_topic, b"%d" % i, qos=0)
+                if i == 1500:
+                    other.publish(other_topic, b'{"marker": 3}', qos=1)
+            while flooder.mqtt.want_write():
+                time.sleep(0.01)
+            time.sleep(0.5)
+            elapsed = time.monotonic() - t0
+            watcher.wait_for(other_topic, b'{"marker": 3}')
+            flooded = sum(1 for m in watcher.received if m.topic == flood_topic)
+            assert flooded <= BURST + RATE * elapsed + 5, (flooded, elapsed)
+            assert flooded >= BURST
+            assert not flooder.disconnects  # QoS 0 over the rate is dropped, the node stays connected
+            time.sleep(1.0)  # the bucket refills: the node's next state goes through
+            flooder.publish(flood_topic, b'{"marker": 4}', qos=1)
+            watcher.wait_for(flood_topic, b'{"marker": 4}')
+        with client(amqtt, "operator", "operator-flood-2") as operator:  # only nodes are rate-limited
+            for i in range(300):
+                operator.mqtt.publish(f"wsn/{SITE}/sim/flood", b"%d" % i, qos=0)
+            watcher.wait_for(f"wsn/{SITE}/sim/flood", b"299")
+
+
+def test_qos1_over_the_rate_ends_the_nodes_connection(amqtt: Endpoint) -> None:
+    with client(amqtt, "n2", "n2") as flooder:
+        for i in range(BURST + 200):
+            flooder.mqtt.publish(topics.zone_state(SITE, "z2", "n2"), b"%d" % i, qos=1)
+        deadline = time.monotonic() + TIMEOUT
+        while not flooder.disconnects:
+            assert time.monotonic() < deadline, "still connected"
+            time.sleep(0.05)
+
+
+def test_the_limits_are_checked_on_the_command_line(site_dir: Path, creds_dir: Path) -> None:
+    for args, words in (
+        (["--node-publish-rate", "-1"], "--node-publish-rate"),
+        (["--max-subscriptions", "0"], "--max-subscriptions"),
+        (["--session-expiry", "0"], "--session-expiry"),
+    ):
+        done = wsnav(
+            "broker", "run", "--site", site_dir, "--credentials", creds_dir, "--bind", "127.0.0.1:0", *args
+        )
+        assert done.returncode == 2, done
+        assert words in done.stderr and "Traceback" not in done.stderr
