@@ -11,7 +11,7 @@ import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from wsnav.runtime.cli_support import host_port
+from wsnav.runtime.cli_support import add_broker_arguments, host_port
 
 if TYPE_CHECKING:
     from wsnav.runtime.cli_support import Parser
@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--site", type=Path, required=True, help="site directory or site.yaml")
-    p.add_argument("--broker", type=host_port, required=True, metavar="HOST:PORT")
+    add_broker_arguments(p)
     p.add_argument(
         "--credentials", type=Path, required=True, metavar="FILE", help="the operator's operator.json"
     )

@@ -42,16 +42,16 @@ def connect(args: argparse.Namespace, purpose: str) -> OperatorLink:
         raise CliError(f"--connect-timeout {args.connect_timeout:g}: expected a positive number of seconds")
     clock = WallClock()
     host, port = args.broker
-    bus = MqttBus(
-        host,
-        port,
-        client_id=f"{creds.username}-{purpose}-{os.getpid()}-{secrets.token_hex(3)}",
-        username=creds.username,
-        password=creds.password,
-        clock=clock,
-    )
     try:
-        bus.connect(timeout_s=args.connect_timeout)
+        bus = MqttBus(
+            host,
+            port,
+            client_id=f"{creds.username}-{purpose}-{os.getpid()}-{secrets.token_hex(3)}",
+            username=creds.username,
+            password=creds.password,
+            clock=clock,
+            tls_ca=args.tls_ca,
+        ).connect(timeout_s=args.connect_timeout)
     except BusError as exc:
         raise CliError(str(exc)) from None
     return OperatorLink(site, creds, bus, clock)

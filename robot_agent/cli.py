@@ -13,7 +13,7 @@ import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from wsnav.runtime.cli_support import host_port
+from wsnav.runtime.cli_support import add_broker_arguments
 
 if TYPE_CHECKING:
     from wsnav.runtime.cli_support import Parser
@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         "robot", help="run the robot agent (zone layer, planner, controller) against a broker"
     )
     robot.add_argument("--site", type=Path, required=True, help="site directory or site.yaml")
-    robot.add_argument("--broker", type=host_port, required=True, metavar="HOST:PORT")
+    add_broker_arguments(robot)
     robot.add_argument(
         "--credentials", type=Path, required=True, metavar="FILE", help="the robot's <id>.json"
     )

@@ -117,7 +117,9 @@ def _drive(
     clock = WallClock()
     host, port = args.broker
     try:
-        bus = connect_with_credentials(host, port, creds, clock=clock, timeout_s=args.connect_timeout)
+        bus = connect_with_credentials(
+            host, port, creds, clock=clock, timeout_s=args.connect_timeout, tls_ca=args.tls_ca
+        )
     except BusError as exc:
         raise CliError(str(exc)) from None
     robot = session.robot

@@ -92,7 +92,7 @@ def bridge_command(args: argparse.Namespace) -> int:
     wait_for_master(uri)
     host, port = args.broker
     try:
-        bus = connect_with_credentials(host, port, creds, clock=WallClock(), wait=False)
+        bus = connect_with_credentials(host, port, creds, clock=WallClock(), wait=False, tls_ca=args.tls_ca)
     except BusError as exc:
         raise CliError(str(exc)) from None
     bus.wait_answered(args.connect_timeout)

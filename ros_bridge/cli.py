@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from wsnav.runtime.cli_support import host_port
+from wsnav.runtime.cli_support import add_broker_arguments
 
 if TYPE_CHECKING:
     from wsnav.runtime.cli_support import Parser
@@ -23,7 +23,7 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         description="ROS master from ROS_MASTER_URI (default http://localhost:11311). See docs/ros.md.",
     )
     bridge.add_argument("--site", type=Path, required=True, help="site directory or site.yaml")
-    bridge.add_argument("--broker", type=host_port, required=True, metavar="HOST:PORT")
+    add_broker_arguments(bridge)
     bridge.add_argument(
         "--credentials", type=Path, required=True, metavar="FILE", help="the robot's <id>.json"
     )

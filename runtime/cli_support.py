@@ -1,9 +1,11 @@
-"""What every subcommand shares: one-line errors instead of tracebacks, and the HOST:PORT argument type."""
+"""What every subcommand shares: one-line errors instead of tracebacks, the HOST:PORT argument type, and the
+broker arguments."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import NoReturn
 
 
@@ -24,6 +26,17 @@ def host_port(text: str) -> tuple[str, int]:
     if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
         raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
     return host.strip("[]"), int(port)
+
+
+def add_broker_arguments(parser: argparse.ArgumentParser) -> None:
+    """`--broker HOST:PORT` and `--tls-ca FILE`, the same on every command that logs in to the site's broker."""
+    parser.add_argument("--broker", type=host_port, required=True, metavar="HOST:PORT")
+    parser.add_argument(
+        "--tls-ca",
+        type=Path,
+        metavar="FILE",
+        help="connect over TLS (the broker's TLS port), trusting the CA in FILE (the site's ca.crt)",
+    )
 
 
 def fail(message: str) -> NoReturn:

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import collections
 import logging
+import ssl
 import threading
+from pathlib import Path
 
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
@@ -45,11 +47,13 @@ class MqttBus:
         keepalive_s: int = 30,
         max_queue: int = 100_000,
         max_payload_bytes: int = MAX_PAYLOAD_BYTES,
+        tls_ca: Path | None = None,
     ) -> None:
         """`birth` is published at every (re)connect, the counterpart of `will` (e.g. `online` / `offline`).
 
         Payloads over `max_payload_bytes` are dropped on arrival and counted (`dropped_oversize`), before they
-        are copied or queued."""
+        are copied or queued. With `tls_ca` the link is TLS, the broker's certificate checked against that CA
+        and its address (the password never crosses the network in clear)."""
         self._clock = clock or WallClock()
         self._host, self._port, self._keepalive = host, port, keepalive_s
         self._birth = birth
@@ -75,6 +79,12 @@ class MqttBus:
         self.connects = 0
         self._client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=True)
         self._client.username_pw_set(username, password)
+        self._tls = tls_ca is not None
+        if tls_ca is not None:
+            try:
+                self._client.tls_set(ca_certs=str(tls_ca))
+            except (OSError, ssl.SSLError) as exc:
+                raise BusError(f"{tls_ca}: not a readable CA certificate (PEM): {exc}") from None
         if will is not None:
             self._client.will_set(will.topic, will.payload, qos=will.qos, retain=will.retain)
         self._client.reconnect_delay_set(min_delay=1, max_delay=8)
@@ -119,6 +129,11 @@ class MqttBus:
             if self._refused is not None:
                 raise BusError(
                     f"{where} refused the login: {self._refused} (check the username and password)"
+                )
+            if self._tls:
+                raise BusError(
+                    f"cannot connect to {where} over TLS: no answer (is it the broker's TLS port, and did the "
+                    "CA given with --tls-ca sign its certificate for this address?)"
                 )
             raise BusError(f"cannot connect to {where}: no answer")
         return self
@@ -252,6 +267,7 @@ def connect_with_credentials(
     birth: Will | None = None,
     timeout_s: float = 30.0,
     wait: bool = True,
+    tls_ca: Path | None = None,
 ) -> MqttBus:
     """A connected bus that logs in with one id's credentials (client id: its username unless given); with
     `wait=False`, a bus still connecting in the background (MqttBus.start).
@@ -268,5 +284,6 @@ def connect_with_credentials(
         clock=clock,
         will=will,
         birth=birth,
+        tls_ca=tls_ca,
     )
     return bus.connect(timeout_s=timeout_s) if wait else bus.start()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime
 import ipaddress
 import ssl
+import subprocess
 import threading
 from pathlib import Path
 
@@ -13,10 +14,12 @@ import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.reasoncodes import ReasonCode
 
-from tests.broker_fixtures import TIMEOUT
+from tests.broker_fixtures import TIMEOUT, wsnav
 from tests.site_fixtures import tiny_site
 from wsnav.broker.amqtt.config import BrokerOptions, TlsListener
 from wsnav.broker.amqtt.embedded import BrokerThread
+from wsnav.runtime.mqtt_bus import connect_with_credentials
+from wsnav.schemas import topics
 
 
 def self_signed(directory: Path) -> tuple[Path, Path]:
@@ -94,3 +97,44 @@ def test_websocket_and_tls_listeners_authenticate(tmp_path: Path) -> None:
             tls.tls_set(ca_certs=str(certfile), cert_reqs=ssl.CERT_REQUIRED)
             tls.username_pw_set(*creds)
             assert connack(tls, tls_host, tls_port).is_failure == (creds[1] != password)
+
+
+def test_the_agents_bus_and_the_operator_commands_work_over_tls_and_refuse_a_wrong_ca(tmp_path: Path) -> None:
+    """`--tls-ca`: a goal sent with `wsnav goal` over TLS reaches a robot's bus that logged in over TLS; a CA that
+    did not sign the broker's certificate, a file that is no certificate, or the plain port fail in one line."""
+    site = tiny_site(tmp_path / "site")
+    certfile, keyfile = self_signed(tmp_path)
+    (tmp_path / "other").mkdir()
+    other_ca, _ = self_signed(tmp_path / "other")
+    options = BrokerOptions(bind=("127.0.0.1", 0), tls=TlsListener(("127.0.0.1", 0), certfile, keyfile))
+    with BrokerThread(site, options=options) as broker:
+        assert broker.info is not None
+        tls_host, tls_port = broker.info.extra["tls"]
+        robot = connect_with_credentials(tls_host, tls_port, broker.credentials("robot1"), tls_ca=certfile)
+        try:
+            robot.subscribe(topics.robot_goal("tiny", "robot1"))
+            operator_file = broker.info.credentials_dir / "operator.json"
+
+            def goal(port: int, ca: Path) -> subprocess.CompletedProcess[str]:
+                return wsnav(
+                    "goal", "--site", site, "--broker", f"127.0.0.1:{port}", "--credentials", operator_file,
+                    "--tls-ca", ca, "--connect-timeout", "3", "robot1", "B",
+                )  # fmt: skip
+
+            sent = goal(tls_port, certfile)
+            assert sent.returncode == 0, sent.stderr
+            assert robot.wait(TIMEOUT)
+            assert [m.topic for m in robot.poll()] == [topics.robot_goal("tiny", "robot1")]
+            junk = tmp_path / "junk.pem"
+            junk.write_text("not a certificate\n")
+            for port, ca, words in (
+                (tls_port, other_ca, "over TLS: no answer"),
+                (tls_port, junk, "not a readable CA certificate"),
+                (broker.port, certfile, "over TLS: no answer"),
+            ):
+                failed = goal(port, ca)
+                assert failed.returncode == 2, failed
+                assert words in failed.stderr and "Traceback" not in failed.stderr
+                assert len(failed.stderr.strip().splitlines()) == 1, failed.stderr
+        finally:
+            robot.close()
