@@ -6,7 +6,9 @@
   only its status (one topic: it can hold one retained message, never fill the store);
 - the operator publishes `operator/...`, robot goals, robot statuses (to clear a retained one) and the simulated world (`sim/...`, used by the zone
   simulator), and reads everything of the site; it also publishes and reads Home Assistant's discovery configs
-  (`homeassistant/#`, `wsnav broker ha-discovery`).
+  (`homeassistant/#`, `wsnav broker ha-discovery`);
+- the dashboard (Home Assistant) reads everything of the site and the discovery configs, and publishes only
+  Home Assistant's own `homeassistant/status`: a dashboard's stolen password moves nothing.
 Nothing else outside `wsn/<site>/` is allowed to anyone. The same `AclRules` feed the amqtt plugin below and the
 Mosquitto ACL file (wsnav.broker.mosquitto.config), so the two brokers enforce one model.
 """
@@ -19,12 +21,14 @@ from amqtt.contexts import Action, BaseContext
 from amqtt.plugins.base import BaseTopicPlugin
 from amqtt.session import Session
 
-from wsnav.broker.credentials import OPERATOR
+from wsnav.broker.credentials import DASHBOARD, OPERATOR
 from wsnav.schemas import topics
 from wsnav.schemas.site_file import SiteFile
 
 HA_DISCOVERY = "homeassistant/#"
 """Home Assistant's default discovery prefix: the operator publishes the site's configs there."""
+HA_STATUS = "homeassistant/status"
+"""Home Assistant's birth and will (`online` / `offline`), the one topic the dashboard identity writes."""
 
 
 @dataclass(frozen=True)
@@ -69,6 +73,8 @@ def site_rules(spec: SiteFile) -> AclRules:
         HA_DISCOVERY,
     ]
     subscribe[OPERATOR] = [f"{root}/#", HA_DISCOVERY]
+    publish[DASHBOARD] = [HA_STATUS]
+    subscribe[DASHBOARD] = [f"{root}/#", HA_DISCOVERY]
     return AclRules(publish=publish, subscribe=subscribe)
 
 

@@ -33,6 +33,8 @@ from wsnav.schemas.site_file import SiteFile
 PASSWORD_FILE = "broker.passwd"
 """`username:<argon2 hash>` lines; the format amqtt's FileAuthPlugin also reads."""
 OPERATOR = "operator"
+DASHBOARD = "dashboard"
+"""A read-only identity for dashboards (Home Assistant): it reads the site and publishes nothing of it."""
 
 # The passwords are 192-bit random tokens, so a slow hash adds no real protection against guessing; modest
 # argon2id parameters keep a connect at a few ms on a Raspberry Pi even when 1000 nodes join at once.
@@ -55,13 +57,14 @@ def new_password() -> str:
 
 
 def site_ids(spec: SiteFile) -> list[str]:
-    """Every username of the site: nodes, robots and the operator."""
+    """Every username of the site: nodes, robots, the operator and the dashboard."""
     ids = [n.id for n in spec.nodes] + [r.id for r in spec.robots]
-    if OPERATOR in ids:
-        raise CredentialsError(
-            f"site {spec.name}: the id {OPERATOR!r} is reserved for the operator's credentials"
-        )
-    return [*ids, OPERATOR]
+    for reserved in (OPERATOR, DASHBOARD):
+        if reserved in ids:
+            raise CredentialsError(
+                f"site {spec.name}: the id {reserved!r} is reserved for the {reserved}'s credentials"
+            )
+    return [*ids, OPERATOR, DASHBOARD]
 
 
 def write_credentials(
@@ -107,7 +110,7 @@ def write_credentials(
                 wifi=wifi,
             )
         else:
-            role = "robot" if ident in robot_ids else "operator"
+            role = "robot" if ident in robot_ids else "dashboard" if ident == DASHBOARD else "operator"
             record = Credentials(username=ident, password=password, role=role, site=spec.name, broker=address)
         write_private(out / f"{ident}.json", record.model_dump_json(indent=2) + "\n")
         passwords[ident] = password

@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from wsnav.schemas.ids import Id
 from wsnav.schemas.site_file import Sensor
 
-Role = Literal["node", "robot", "operator"]
+Role = Literal["node", "robot", "operator", "dashboard"]
 
 
 class BrokerAddress(BaseModel):

@@ -54,7 +54,9 @@ def test_files_for_every_id_owner_only(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stderr
     assert mode(out) == 0o700
     names = sorted(p.name for p in out.iterdir())
-    assert names == sorted([PASSWORD_FILE, "n1.json", "n2.json", "robot1.json", "operator.json"])
+    assert names == sorted(
+        [PASSWORD_FILE, "n1.json", "n2.json", "robot1.json", "operator.json", "dashboard.json"]
+    )
     assert all(mode(p) == 0o600 for p in out.iterdir())
     node = NodeConfig.model_validate_json((out / "n2.json").read_text())
     assert (node.node, node.zone, node.sensor.type, node.heartbeat_s) == ("n2", "z2", "hcsr04", 5.0)
@@ -68,7 +70,8 @@ def test_files_for_every_id_owner_only(tmp_path: Path) -> None:
     assert robot.role == "robot"
     assert Credentials.model_validate_json((out / "operator.json").read_text()).role == "operator"
     hashes = read_password_file(out / PASSWORD_FILE)
-    assert set(hashes) == {"n1", "n2", "robot1", "operator"}
+    assert set(hashes) == {"n1", "n2", "robot1", "operator", "dashboard"}
+    assert Credentials.model_validate_json((out / "dashboard.json").read_text()).role == "dashboard"
     assert verify_password(hashes["n2"], node.password)
     assert not verify_password(hashes["n1"], node.password)
 
@@ -139,7 +142,7 @@ def test_mosquitto_config_files(tmp_path: Path) -> None:
     acl = (out / ACL).read_text()
     assert "user n1\ntopic write wsn/tiny/zones/z1/state/n1\ntopic write wsn/tiny/nodes/n1/status\n" in acl
     users = [line.split(":")[0] for line in (out / PASSWORDS).read_text().splitlines()]
-    assert sorted(users) == ["n1", "n2", "operator", "robot1"]
+    assert sorted(users) == ["dashboard", "n1", "n2", "operator", "robot1"]
     assert all(mode(p) == 0o600 for p in out.iterdir())
 
 

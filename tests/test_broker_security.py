@@ -141,6 +141,34 @@ def test_robot_cannot_publish_zone_states(endpoint: Endpoint) -> None:
         assert not set(forbidden) & set(watcher.topics())
 
 
+def test_the_dashboard_reads_the_site_and_moves_nothing(endpoint: Endpoint) -> None:
+    """The read-only identity for Home Assistant: every write a stolen dashboard password would try is dropped."""
+    forbidden = [
+        topics.zone_state(SITE, "z1", "n1"),
+        topics.node_status(SITE, "n1"),
+        topics.operator_block(SITE, "b1"),
+        topics.robot_goal(SITE, "robot1"),
+        topics.robot_status(SITE, "robot1"),
+        topics.sim_world(SITE),
+        "homeassistant/binary_sensor/x/config",
+    ]
+    state = topics.zone_state(SITE, "z2", "n2")
+    with (
+        client(endpoint, "operator", "watcher") as watcher,
+        client(endpoint, "dashboard") as dashboard,
+        client(endpoint, "n2") as node,
+    ):
+        assert watcher.subscribe([f"wsn/{SITE}/#", "homeassistant/#"]) == [1, 1]
+        assert dashboard.subscribe([f"wsn/{SITE}/#", "homeassistant/#"]) == [1, 1]
+        node.publish(state, b"clear")
+        dashboard.wait_for(state, b"clear")
+        for topic in forbidden:
+            dashboard.publish(topic, b'{"state": "blocked"}')
+        dashboard.publish("homeassistant/status", b"online")
+        watcher.wait_for("homeassistant/status", b"online")
+        assert not set(forbidden) & set(watcher.topics())
+
+
 def test_robot_reads_zones_and_operator_gives_goals(endpoint: Endpoint) -> None:
     goal = topics.robot_goal(SITE, "robot1")
     state = topics.zone_state(SITE, "z2", "n2")
