@@ -139,6 +139,33 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     )
     mosq.set_defaults(func=mosquitto_command)
 
+    revoke = bsub.add_parser(
+        "revoke",
+        help="give ids new passwords (the old ones stop working without a restart) and clear their retained "
+        "messages",
+    )
+    revoke.add_argument("ids", nargs="+", metavar="ID", help="node, robot, operator or dashboard ids")
+    revoke.add_argument("--site", type=Path, required=True, help="site directory or site.yaml")
+    revoke.add_argument("--credentials", type=Path, required=True, help="the site's credentials folder")
+    revoke.add_argument(
+        "--mosquitto-config",
+        type=Path,
+        metavar="DIR",
+        help="also rewrite this `mosquitto-config` folder's password file (then: systemctl reload mosquitto)",
+    )
+    revoke.add_argument(
+        "--broker",
+        type=host_port,
+        metavar="HOST:PORT",
+        help="the running broker: log in with the new password, clear the ids' retained messages, check the "
+        "old password is refused",
+    )
+    revoke.add_argument("--tls-ca", type=Path, metavar="FILE", help="with --broker: its TLS port's CA")
+    revoke.add_argument(
+        "--wait", type=float, default=30.0, metavar="S", help="for the broker to take the new password"
+    )
+    revoke.set_defaults(func=revoke_command)
+
     ha = bsub.add_parser(
         "ha-discovery", help="publish Home Assistant MQTT discovery for the site's zones and nodes (retained)"
     )
@@ -280,6 +307,47 @@ def mosquitto_command(args: argparse.Namespace) -> int:
         print(f"wrote {path}")
     print(f"run: mosquitto -c {files[0]}")
     return 0
+
+
+def revoke_command(args: argparse.Namespace) -> int:
+    from wsnav.broker.credentials import site_ids, write_credentials
+    from wsnav.broker.mosquitto.config import rewrite_passwords
+    from wsnav.broker.revocation import clear_retained
+    from wsnav.schemas.credentials import CredentialsError, load_credentials
+
+    site = _site(args.site)
+    unknown = sorted(set(args.ids) - set(site_ids(site.spec)))
+    if unknown:
+        raise CliError(f"not ids of site {site.name}: {', '.join(unknown)}")
+    if not 0 < args.wait <= 3600:
+        raise CliError("--wait must be > 0 and <= 3600 seconds")
+    try:
+        old = {ident: load_credentials(args.credentials / f"{ident}.json") for ident in args.ids}
+        write_credentials(site.spec, args.credentials, renew=frozenset(args.ids))
+        new = {ident: load_credentials(args.credentials / f"{ident}.json") for ident in args.ids}
+        for ident in args.ids:
+            print(f"{ident}: new password in {args.credentials / (ident + '.json')} (give it to the device)")
+        if args.mosquitto_config is not None:
+            path = rewrite_passwords(site.spec, args.credentials, args.mosquitto_config)
+            print(f"wrote {path}: reload Mosquitto now (sudo systemctl reload mosquitto)", flush=True)
+    except CredentialsError as exc:
+        raise CliError(str(exc)) from None
+    if args.broker is None:
+        print("no --broker: the ids' retained messages were left on the broker")
+        return 0
+    failed = False
+    for ident in args.ids:
+        done = clear_retained(site.spec, args.broker, new[ident], old[ident], args.wait, args.tls_ca)
+        if done.error is not None:
+            print(f"{ident}: {done.error}", file=sys.stderr)
+            failed = True
+            continue
+        cleared = ", ".join(done.cleared) or "no topics of its own"
+        print(f"{ident}: cleared {cleared}")
+        if not done.old_refused:
+            print(f"{ident}: the broker still accepts the OLD password", file=sys.stderr)
+            failed = True
+    return 1 if failed else 0
 
 
 def ha_discovery_command(args: argparse.Namespace) -> int:

@@ -47,6 +47,7 @@ class CredentialsReport:
 
     created: list[str] = field(default_factory=list)
     kept: list[str] = field(default_factory=list)
+    renewed: list[str] = field(default_factory=list)
     stale: list[str] = field(default_factory=list)
     """Files `<id>.json` whose id is no longer in the site (left in place, not in the password file)."""
 
@@ -73,10 +74,12 @@ def write_credentials(
     broker: tuple[str, int] | None = None,
     wifi_ssid: str | None = None,
     wifi_password: str | None = None,
+    renew: frozenset[str] = frozenset(),
 ) -> CredentialsReport:
     """Create or refresh the credentials folder `out` for the site; see the module docstring for the rules.
 
     `broker` and the Wi-Fi settings, when given, replace what existing files hold; otherwise those are kept.
+    The ids in `renew` get new passwords (revocation: the old ones stop working).
     """
     secure_dir(out)
     existing = {p.stem: p for p in out.glob("*.json")}
@@ -86,7 +89,8 @@ def write_credentials(
     robot_ids = {r.id for r in spec.robots}
     for ident in site_ids(spec):
         old = read_json_object(existing[ident]) if ident in existing else None
-        password = _password_of(old, existing.get(ident)) or new_password()
+        kept = None if ident in renew else _password_of(old, existing.get(ident))
+        password = kept or new_password()
         address = _broker_of(old, broker)
         wifi = _wifi_of(old, wifi_ssid, wifi_password)
         record: Credentials
@@ -114,7 +118,7 @@ def write_credentials(
             record = Credentials(username=ident, password=password, role=role, site=spec.name, broker=address)
         write_private(out / f"{ident}.json", record.model_dump_json(indent=2) + "\n")
         passwords[ident] = password
-        (report.kept if old else report.created).append(ident)
+        (report.renewed if ident in renew else report.kept if old else report.created).append(ident)
     report.stale = sorted(name for name in existing if name not in passwords)
     write_password_file(out / PASSWORD_FILE, passwords)
     return report
@@ -152,6 +156,15 @@ def read_password_file(path: Path) -> dict[str, str]:
             raise CredentialsError(f"{path}: line {number}: expected `username:$argon2...`")
         users[user] = digest
     return users
+
+
+def file_stamp(path: Path) -> tuple[int, int, int] | None:
+    """What changes when a file is rewritten (write_private replaces it: a new inode); None if it is missing."""
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_ino, st.st_mtime_ns, st.st_size
 
 
 def verify_password(digest: str, password: str) -> bool:

@@ -78,6 +78,9 @@ class ZoneIntake:
         self._reborn: set[str] = set()
         self.dropped: Counter[str] = Counter()
         self.accepted = 0
+        self.cleared = 0
+        """Empty retained messages on a node's topics: the broker forgot its word (`wsnav broker revoke`); the
+        layer keeps what it knew until the stale policy says otherwise."""
         self._drop_log_interval = drop_log_interval
         self._drop_log_since: dict[str, float] = {}
         """Per reason with a log line in the last interval: when that interval began (bus clock time)."""
@@ -132,6 +135,9 @@ class ZoneIntake:
             return self._drop(
                 "wrong_node", message, f"node {node!r} watches {self._watches[node]!r}, not {zone!r}"
             )
+        if not message.payload:
+            self.cleared += 1
+            return False
         msg = self._parse(ZoneState, message, MAX_PAYLOAD_BYTES)
         if msg is None:
             return False
@@ -152,6 +158,9 @@ class ZoneIntake:
     def _node_status(self, message: Message, node: str) -> bool:
         if node not in self._watches:
             return self._drop("unknown_node", message, f"no node {node!r} in the site")
+        if not message.payload:
+            self.cleared += 1
+            return False
         msg = self._parse(NodeStatus, message, MAX_PAYLOAD_BYTES)
         if msg is None:
             return False

@@ -58,6 +58,8 @@ class Ticket:
     identity: str | None = None
     """Set when the connection has logged in."""
     since: float = field(default_factory=time.monotonic)
+    logged_in_at: float = 0.0
+    """Wall-clock time of the login (compared with the password file's modification time)."""
 
 
 class Admission:
@@ -102,6 +104,7 @@ class Admission:
             return False
         del self._pending[ticket]
         ticket.identity = identity
+        ticket.logged_in_at = time.time()
         self._logged_in.add(ticket)
         self._per_identity[identity] += 1
         return True
@@ -112,6 +115,14 @@ class Admission:
             self._logged_in.discard(ticket)
             assert ticket.identity is not None
             self._per_identity[ticket.identity] -= 1
+
+    def close_identity(self, identity: str, logged_in_before: float) -> int:
+        """Close the connections of `identity` that logged in before `logged_in_before` (wall clock: when its
+        password was renewed; later logins used the new one); returns how many."""
+        mine = [t for t in self._logged_in if t.identity == identity and t.logged_in_at < logged_in_before]
+        for ticket in mine:
+            ticket.close()
+        return len(mine)
 
     def out_of_descriptors(self) -> None:
         """asyncio could not accept (EMFILE): counted and reported like a refusal, without its traceback."""

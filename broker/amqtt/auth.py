@@ -11,6 +11,8 @@ A connect is refused when:
   check for wills). Mosquitto 2 refuses such a will the same way.
 A successful verification is remembered as an HMAC under a per-process key, so reconnect storms do not pay the
 argon2 cost again; argon2 itself runs in a worker thread so the event loop keeps serving other clients.
+The password file is read again when it changes (`wsnav broker revoke`): a renewed password works at the next
+login and the old one no longer does, without a restart (the broker drops the identity's connections, patch.py).
 """
 
 from __future__ import annotations
@@ -27,7 +29,8 @@ from amqtt.plugins.base import BaseAuthPlugin
 from amqtt.session import Session
 
 from wsnav.broker.acl import AclRules
-from wsnav.broker.credentials import read_password_file, verify_password
+from wsnav.broker.credentials import file_stamp, read_password_file, verify_password
+from wsnav.schemas.credentials import CredentialsError
 
 
 class WsnavAuthPlugin(BaseAuthPlugin):
@@ -43,7 +46,9 @@ class WsnavAuthPlugin(BaseAuthPlugin):
         super().__init__(context)
         config = self.context.config
         assert isinstance(config, WsnavAuthPlugin.Config)
-        self._hashes = read_password_file(Path(config.password_file))
+        self._path = Path(config.password_file)
+        self._hashes = read_password_file(self._path)
+        self._stamp = file_stamp(self._path)
         self._rules = AclRules(publish=config.publish, subscribe={})
         self._reserved = set(config.reserved_client_ids)
         self._key = secrets.token_bytes(32)
@@ -54,6 +59,7 @@ class WsnavAuthPlugin(BaseAuthPlugin):
         if not user:
             self.context.logger.info("refused a client without username")
             return False
+        self._reload_if_changed()
         digest = self._hashes.get(user)
         if digest is None or not await self._password_ok(user, password, digest):
             self.context.logger.info(f"refused {user!r}: unknown user or wrong password")
@@ -68,6 +74,23 @@ class WsnavAuthPlugin(BaseAuthPlugin):
             )
             return False
         return True
+
+    def _reload_if_changed(self) -> None:
+        """A changed file replaces the hashes (and the remembered verifications of users whose hash changed); a
+        file that cannot be read keeps the last good hashes, with one line."""
+        stamp = file_stamp(self._path)
+        if stamp == self._stamp:
+            return
+        self._stamp = stamp
+        try:
+            hashes = read_password_file(self._path)
+        except CredentialsError as exc:
+            self.context.logger.error(f"{exc}: keeping the passwords read before")
+            return
+        for user in list(self._verified):
+            if hashes.get(user) != self._hashes.get(user):
+                del self._verified[user]
+        self._hashes = hashes
 
     async def _password_ok(self, user: str, password: str, digest: str) -> bool:
         tag = hmac.new(self._key, password.encode(), hashlib.sha256).digest()

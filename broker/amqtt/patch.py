@@ -14,6 +14,7 @@ is pinned to amqtt==0.12.1 (pyproject.toml) and to a test; docs/broker-amqtt.md 
 | `WsnavProtocolHandler._handle_qos1_message_flow` | PUBACK waiter registered after PUBLISH is sent: a fast PUBACK is lost and the send hangs 5 s | tests/test_broker_embedded.py |
 | `WsnavBroker.add_subscription`, `_del_subscription` | no limit on the filters one session holds (100,000 from one robot: node -> robot latency 7 s) | tests/test_broker_limits.py |
 | `WsnavBroker._initialize_client_session` (again) | persistent sessions of one identity never expire and have no cap (2,000 parked by one node) | tests/test_broker_limits.py |
+| `WsnavBroker.start` (a password-file watch) | a changed password file needs a restart, and a revoked identity's connections and sessions live on | tests/test_broker_revoke.py |
 | `handle_read_timeout` on each handler | keepalive never enforced: a silent client is never dropped and its will never fires | tests/test_broker_embedded.py |
 """
 
@@ -26,6 +27,7 @@ import math
 import time
 from collections.abc import Callable
 from functools import partial
+from pathlib import Path
 from typing import Any
 
 from amqtt.adapters import (
@@ -47,7 +49,9 @@ from websockets.asyncio.server import ServerConnection
 
 from wsnav.broker.amqtt.admission import Admission, Ticket
 from wsnav.broker.amqtt.packet_gate import MAX_PACKET_BYTES, GateReader
+from wsnav.broker.credentials import file_stamp, read_password_file
 from wsnav.broker.identity_limits import IdentityLimits, PublishBudget
+from wsnav.schemas.credentials import CredentialsError
 
 log = logging.getLogger("wsnav.broker")
 
@@ -136,6 +140,7 @@ class WsnavBroker(Broker):
         connect_timeout_s: float = 5.0,
         limits: IdentityLimits | None = None,
         nodes: frozenset[str] = frozenset(),
+        password_file: Path | None = None,
     ) -> None:
         super().__init__(config)
         self.admission = admission
@@ -150,6 +155,52 @@ class WsnavBroker(Broker):
         self.refused_subscriptions = 0
         self.dropped_sessions = 0
         self._last_limit_report = 0.0
+        self._password_file = password_file
+        self._watch: asyncio.Task[None] | None = None
+
+    async def start(self) -> None:
+        await super().start()
+        if self._password_file is not None:
+            self._watch = asyncio.create_task(self._watch_passwords(self._password_file))
+
+    async def shutdown(self) -> None:
+        if self._watch is not None:
+            self._watch.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._watch
+        await super().shutdown()
+
+    async def _watch_passwords(self, path: Path, every_s: float = 0.5) -> None:
+        """Revocation without a restart: when an identity's hash changes or goes, the connections that logged in
+        before the change are closed and its parked sessions dropped (the auth plugin checks new logins against
+        the new file)."""
+        hashes, stamp = _hashes_or_none(path), file_stamp(path)
+        while True:
+            await asyncio.sleep(every_s)
+            if file_stamp(path) == stamp:
+                continue
+            stamp = file_stamp(path)
+            now = _hashes_or_none(path)
+            if now is None or hashes is None or stamp is None:
+                hashes = now if now is not None else hashes
+                continue
+            revoked = sorted(user for user in hashes if now.get(user) != hashes[user])
+            hashes = now
+            changed_at = stamp[1] / 1e9
+            for user in revoked:
+                closed = self.admission.close_identity(user, logged_in_before=changed_at)
+                await asyncio.sleep(0.2)  # the closed connections end their sessions first
+                parked = [
+                    key
+                    for key, (session, _) in self._sessions.items()
+                    if session.username == user and session.transitions.state == "disconnected"
+                ]
+                for key in parked:
+                    await self._delete_session(key)
+                log.warning(
+                    f"{user!r}: password renewed or removed: closed {closed} connection(s) that logged in "
+                    f"before, dropped {len(parked)} parked session(s)"
+                )
 
     async def stream_connected(
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, listener_name: str
@@ -355,6 +406,14 @@ class WsnavBroker(Broker):
         ]
         if tasks:
             await asyncio.wait(tasks)
+
+
+def _hashes_or_none(path: Path) -> dict[str, str] | None:
+    """The password file's hashes, or None while it cannot be read (the auth plugin says why)."""
+    try:
+        return read_password_file(path)
+    except CredentialsError:
+        return None
 
 
 def _drop_silent_client(handler: BrokerProtocolHandler) -> None:

@@ -91,6 +91,7 @@ async def start_broker(spec: SiteFile, credentials_dir: Path, options: BrokerOpt
             connect_timeout_s=options.connect_timeout_s,
             limits=options.limits,
             nodes=frozenset(node.id for node in spec.nodes),
+            password_file=credentials_dir / PASSWORD_FILE,
         )
     except (AMQTTError, PluginError, PluginLoadError, OSError, ValueError) as exc:
         raise BrokerStartError(f"cannot configure the broker: {_root_cause(exc)}") from None

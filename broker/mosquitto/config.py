@@ -23,7 +23,7 @@ from wsnav.broker.acl import AclRules, site_rules
 from wsnav.broker.amqtt.packet_gate import MAX_PACKET_BYTES
 from wsnav.broker.credentials import load_folder, secure_dir, write_private
 from wsnav.broker.identity_limits import SESSION_EXPIRY_S
-from wsnav.schemas.credentials import CredentialsError
+from wsnav.schemas.credentials import Credentials, CredentialsError
 from wsnav.schemas.site_file import SiteFile
 
 CONF = "mosquitto.conf"
@@ -102,6 +102,24 @@ def conf_text(out: Path, options: MosquittoOptions) -> str:
     return "\n".join(lines) + "\n"
 
 
+def passwords_text(creds: dict[str, Credentials]) -> str:
+    return "".join(f"{ident}:{mosquitto_hash(c.password)}\n" for ident, c in creds.items())
+
+
+def rewrite_passwords(spec: SiteFile, credentials_dir: Path, out: Path) -> Path:
+    """Only the password file of a generated configuration, from the credentials folder as it is now (after
+    `wsnav broker revoke`), keeping its owner so Mosquitto can still read it; Mosquitto reads it on SIGHUP."""
+    path = out / PASSWORDS
+    try:
+        owner = path.stat()
+    except OSError as exc:
+        raise CredentialsError(f"{path}: no Mosquitto password file here ({exc.strerror})") from None
+    write_private(path, passwords_text(load_folder(credentials_dir, spec)))
+    if os.geteuid() == 0:
+        os.chown(path, owner.st_uid, owner.st_gid)
+    return path
+
+
 def write_mosquitto_config(
     spec: SiteFile, credentials_dir: Path, out: Path, options: MosquittoOptions
 ) -> list[Path]:
@@ -111,10 +129,9 @@ def write_mosquitto_config(
     beats = 10 * sum(1 / spec.heartbeat_of(node) for node in spec.nodes)
     options = replace(options, max_queued_messages=max(options.max_queued_messages, math.ceil(beats)))
     secure_dir(out)
-    passwords = "".join(f"{ident}:{mosquitto_hash(c.password)}\n" for ident, c in creds.items())
     files = {
         out / CONF: conf_text(out, options),
-        out / PASSWORDS: passwords,
+        out / PASSWORDS: passwords_text(creds),
         out / ACL: acl_text(site_rules(spec)),
     }
     for path, text in files.items():
