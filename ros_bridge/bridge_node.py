@@ -23,8 +23,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from wsnav.ros_bridge.costmap_params import check_global_costmap
 from wsnav.ros_bridge.move_base_supervisor import Action, Cancel, Goal, MoveBaseSupervisor, Resend
-from wsnav.ros_bridge.ros_env import master_alive, master_uri, require_rospy, wait_for_master
+from wsnav.ros_bridge.ros_env import master_alive, master_param, master_uri, require_rospy, wait_for_master
 from wsnav.ros_bridge.zone_feed import ZoneFeed
 from wsnav.ros_bridge.zone_grid import UnrepresentableCost, UpdateWindow, ZoneGridCodec
 from wsnav.runtime.bus import Bus
@@ -90,6 +91,8 @@ def bridge_command(args: argparse.Namespace) -> int:
     )
     uri = master_uri()
     wait_for_master(uri)
+    if args.robot is not None and not args.no_costmap_check:
+        check_move_base(uri, options)
     host, port = args.broker
     try:
         bus = connect_with_credentials(host, port, creds, clock=WallClock(), wait=False, tls_ca=args.tls_ca)
@@ -107,6 +110,25 @@ def bridge_command(args: argparse.Namespace) -> int:
         print(f"ROS master at {uri} is back: restarting to register again", flush=True)
         os.execv(sys.executable, [sys.executable, *sys.orig_argv[1:]])
     return 0
+
+
+def check_move_base(uri: str, options: BridgeOptions) -> None:
+    """Refuse, in one line, a move_base whose global costmap would not use the zone grid as it must
+    (ros_bridge.costmap_params); parameters not loaded yet are only noted."""
+    key = f"{options.move_base}/global_costmap"
+    params = master_param(uri, key)
+    if not isinstance(params, dict):
+        log.warning(f"no parameters under {key} yet: move_base's costmap set-up not checked")
+        return
+    namespace = options.move_base.rsplit("/", 1)[0] or "/"
+    check = check_global_costmap(params, f"{options.namespace}/zone_grid", namespace)
+    for warning in check.warnings:
+        log.warning(f"{key}: {warning}")
+    if check.errors:
+        raise CliError(
+            f"{key}: {'; '.join(check.errors)} (docs/ros.md has a working set; --no-costmap-check)"
+        )
+    log.info(f"{key}: the zone layer is {check.zone_layer}, set up as it must be")
 
 
 class ZoneBridgeNode:

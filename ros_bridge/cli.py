@@ -45,6 +45,11 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     bridge.add_argument("--robot", metavar="ID", help="supervise this robot's move_base (Algorithm 3)")
     bridge.add_argument("--move-base", default="/move_base", help="move_base's action namespace")
     bridge.add_argument(
+        "--no-costmap-check",
+        action="store_true",
+        help="with --robot: do not check move_base's global costmap parameters for the zone layer",
+    )
+    bridge.add_argument(
         "--plan-topic", default="/move_base/NavfnROS/plan", help="the global planner's nav_msgs/Path"
     )
     bridge.add_argument("--base-frame", default="base_footprint", help="the robot's frame for its pose")

@@ -52,6 +52,15 @@ def master_alive(uri: str, timeout_s: float = 2.0) -> bool:
     return isinstance(answer, list) and len(answer) == 3 and answer[0] == 1  # [code, message, pid]
 
 
+def master_param(uri: str, key: str, timeout_s: float = 5.0) -> object | None:
+    """A parameter from the master's parameter server (a dict for a namespace), None when it is not set."""
+    transport = _TimeoutTransport(timeout_s)
+    answer: object = xmlrpc.client.ServerProxy(uri, transport=transport).getParam("/wsnav_bridge", key)
+    if isinstance(answer, list) and len(answer) == 3 and answer[0] == 1:
+        return answer[2]
+    return None
+
+
 def wait_for_master(
     uri: str,
     *,
