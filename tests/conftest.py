@@ -47,6 +47,8 @@ SLOW_MODULES = {
 """Every test here runs a process stack: docker, a browser, ROS, MicroPython boards, Dask processes."""
 SLOW_TESTS = {
     "test_broker_credentials.py::test_mosquitto_keeps_messages_for_a_subscriber_that_stalls",
+    "test_ros_costmap_params.py::test_roslaunch_starts_the_bridge_with_its_parameters_from_a_yaml",
+    "test_ros_costmap_params.py::test_the_bridge_reads_move_bases_parameters_and_refuses_a_wrong_set_in_one_line",
     "test_broker_embedded.py::test_a_subscriber_that_never_acknowledges_costs_one_warning_line_not_a_traceback",
     "test_broker_embedded.py::test_silent_client_is_dropped_and_its_will_published",
     "test_broker_ha_discovery.py::test_the_operator_publishes_discovery_retained_and_a_node_cannot",

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -20,8 +21,11 @@ import yaml
 from tests.ros_fixtures import RosMaster, WsnavChild, bridge_args
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.ros_bridge.costmap_params import check_global_costmap
+from wsnav.ros_bridge.ros_env import stop_process_group
+from wsnav.schemas.site import load_site
 
-CONFIG = Path(__file__).resolve().parent.parent / "ros_bridge" / "catkin" / "wsnav_ros" / "config"
+PACKAGE = Path(__file__).resolve().parent.parent / "ros_bridge" / "catkin" / "wsnav_ros"
+CONFIG = PACKAGE / "config"
 ZONES = "/wsn/zone_grid"
 ROBOTIS_COMMON = {
     "obstacle_range": 3.0,
@@ -137,3 +141,35 @@ def test_the_bridge_reads_move_bases_parameters_and_refuses_a_wrong_set_in_one_l
             assert not any("Traceback" in line for line in bad.lines)
     finally:
         rosparam(roscore, "delete", "/move_base")
+
+
+def test_roslaunch_starts_the_bridge_with_its_parameters_from_a_yaml(
+    roscore: RosMaster, tmp_path: Path
+) -> None:
+    """The catkin package as a ROS user runs it: `roslaunch wsnav_ros wsnav_bridge.launch config:=...` (the real
+    roslaunch, the package found on ROS_PACKAGE_PATH); the zone grid comes out with the site's size."""
+    site_dir = Path(__file__).resolve().parent.parent / "sites" / "school"
+    with BrokerThread(site_dir) as broker:
+        config = tmp_path / "bridge.yaml"
+        params = {
+            "site": str(site_dir),
+            "broker": f"{broker.host}:{broker.port}",
+            "credentials": str(broker.credentials_dir / "robot1.json"),
+            "map_wait": 0,
+            "namespace": "/wsn_launch",
+        }
+        config.write_text(yaml.safe_dump(params))
+        wsnav = Path(sys.executable).parent / "wsnav"
+        env = roscore.env(ROS_PACKAGE_PATH=str(PACKAGE.parent))
+        launch = subprocess.Popen(
+            ["roslaunch", "wsnav_ros", "wsnav_bridge.launch", f"config:={config}", f"wsnav:={wsnav}"],
+            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+        )  # fmt: skip
+        try:
+            width = subprocess.run(
+                ["rostopic", "echo", "-n", "1", "/wsn_launch/zone_grid/info/width"],
+                env=env, capture_output=True, text=True, timeout=90,
+            )  # fmt: skip
+            assert width.stdout.split()[0] == str(load_site(site_dir).grid.width), width
+        finally:
+            stop_process_group(launch)
