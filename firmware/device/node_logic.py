@@ -15,7 +15,7 @@ Rules (docs/architecture.md, "The message contract"):
   does not replay old numbers exactly).
 """
 
-from debounce import Debouncer
+from debounce import Debouncer, ticks_add, ticks_diff
 from payloads import (
     BLOCKED,
     CAUTION,
@@ -91,7 +91,7 @@ class NodeLogic:
         step from then on."""
         self.connected = True
         msgs = [self.birth(), self.state_message(now_ms)]
-        self.last_publish_ms = now_ms - self.seq % (self.heartbeat_ms // 2 + 1)
+        self.last_publish_ms = ticks_add(now_ms, -(self.seq % (self.heartbeat_ms // 2 + 1)))
         return msgs
 
     def on_disconnect(self) -> None:
@@ -112,6 +112,6 @@ class NodeLogic:
         if after != before:
             return self.state_message(now_ms)
         last = self.last_publish_ms
-        if last is None or now_ms - last >= self.heartbeat_ms:
+        if last is None or ticks_diff(now_ms, last) >= self.heartbeat_ms:
             return self.state_message(now_ms)
         return None
