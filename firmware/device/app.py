@@ -40,9 +40,9 @@ from node_logic import NodeLogic  # noqa: E402
 # const() with a leading underscore: inlined by the compiler, no heap at run time.
 _LOOP_MS = const(50)
 _WAIT_MS = const(1500)
-"""Per wait for the broker (CONNACK, PUBACK, a packet). The client blocks at most 1 s per socket operation and
-feeds the watchdog before each, so no gap between feeds exceeds 1.5 s, half the ESP8266 SDK's ~3.2 s (the
-budget table in docs/firmware-esp8266.md)."""
+"""Per wait for the broker (CONNACK, PUBACK, a packet). The client blocks at most 0.5 s per socket operation and
+feeds the watchdog before each, so no gap between feeds exceeds 0.8 s, half the ~1.6 s after which the ESP8266
+SDK's watchdog may reset the board (the budget table in docs/firmware-esp8266.md)."""
 _WIFI_JOIN_TIMEOUT_MS = const(20000)
 _MAX_OFFLINE_MS = const(600000)
 """Ten minutes without the broker: stop feeding the watchdog and let it reset the board."""
@@ -62,7 +62,8 @@ def _rand16() -> int:
 
 
 class Node:
-    """A running node. `sensor` has `reading()` (a debounce level or a bool), `wifi` has `start()`,
+    """A running node. `sensor` has `reading(feed)` (a debounce level or a bool; a slow sensor calls `feed`
+    between its steps), `wifi` has `start()`,
     `connected()` and `rssi()` (or is None: wired); `reset_cause` is `machine.reset_cause()` at boot.
 
     Time is `clock.ticks_ms()` (the `time` module unless a test gives its own): a tick count that wraps at 2**30
@@ -188,7 +189,7 @@ class Node:
         if elapsed >= 1000:
             self.uptime_s += elapsed // 1000
             self._second = ticks_add(self._second, elapsed - elapsed % 1000)
-        reading = self.sensor.reading()
+        reading = self.sensor.reading(self.feed)
         was_online = self.phase == _ONLINE
         self._connection_step(now)
         if self.phase == _ONLINE:

@@ -319,8 +319,9 @@ class Watchdog:
 
 
 def pulse_without_echo(pin, level, timeout_us) -> int:
-    """No echo: time_pulse_us waits its whole timeout, then says so."""
-    sim.advance(timeout_us // 1000)
+    """No echo: time_pulse_us waits its timeout twice (for the pulse to start, then for it to end; the ESP8266's
+    machine_time_pulse_us), then says so."""
+    sim.advance(2 * timeout_us // 1000)
     return -2
 
 

@@ -40,7 +40,7 @@ class PatternSensor:
     def __init__(self, clock) -> None:
         self.clock = clock
 
-    def reading(self) -> bool:
+    def reading(self, feed=None) -> bool:
         t = self.clock.t
         return (t % 97000) < 20000 or (t % 13000) < 200
 
