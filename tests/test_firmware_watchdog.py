@@ -102,3 +102,14 @@ def test_a_month_across_the_wraps_of_the_boards_clock(host_build: tuple[Path, Pa
     assert stats["infos"] >= 30 * 288 and stats["uptime_err_max"] <= 1, stats
     assert stats["uptime_s"] >= 30 * 86400 - 60, stats
     assert stats["gap_max_ms"] <= BUDGET_MS, stats
+
+
+def test_rejoining_through_an_access_point_outage_does_not_wear_the_flash(host_build: tuple[Path, Path]) -> None:
+    """`WLAN.connect(ssid, password)` makes the ESP8266 SDK write its settings to flash. The node's own wifi.Wifi
+    on the fake radio: credentials go in once, at the first start (the radio's flash held another SSID); the
+    100 rejoins while the access point is away use the saved settings and write nothing; the node comes back."""
+    stats = run_budget(host_build, "ap_outage", 0)
+    assert stats["boot_writes"] == 1, stats
+    assert stats["joins"] >= 100 and stats["flash_writes"] <= 1, stats
+    assert stats["connects"] == 2 and stats["errors"] == 0, stats
+    assert stats["gap_max_ms"] <= BUDGET_MS, stats

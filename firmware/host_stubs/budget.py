@@ -17,6 +17,8 @@ before a wrap. Scenarios (the HC-SR04 hears no echo at all, 15 samples: its slow
 - `trickle_broker`: every answer comes a byte every 2 s: a CONNACK takes 6 s, past the 5 s wait (which must end
   at its deadline, not a packet later);
 - `wifi_drop`: online, then the access point goes for 20 s, then comes back;
+- `ap_outage`: the node's own wifi.Wifi on the fake radio; the access point goes until the node has tried to
+  rejoin 100 times, then comes back: flash_writes counts what the SDK wrote (a connect with credentials);
 - `dns_slow`: the broker is a name whose lookup takes 7 s and fails (lwIP's own retries), then resolves;
 - `dns_hang`: a lookup that never returns (a wedged radio stack): the feeds must stop, so the watchdog resets;
 - `month`: 30 days with a PIR (SIM_SECONDS ignored), fast-forward between windows at the board's own pace around
@@ -364,6 +366,7 @@ random.seed(19)
 
 radio = wifi.Wifi("site", "secret")
 radio.start()
+stub_radio = getattr(network, "WLAN")  # the host stub's class: its flash and join counts
 pm = getattr(network.WLAN, "pm", 2)  # the host stub's record of config(pm=...); the board boots in 2
 
 MONTH = SCENARIO == "month"
@@ -382,7 +385,7 @@ cfg = {
 }
 wdt = Watchdog()
 sensor = digital_sensor.DigitalSensor(5) if MONTH else ultrasonic.Ultrasonic(12, 14, 1000, 15, 0)
-node = app.Node(cfg, sensor, FakeWifi(), wdt, sim)
+node = app.Node(cfg, sensor, radio if SCENARIO == "ap_outage" else FakeWifi(), wdt, sim)
 int_max = 0
 
 
@@ -447,6 +450,17 @@ elif SCENARIO == "dns_hang":
         at(SIM_MS)
     except Hung:
         pass
+elif SCENARIO == "ap_outage":
+    writes_at_boot = stub_radio.writes  # the first start: the fake flash held no SSID yet
+    at(10000)
+    stub_radio.out = True
+    joins = stub_radio.joins
+    while stub_radio.joins < joins + 100:
+        at(sim.t + 60000)
+    stub_radio.out = False
+    at(sim.t + 120000)
+    print("stat flash_writes", stub_radio.writes - writes_at_boot, "joins", stub_radio.joins - joins)
+    print("stat boot_writes", writes_at_boot)
 elif MONTH:
     month()
 else:
