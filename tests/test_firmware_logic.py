@@ -84,7 +84,11 @@ def test_diagnostics_match_the_schema_model_byte_for_byte() -> None:
         logic = node_logic.NodeLogic("s", "z1", node, 0, 0, 1000)
         error = rng.choice(errors)
         cause, connects = rng.randint(-1, 9), rng.randint(0, 5)
-        uptime_s, rssi, heap = rng.randint(0, 2**30), rng.choice([None, 31, -40, -90]), rng.choice([None, 9000])
+        uptime_s, rssi, heap = (
+            rng.randint(0, 2**30),
+            rng.choice([None, 31, -40, -90]),
+            rng.choice([None, 9000]),
+        )
         topic, text, retain, qos = diagnostics.info(logic, uptime_s, connects, cause, rssi, heap, error)
         payload = text.encode()  # what the board's MQTT client sends (a str's UTF-8 bytes)
         info = parse_payload(NodeInfo, payload)

@@ -104,7 +104,9 @@ def test_a_month_across_the_wraps_of_the_boards_clock(host_build: tuple[Path, Pa
     assert stats["gap_max_ms"] <= BUDGET_MS, stats
 
 
-def test_rejoining_through_an_access_point_outage_does_not_wear_the_flash(host_build: tuple[Path, Path]) -> None:
+def test_rejoining_through_an_access_point_outage_does_not_wear_the_flash(
+    host_build: tuple[Path, Path],
+) -> None:
     """`WLAN.connect(ssid, password)` makes the ESP8266 SDK write its settings to flash. The node's own wifi.Wifi
     on the fake radio: credentials go in once, at the first start (the radio's flash held another SSID); the
     100 rejoins while the access point is away use the saved settings and write nothing; the node comes back."""

@@ -85,6 +85,7 @@ class Node:
             cfg["off_delay_ms"],
             cfg["heartbeat_ms"],
             random.getrandbits(20),
+            cfg["warmup_ms"],
         )
         self.client = MQTTClient(
             cfg["node"],

@@ -382,6 +382,7 @@ cfg = {
     "username": "n1",
     "password": "p" * 24,
     "keepalive_s": 30,
+    "warmup_ms": 0,
 }
 wdt = Watchdog()
 sensor = digital_sensor.DigitalSensor(5) if MONTH else ultrasonic.Ultrasonic(12, 14, 1000, 15, 0)

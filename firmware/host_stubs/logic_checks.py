@@ -175,6 +175,24 @@ def check_heartbeat_and_debounce_across_the_clock_wrap():
         assert n.step(False, at(3700)) is not None and n.state == "clear"
 
 
+def check_pir_warm_up_holds_the_state_back():
+    """An HC-SR501 fires at random for up to a minute after power-on: during the warm-up a connect sends the birth
+    alone, readings are ignored (no blocked), and the state goes out when it ends, debounced from then on."""
+    n = NodeLogic("s", "z1", "n1", 500, 1000, 10000, 0, 60000)
+    assert n.step(True, 0) is None  # the first reading starts the warm-up
+    msgs = n.on_connect(1000)
+    assert [m[0] for m in msgs] == ["wsn/s/nodes/n1/status"]
+    for t in range(1000, 60000, 50):  # the pin fires throughout: nothing is published
+        assert n.step(True, t) is None, t
+    first = n.step(False, 60000)
+    assert first is not None and first[1] == zone_state_payload("z1", "n1", "clear", 1)
+    assert n.step(True, 60100) is None and n.step(True, 60599) is None
+    msg = n.step(True, 60600)
+    assert msg is not None and n.state == "blocked"
+    again = n.on_connect(61000)  # after the warm-up a reconnect sends the state as usual
+    assert len(again) == 2 and again[1][1] == zone_state_payload("z1", "n1", "blocked", 3)
+
+
 def check_seq_wraps_below_2_to_30():
     n = NodeLogic("s", "z", "n", 0, 0, 1000, 2**30 - 1)
     n.on_connect(0)
