@@ -366,7 +366,7 @@ random.seed(19)
 
 radio = wifi.Wifi("site", "secret")
 radio.start()
-stub_radio = getattr(network, "WLAN")  # the host stub's class: its flash and join counts
+sdk = getattr(network, "sdk")  # the host stub's: [saved SSID, flash writes, joins, access point out]
 pm = getattr(network.WLAN, "pm", 2)  # the host stub's record of config(pm=...); the board boots in 2
 
 MONTH = SCENARIO == "month"
@@ -452,15 +452,15 @@ elif SCENARIO == "dns_hang":
     except Hung:
         pass
 elif SCENARIO == "ap_outage":
-    writes_at_boot = stub_radio.writes  # the first start: the fake flash held no SSID yet
+    writes_at_boot = sdk[1]  # the first start: the fake flash held no SSID yet
     at(10000)
-    stub_radio.out = True
-    joins = stub_radio.joins
-    while stub_radio.joins < joins + 100:
+    sdk[3] = True
+    joins = sdk[2]
+    while sdk[2] < joins + 100:
         at(sim.t + 60000)
-    stub_radio.out = False
+    sdk[3] = False
     at(sim.t + 120000)
-    print("stat flash_writes", stub_radio.writes - writes_at_boot, "joins", stub_radio.joins - joins)
+    print("stat flash_writes", sdk[1] - writes_at_boot, "joins", sdk[2] - joins)
     print("stat boot_writes", writes_at_boot)
 elif MONTH:
     month()
