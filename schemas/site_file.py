@@ -52,6 +52,15 @@ class DigitalSensor(_Strict):
     type: Literal["pir", "ir_beam"]
     pin: GpioPin
     invert: bool = False
+    warmup_s: Annotated[float, Field(ge=0, le=600)] | None = None
+    """PIR only: how long after power-on the node ignores the sensor and publishes no zone state (an HC-SR501
+    fires at random for 30-60 s). Absent: 60 s."""
+
+    @model_validator(mode="after")
+    def _warmup_for_a_pir(self) -> DigitalSensor:
+        if self.warmup_s is not None and self.type != "pir":
+            raise ValueError("warmup_s is for a PIR only")
+        return self
 
     @field_validator("pin")
     @classmethod

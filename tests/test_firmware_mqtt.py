@@ -3,6 +3,7 @@ scripted fake broker: the protocol edge cases a real broker will not produce on 
 
 from __future__ import annotations
 
+import json
 import socket
 import subprocess
 import threading
@@ -11,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from wsnav.firmware.testing import build_for_host, micropython_cmd, micropython_env
+from wsnav.firmware.testing import NodeProcess, build_for_host, micropython_cmd, micropython_env
 
 Script = Callable[[socket.socket], None]
 
@@ -197,3 +198,55 @@ def test_refused_connack_and_silent_broker_fail_fast(host_build: tuple[Path, Pat
     broker = FakeBroker(silent)
     out = run_probe(host_build, broker.port, "publish")
     assert out.startswith("error"), out  # bounded by the socket timeout, not a hang
+
+
+def test_node_waits_for_a_loaded_broker_that_answers_after_2_5_s(
+    host_build: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """The node itself (run_node: app's wait for the broker) against a broker whose CONNACK and PUBACKs come 2.5 s
+    late, a loaded Raspberry Pi's 99th percentile: the node comes online (a 1.5 s wait gave up on it)."""
+    late_s = 2.5
+
+    def loaded(conn: socket.socket) -> None:
+        kind, _ = read_packet(conn)
+        assert kind == 0x10
+        threading.Event().wait(late_s)
+        conn.sendall(bytes([0x20, 2, 0, 0]))
+        while True:
+            kind, body = read_packet(conn)
+            if kind & 0xF6 == 0x32:  # QoS 1 PUBLISH: its id follows the topic
+                tl = int.from_bytes(body[:2], "big")
+                threading.Event().wait(late_s)
+                conn.sendall(bytes([0x40, 2]) + body[2 + tl : 4 + tl])
+            elif kind == 0xC0:
+                conn.sendall(bytes([0xD0, 0]))
+
+    broker = FakeBroker(loaded)
+    config = tmp_path / "config.json"
+    config.write_text(
+        json.dumps(
+            {
+                "username": "n1",
+                "password": "p" * 24,
+                "site": "s",
+                "node": "n1",
+                "zone": "z1",
+                "broker": {"host": "127.0.0.1", "port": broker.port},
+                "sensor": {"type": "ir_beam", "pin": 4},
+                "heartbeat_s": 60,
+                "on_delay_ms": 0,
+                "off_delay_ms": 0,
+            }
+        )
+    )
+    device, stubs = host_build
+    node = NodeProcess(
+        micropython_cmd("run_node", str(config)),
+        micropython_env(device, stubs, tmp_path / "pins"),
+        tmp_path / "node.log",
+    )
+    try:
+        assert node.wait_output("mqtt up 1", 30), node.output()
+    finally:
+        node.stop()
+    assert "mqtt down" not in node.output(), node.output()

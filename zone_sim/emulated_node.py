@@ -199,14 +199,13 @@ class EmulatedNode:
 
     def _send_info(self, t: float) -> None:
         """The firmware's diagnostics, as app.py sends them (without what only a board can measure): after each
-        connect and when the period diagnostics.info returns is up."""
-        ms = self._ms(t)
+        connect and every diagnostics.INFO_PERIOD_MS."""
         connects = self.connects - self._boot_connects
-        topic, text, retain, qos, due_ms = diagnostics.info(
-            self.logic, ms, connects, POWER_ON_RESET, error=self._last_error
+        topic, text, retain, qos = diagnostics.info(
+            self.logic, self._ms(t) // 1000, connects, POWER_ON_RESET, error=self._last_error
         )
         self._send((topic, text.encode(), retain, qos), t)
-        self._info_due_t = t + (due_ms - ms) / 1000
+        self._info_due_t = t + diagnostics.INFO_PERIOD_MS / 1000
 
     def _link_down(self, why: str) -> None:
         self.logic.on_disconnect()

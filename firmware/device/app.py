@@ -32,16 +32,18 @@ del name
 
 import diagnostics  # noqa: E402
 from backoff import Backoff  # noqa: E402
+from debounce import ticks_add, ticks_diff  # noqa: E402
 from micropython import const  # noqa: E402
 from mqtt import MQTTClient  # noqa: E402
 from node_logic import NodeLogic  # noqa: E402
 
 # const() with a leading underscore: inlined by the compiler, no heap at run time.
 _LOOP_MS = const(50)
-_WAIT_MS = const(1500)
-"""Per wait for the broker (CONNACK, PUBACK, a packet). The client blocks at most 1 s per socket operation and
-feeds the watchdog before each, so no gap between feeds exceeds 1.5 s, half the ESP8266 SDK's ~3.2 s (the
-budget table in docs/firmware-esp8266.md)."""
+_WAIT_MS = const(5000)
+"""Per wait for the broker (CONNACK, PUBACK, a packet): a Raspberry Pi broker under load answers in 0.4-2.5 s at
+its 99th percentile, and a shorter wait dropped nodes it would have served. The client reads in steps of at most
+0.5 s and feeds the watchdog before each, so no gap between feeds exceeds 0.8 s, half the ~1.6 s after which the
+ESP8266 SDK's watchdog may reset the board (the budget table in docs/firmware-esp8266.md)."""
 _WIFI_JOIN_TIMEOUT_MS = const(20000)
 _MAX_OFFLINE_MS = const(600000)
 """Ten minutes without the broker: stop feeding the watchdog and let it reset the board."""
@@ -56,36 +58,25 @@ _BROKER_WAIT = const(2)
 _ONLINE = const(3)
 
 
-class Clock:
-    """Monotonic milliseconds since start, immune to ticks_ms wrap-around (2**30 ms on the ESP8266)."""
-
-    def __init__(self) -> None:
-        self._last = time.ticks_ms()
-        self._now = 0
-
-    def now_ms(self) -> int:
-        t = time.ticks_ms()
-        self._now += time.ticks_diff(t, self._last)
-        self._last = t
-        return self._now
-
-    def sleep_ms(self, ms: int) -> None:
-        time.sleep_ms(ms)
-
-
 def _rand16() -> int:
     return random.getrandbits(16)
 
 
 class Node:
-    """A running node. `sensor` has `reading()` (a debounce level or a bool), `wifi` has `start()`,
-    `connected()` and `rssi()` (or is None: wired); `reset_cause` is `machine.reset_cause()` at boot."""
+    """A running node. `sensor` has `reading(feed)` (a debounce level or a bool; a slow sensor calls `feed`
+    between its steps), `wifi` has `start()`,
+    `connected()` and `rssi()` (or is None: wired); `reset_cause` is `machine.reset_cause()` at boot.
+
+    Time is `clock.ticks_ms()` (the `time` module unless a test gives its own): a tick count that wraps at 2**30
+    ms on the ESP8266 (12.4 days), only ever compared with `ticks_diff` and moved with `ticks_add` (debounce's:
+    one definition for the whole node). A count of milliseconds since boot would outgrow the board's small ints
+    (2**30) and put every sum on the heap."""
 
     def __init__(self, cfg, sensor, wifi=None, wdt=None, clock=None, reset_cause=0) -> None:
         self.sensor = sensor
         self.wifi = wifi
         self.wdt = wdt
-        self.clock = clock if clock is not None else Clock()
+        self.clock = clock if clock is not None else time
         self.logic = NodeLogic(
             cfg["site"],
             cfg["zone"],
@@ -94,6 +85,7 @@ class Node:
             cfg["off_delay_ms"],
             cfg["heartbeat_ms"],
             random.getrandbits(20),
+            cfg["warmup_ms"],
         )
         self.client = MQTTClient(
             cfg["node"],
@@ -108,13 +100,19 @@ class Node:
         self.wifi_backoff = Backoff(1000, 60000, _rand16)
         self.broker_backoff = Backoff(500, 30000, _rand16)
         self.phase = _OFFLINE
-        self.next_attempt_ms = 0
+        self.next_attempt_ms = self.ticks()  # at once (a tick, not 0: the clock may be anywhere)
         self.offline_since_ms = 0
         self.errors = 0
         self.connects = 0
         self.reset_cause = reset_cause
         self.last_error = None  # why the broker link last went down, for the diagnostics
         self.info_due_ms = 0
+        self.uptime_s = 0  # whole seconds since boot, counted from the ticks: small int for 34 years
+        self._second = self.ticks()  # the tick at which the current uptime second began
+
+    def ticks(self) -> int:
+        """The clock's tick count: an int (a small one on the board), whatever type the stubs give it."""
+        return self.clock.ticks_ms()  # pyright: ignore[reportReturnType] (micropython-stubs' opaque _TicksMs)
 
     # -- health and watchdog -----------------------------------------------------------------------------
     def feed(self) -> None:
@@ -123,7 +121,7 @@ class Node:
         wdt = self.wdt
         if wdt is None or self.errors >= _MAX_ERRORS:
             return
-        if self.phase == _ONLINE or self.clock.now_ms() - self.offline_since_ms < _MAX_OFFLINE_MS:
+        if self.phase == _ONLINE or ticks_diff(self.ticks(), self.offline_since_ms) < _MAX_OFFLINE_MS:
             wdt.feed()
 
     # -- connection state machine --------------------------------------------------------------------------
@@ -135,7 +133,7 @@ class Node:
         self.last_error = str(why)
         wifi_up = self.wifi is None or self.wifi.connected()
         self.phase = _BROKER_WAIT if wifi_up else _OFFLINE
-        self.next_attempt_ms = now_ms + self.broker_backoff.next_delay_ms()
+        self.next_attempt_ms = ticks_add(now_ms, self.broker_backoff.next_delay_ms())
         print("mqtt down:", why)
 
     def _connect_broker(self, now_ms: int) -> None:
@@ -162,34 +160,38 @@ class Node:
                 self._go_offline(now_ms, "wifi lost")
             return
         if self.phase == _OFFLINE:
-            if now_ms >= self.next_attempt_ms:
+            if ticks_diff(now_ms, self.next_attempt_ms) >= 0:
                 if wifi is not None:
                     wifi.start()
                 self.phase = _WIFI_JOINING
-                self.next_attempt_ms = now_ms + _WIFI_JOIN_TIMEOUT_MS  # while joining: when to give up
+                self.next_attempt_ms = ticks_add(now_ms, _WIFI_JOIN_TIMEOUT_MS)  # while joining: when to give up
             return
         if self.phase == _WIFI_JOINING:
             if wifi is None or wifi.connected():
                 self.wifi_backoff.reset()
                 self.phase = _BROKER_WAIT
                 self.next_attempt_ms = now_ms
-            elif now_ms > self.next_attempt_ms:
+            elif ticks_diff(now_ms, self.next_attempt_ms) > 0:
                 self.phase = _OFFLINE
-                self.next_attempt_ms = now_ms + self.wifi_backoff.next_delay_ms()
+                self.next_attempt_ms = ticks_add(now_ms, self.wifi_backoff.next_delay_ms())
                 print("wifi join timed out")
             return
         # _BROKER_WAIT
         if wifi is not None and not wifi.connected():
             self.phase = _OFFLINE
             self.next_attempt_ms = now_ms
-        elif now_ms >= self.next_attempt_ms:
+        elif ticks_diff(now_ms, self.next_attempt_ms) >= 0:
             self._connect_broker(now_ms)
 
     # -- the loop ----------------------------------------------------------------------------------------
     def iteration(self) -> None:
         """One pass: sense, decide, connect/publish, keep alive. Never waits longer than a socket timeout."""
-        now = self.clock.now_ms()
-        reading = self.sensor.reading()
+        now = self.ticks()
+        elapsed = ticks_diff(now, self._second)
+        if elapsed >= 1000:
+            self.uptime_s += elapsed // 1000
+            self._second = ticks_add(self._second, elapsed - elapsed % 1000)
+        reading = self.sensor.reading(self.feed)
         was_online = self.phase == _ONLINE
         self._connection_step(now)
         if self.phase == _ONLINE:
@@ -198,7 +200,7 @@ class Node:
                     msg = self.logic.step(reading, now)
                     if msg is not None:
                         self.client.publish(msg[0], msg[1], msg[2], msg[3])
-                    elif now >= self.info_due_ms:  # not in the same pass as a state: one send per feed
+                    elif ticks_diff(now, self.info_due_ms) >= 0:  # not in the same pass as a state: one send per feed
                         self._send_info(now)
                 self.client.poll()
                 self.client.maintain()
@@ -215,9 +217,9 @@ class Node:
         gc.collect()
         wifi = self.wifi
         try:
-            topic, payload, retain, qos, self.info_due_ms = diagnostics.info(
+            topic, payload, retain, qos = diagnostics.info(
                 self.logic,
-                now_ms,
+                self.uptime_s,
                 self.connects,
                 self.reset_cause,
                 wifi.rssi() if wifi is not None else None,
@@ -225,16 +227,17 @@ class Node:
                 self.last_error,
             )
         except MemoryError:
-            self.info_due_ms = now_ms + _INFO_RETRY_MS
+            self.info_due_ms = ticks_add(now_ms, _INFO_RETRY_MS)
             print("info: no heap")
             return
+        self.info_due_ms = ticks_add(now_ms, diagnostics.INFO_PERIOD_MS)
         self.client.publish(topic, payload, retain, qos)
 
-    def run(self, until_ms=-1) -> None:
-        """Loop forever (or until the clock passes `until_ms`, for tests); feeds the watchdog when healthy."""
+    def run(self, for_ms: int = -1) -> None:
+        """Loop forever (or for `for_ms` of the clock's time, for tests); feeds the watchdog when healthy."""
         clock = self.clock
-        self.offline_since_ms = clock.now_ms()
-        while until_ms < 0 or clock.now_ms() < until_ms:
+        start = self.offline_since_ms = self.ticks()
+        while for_ms < 0 or ticks_diff(self.ticks(), start) < for_ms:
             try:
                 self.iteration()
                 self.errors = 0

@@ -1,7 +1,9 @@
 """Delayed-on / delayed-off debouncing of a raw sensor level: clear, blocked or caution.
 
 Pure logic, shared by the board and the zone simulator (CPython): no I/O, no clock of its own; every call takes
-the caller's monotonic `now_ms`, so a simulated clock drives it exactly like the real one.
+the caller's `now_ms`, so a simulated clock drives it exactly like the real one. `now_ms` is a tick count that
+may wrap (the board's `time.ticks_ms()`, period 2**30 ms: 12.4 days); times are only ever compared with
+`ticks_diff` and moved with `ticks_add`, so every value stays a small int (no heap) for as long as the board runs.
 
 Why both delays: a PIR fires on a person walking past (a short "occupied" must not block a corridor for the
 robot), and it drops out while a person stands still (a short "free" must not clear it either). Levels are
@@ -13,6 +15,20 @@ the blocking distance reads blocked, caution, blocked...). When the delay is ove
 that held the whole time: the least severe one seen going up, the most severe going down. So a reading that
 flickers between two levels can neither keep a zone clear nor clear it early.
 """
+
+
+def ticks_diff(a: int, b: int) -> int:
+    """a - b on a clock that wraps at 2**30 ms, as the board's `time.ticks_diff` computes it (right while the
+    true difference is under 2**29 ms). Ours, not the board's: the zone simulator runs this module on CPython,
+    and the unix port's ticks wrap at 2**62; any clock whose period is a multiple of 2**30 gives right answers."""
+    d = (a - b) & 0x3FFFFFFF
+    return d - 0x40000000 if d >= 0x20000000 else d
+
+
+def ticks_add(a: int, delta: int) -> int:
+    """`a` moved by `delta` ms on the same wrapping clock (node_logic and app use these two too)."""
+    return (a + delta) & 0x3FFFFFFF
+
 
 CLEAR = 0
 BLOCKED = 1
@@ -47,7 +63,7 @@ class Debouncer:
             held = raw
         elif up == (_RANK[raw] < _RANK[held]):
             held = raw  # nearer to the current state: only this much has held throughout
-        if now_ms - since >= (self.on_delay_ms if up else self.off_delay_ms):
+        if ticks_diff(now_ms, since) >= (self.on_delay_ms if up else self.off_delay_ms):
             self.state = held
             # The reading may still differ from the new state (it went further): that change starts now.
             since = None if raw == held else now_ms
@@ -62,5 +78,5 @@ class Debouncer:
         if since is None:
             return -1
         delay = self.on_delay_ms if _RANK[self._held] > _RANK[self.state] else self.off_delay_ms
-        left = delay - (now_ms - since)
+        left = delay - ticks_diff(now_ms, since)
         return left if left > 0 else 0

@@ -17,5 +17,6 @@ class DigitalSensor:
         self._pin = Pin(pin, Pin.IN, Pin.PULL_UP) if pull else Pin(pin, Pin.IN)
         self.invert = invert
 
-    def reading(self) -> bool:
+    def reading(self, feed=None) -> bool:
+        """The pin's level as occupied or not; one pin read, so `feed` (for slow sensors) is not needed."""
         return digital_occupied(self._pin.value(), self.invert)

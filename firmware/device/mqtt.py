@@ -3,7 +3,7 @@
 Why not umqtt.simple/robust (frozen in the ESP8266 image): they never send PINGREQ by themselves and block
 without timeouts, so a half-open TCP connection (broker rebooted, Wi-Fi access point gone) hangs the node until
 the watchdog bites. This client:
-- bounds every socket operation by 1 s (`_STEP_MS`) and every wait (CONNACK, PUBACK, a packet that has begun)
+- bounds every socket operation by 0.5 s (`_STEP_MS`) and every wait (CONNACK, PUBACK, a packet that has begun)
   by `timeout_ms` overall, a deadline checked before each read (within a packet too);
 - calls `feed()` before every step that can block (the board's watchdog budget, docs/firmware-esp8266.md), and
   keeps feeding from a timer while a DNS lookup runs (getaddrinfo takes no timeout);
@@ -30,8 +30,9 @@ _PUBACK = const(0x40)
 _PINGREQ = const(0xC0)
 _PINGRESP = const(0xD0)
 
-_STEP_MS = const(1000)
-"""The longest any one socket operation blocks (connect, a send, a read): the watchdog is fed between them."""
+_STEP_MS = const(500)
+"""The longest any one socket operation blocks (connect, a send, a read): the watchdog is fed between them. The
+ESP8266 SDK's watchdog may reset the board 1.6 s after a feed; half of that is the budget for any gap."""
 _ETIMEDOUT = const(110)
 _EAGAIN = const(11)
 """What a read that found nothing says on a non-blocking socket (lwIP's answer; a soak run on the unix port saw it
@@ -89,7 +90,7 @@ class MQTTClient:
         feed=None,
     ) -> None:
         """`timeout_ms` bounds each wait for the broker; `feed()`, if given, is the board's watchdog feed: called
-        before every socket operation (each at most 1 s), and every 500 ms by a timer while a DNS lookup runs."""
+        before every socket operation (each at most 0.5 s), and every 500 ms by a timer while a DNS lookup runs."""
         self.client_id = client_id
         self.host = host
         self.port = port
@@ -133,7 +134,7 @@ class MQTTClient:
         self._last_tx = ticks_ms()
 
     def _recv(self, n: int, deadline) -> bytes:
-        """Exactly n bytes by `deadline` (a ticks_ms value), in reads of at most 1 s with a feed before each."""
+        """Exactly n bytes by `deadline` (a ticks_ms value), in reads of at most 0.5 s with a feed before each."""
         data = b""
         while len(data) < n:
             left = ticks_diff(deadline, ticks_ms())

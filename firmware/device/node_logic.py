@@ -12,10 +12,13 @@ Rules (docs/architecture.md, "The message contract"):
   the heartbeat phase is then shifted by up to half a period, per node (`on_connect`);
 - the last will is `offline` (retained);
 - `seq` increases with every state publication, from a base the caller picks (random on the board, so a reboot
-  does not replay old numbers exactly).
+  does not replay old numbers exactly);
+- a PIR fires at random for 30-60 s after power-on: for `warmup_ms` from the first reading or connect (the
+  board's boot) its readings are ignored and no state is published (birth only), so after a power cut the zones
+  do not all say blocked; the state goes out when the warm-up ends.
 """
 
-from debounce import Debouncer
+from debounce import Debouncer, ticks_add, ticks_diff
 from payloads import (
     BLOCKED,
     CAUTION,
@@ -47,6 +50,7 @@ class NodeLogic:
         off_delay_ms: int,
         heartbeat_ms: int,
         seq_base: int = 0,
+        warmup_ms: int = 0,
     ) -> None:
         self.zone = zone
         self.node = node
@@ -58,6 +62,20 @@ class NodeLogic:
         self.connected = False
         self.last_publish_ms = None  # type: int | None
         self.publications = 0
+        self.warmup_ms = warmup_ms  # 0 once the warm-up is over (or there is none)
+        self._warm_until = None  # type: int | None
+
+    def _warming(self, now_ms: int) -> bool:
+        """True while the sensor warms up: `warmup_ms` from the first call (the node's first reading or connect)."""
+        if not self.warmup_ms:
+            return False
+        until = self._warm_until
+        if until is None:
+            until = self._warm_until = ticks_add(now_ms, self.warmup_ms)
+        if ticks_diff(now_ms, until) < 0:
+            return True
+        self.warmup_ms = 0
+        return False
 
     @property
     def state(self) -> str:
@@ -90,8 +108,11 @@ class NodeLogic:
         (random per board at boot): boards that reconnect together after a broker restart do not heartbeat in
         step from then on."""
         self.connected = True
+        if self._warming(now_ms):
+            self.last_publish_ms = None
+            return [self.birth()]  # the state follows when the warm-up ends
         msgs = [self.birth(), self.state_message(now_ms)]
-        self.last_publish_ms = now_ms - self.seq % (self.heartbeat_ms // 2 + 1)
+        self.last_publish_ms = ticks_add(now_ms, -(self.seq % (self.heartbeat_ms // 2 + 1)))
         return msgs
 
     def on_disconnect(self) -> None:
@@ -105,6 +126,8 @@ class NodeLogic:
         While disconnected the debouncer keeps running but nothing is returned: the state that counts is the
         one at reconnect time, not a backlog.
         """
+        if self._warming(now_ms):
+            return None
         before = self.debouncer.state
         after = self.debouncer.update(reading, now_ms)
         if not self.connected:
@@ -112,6 +135,6 @@ class NodeLogic:
         if after != before:
             return self.state_message(now_ms)
         last = self.last_publish_ms
-        if last is None or now_ms - last >= self.heartbeat_ms:
+        if last is None or ticks_diff(now_ms, last) >= self.heartbeat_ms:
             return self.state_message(now_ms)
         return None

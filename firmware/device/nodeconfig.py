@@ -129,9 +129,15 @@ def parse(d) -> dict:
     c["threshold_mm"] = 1000
     c["caution_mm"] = 0
     c["samples"] = 5
+    c["warmup_ms"] = 0
     if c["sensor_type"] in ("pir", "ir_beam"):
         c["pin"] = _pin(sensor, "pin", (0, 2, 15, 16) if c["sensor_type"] == "ir_beam" else (0, 2, 15))
         c["invert"] = _bool(sensor, "invert", False, "sensor.")
+        if c["sensor_type"] == "pir":  # absent or null: an HC-SR501's 60 s
+            warmup = sensor.get("warmup_s")
+            c["warmup_ms"] = int((60 if warmup is None else _num(sensor, "warmup_s", where="sensor.")) * 1000)
+            if not 0 <= c["warmup_ms"] <= 600000:
+                raise ConfigError("config: sensor.warmup_s must be in [0, 600]")
     elif c["sensor_type"] == "hcsr04":
         c["trigger_pin"] = _pin(sensor, "trigger_pin", ())
         c["echo_pin"] = _pin(sensor, "echo_pin", (0, 2, 15, c["trigger_pin"]))

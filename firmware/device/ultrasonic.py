@@ -11,7 +11,9 @@ from micropython import const
 from sensing import ultrasonic_level
 
 _ECHO_TIMEOUT_US = const(30000)
-"""~5 m round trip: beyond the HC-SR04's range, and short enough that N pings fit well inside the watchdog."""
+"""~5 m round trip: beyond the HC-SR04's range. `time_pulse_us` applies it twice (waiting for the echo to start,
+then for it to end), so a ping without echo costs up to 60 ms: 15 of them, with the gaps, ~1.25 s, which is why
+`reading` feeds the watchdog between pings."""
 _PING_GAP_MS = const(25)
 """Let the previous ping's echoes die out before the next one (cross-talk from the walls of a corridor)."""
 
@@ -30,13 +32,16 @@ class Ultrasonic:
         self.caution_mm = caution_mm
         self._pulses = [0] * samples
 
-    def reading(self) -> int:
+    def reading(self, feed=None) -> int:
         """`samples` pings (10 us trigger pulse, then the echo's length in us, negative on timeout: no echo), one
-        function rather than a method per ping: each function is bytecode kept on the 38 KiB heap."""
+        function rather than a method per ping: each function is bytecode kept on the 38 KiB heap. `feed` (the
+        node's watchdog feed) is called before each ping: at most ~85 ms pass between two calls."""
         trig = self._trig
         echo = self._echo
         pulses = self._pulses
         for i in range(len(pulses)):
+            if feed is not None:
+                feed()
             if i:
                 time.sleep_ms(_PING_GAP_MS)
             trig.value(0)

@@ -3,7 +3,7 @@ pytest calls each check_* function under CPython, and runs `micropython -m logic
 board's VM. Prints "ok N" after N checks passed."""
 
 from backoff import Backoff
-from debounce import BLOCKED, CAUTION, CLEAR, Debouncer
+from debounce import BLOCKED, CAUTION, CLEAR, Debouncer, ticks_add, ticks_diff
 from diagnostics import FIRMWARE_VERSION, INFO_PERIOD_MS, info
 from node_logic import NodeLogic
 from nodeconfig import valid_id
@@ -138,8 +138,8 @@ def check_node_logic_publishes_caution():
 
 def check_diagnostics_payload():
     n = NodeLogic("s", "z1", "n1", 100, 100, 1000, 0)
-    msg = info(n, 3723000, 3, 1, -61, 8000, 'OSError: "x"\\y')
-    assert msg[0] == "wsn/s/nodes/n1/info" and msg[2:] == (True, 0, 3723000 + INFO_PERIOD_MS)
+    msg = info(n, 3723, 3, 1, -61, 8000, 'OSError: "x"\\y')
+    assert msg[0] == "wsn/s/nodes/n1/info" and msg[2:] == (True, 0) and INFO_PERIOD_MS == 300000
     assert msg[1].encode() == (
         b'{"v":1,"node":"n1","fw":"' + FIRMWARE_VERSION.encode() + b'","reset":"watchdog","uptime_s":3723,'
         b'"rssi":-61,"heap_free":8000,"reconnects":2,"error":"OSError: \'x\'/y"}'
@@ -151,6 +151,46 @@ def check_diagnostics_payload():
         + FIRMWARE_VERSION.encode()
         + b'","reset":"unknown","uptime_s":0,"reconnects":0}'
     )
+
+
+def check_heartbeat_and_debounce_across_the_clock_wrap():
+    """Times are ticks (each VM's wrapping clock; 2**30 on the board): a heartbeat, a held-back glitch and the
+    delays come out the same when the clock wraps in the middle of them."""
+    for t0 in (0, ticks_add(0, -1500), ticks_add(0, -100), ticks_add(0, -30)):
+        n = NodeLogic("s", "z1", "n1", 500, 1000, 2000, 0)
+
+        def at(ms):
+            return ticks_add(t0, ms)
+
+        n.on_connect(at(0))
+        n.last_publish_ms = at(0)  # the heartbeat phase aside
+        assert n.step(True, at(100)) is None and n.step(False, at(400)) is None  # a glitch
+        assert n.step(False, at(1999)) is None
+        beat = n.step(False, at(2000))
+        assert beat is not None and n.state == "clear", t0
+        assert n.step(True, at(2100)) is None and n.step(True, at(2599)) is None
+        assert n.step(True, at(2600)) is not None and n.state == "blocked"
+        assert n.debouncer.pending_ms(at(2600)) == -1 and ticks_diff(at(2600), t0) == 2600
+        assert n.step(False, at(2700)) is None and n.debouncer.pending_ms(at(3200)) == 500
+        assert n.step(False, at(3700)) is not None and n.state == "clear"
+
+
+def check_pir_warm_up_holds_the_state_back():
+    """An HC-SR501 fires at random for up to a minute after power-on: during the warm-up a connect sends the birth
+    alone, readings are ignored (no blocked), and the state goes out when it ends, debounced from then on."""
+    n = NodeLogic("s", "z1", "n1", 500, 1000, 10000, 0, 60000)
+    assert n.step(True, 0) is None  # the first reading starts the warm-up
+    msgs = n.on_connect(1000)
+    assert [m[0] for m in msgs] == ["wsn/s/nodes/n1/status"]
+    for t in range(1000, 60000, 50):  # the pin fires throughout: nothing is published
+        assert n.step(True, t) is None, t
+    first = n.step(False, 60000)
+    assert first is not None and first[1] == zone_state_payload("z1", "n1", "clear", 1)
+    assert n.step(True, 60100) is None and n.step(True, 60599) is None
+    msg = n.step(True, 60600)
+    assert msg is not None and n.state == "blocked"
+    again = n.on_connect(61000)  # after the warm-up a reconnect sends the state as usual
+    assert len(again) == 2 and again[1][1] == zone_state_payload("z1", "n1", "blocked", 3)
 
 
 def check_seq_wraps_below_2_to_30():

@@ -27,7 +27,7 @@ class FastClock:
     def __init__(self) -> None:
         self.t = 0
 
-    def now_ms(self) -> int:
+    def ticks_ms(self) -> int:
         return self.t
 
     def sleep_ms(self, ms: int) -> None:
@@ -40,7 +40,7 @@ class PatternSensor:
     def __init__(self, clock) -> None:
         self.clock = clock
 
-    def reading(self) -> bool:
+    def reading(self, feed=None) -> bool:
         t = self.clock.t
         return (t % 97000) < 20000 or (t % 13000) < 200
 
@@ -62,14 +62,12 @@ def main():
     gc.collect()
     start_free = gc.mem_free()
     lowest = start_free
-    until = 60000
-    while until <= sim_ms:
-        node.run(until)
+    while clock.t < sim_ms:
+        node.run(60000)
         gc.collect()
         free = gc.mem_free()
         if free < lowest:
             lowest = free
-        until += 60000
     print("stat heap_start", start_free, "heap_lowest", lowest, "heap_end", gc.mem_free())
     print("stat publications", node.logic.publications, "connects", node.connects, "errors", node.errors)
     print("stat pings", node.client.pings, "feeds", getattr(machine.WDT, "feeds", -1), "sim_s", clock.t // 1000)

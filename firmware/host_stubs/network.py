@@ -1,12 +1,16 @@
 """Test-only stand-in for the ESP8266 `network` module: the station is connected as soon as it is active
 (the real ESP8266 also rejoins its saved access point by itself when config.json leaves wifi.ssid empty),
-unless the file `$WSNAV_PINS/wifi_down` exists: then the access point is out of reach."""
+unless the file `$WSNAV_PINS/wifi_down` exists or a driver sets `sdk[3]`: then the access point is out of reach.
+`sdk` is the SDK's flash and counters: [saved SSID, flash writes (each connect with credentials), joins (every
+connect), access point out]. Kept small: on the 38 KiB heap the stub costs what the board (ROM) never pays."""
 
 import os
 
 
 STA_IF = 0
 AP_IF = 1
+STAT_WRONG_PASSWORD = 2
+sdk = ["", 0, 0, False]
 
 
 class WLAN:
@@ -15,7 +19,9 @@ class WLAN:
     def __init__(self, id=STA_IF):  # few names: each is a qstr the board has in ROM (firmware/device/diagnostics.py)
         self._active = id == AP_IF
 
-    def config(self, pm):
+    def config(self, what=None, pm=2):
+        if what:
+            return sdk[0]  # 'ssid', the only setting the firmware reads
         WLAN.pm = pm  # the radio's sleep type, global as on the ESP8266 (which boots in modem sleep, 2)
 
     def active(self, on=None):
@@ -24,15 +30,21 @@ class WLAN:
         return self._active
 
     def connect(self, ssid=None, password=None):
-        pass
+        sdk[2] += 1
+        if ssid:
+            sdk[0] = ssid
+            sdk[1] += 1
 
     def disconnect(self):
         pass
 
-    def status(self, _):
-        return -58  # 'rssi', the only status the firmware asks for
+    def status(self, what=None):
+        # 'rssi' (the only status the firmware names), else STAT_GOT_IP (5) or STAT_NO_AP_FOUND (3)
+        return -58 if what else 5 if self.isconnected() else 3
 
     def isconnected(self):
+        if sdk[3]:
+            return False
         try:
             os.stat((os.getenv("WSNAV_PINS") or "/tmp/wsnav-pins") + "/wifi_down")
             return False
