@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import queue
+import random
 import socket
 import subprocess
 import sys
@@ -174,6 +175,22 @@ def connect_reason(
         return c.connect(will)
     finally:
         c.close()
+
+
+def port_outside_ephemeral_range(host: str = "127.0.0.1") -> int:
+    """A free port the kernel never hands to an outgoing connection: a broker restarted on it cannot find it
+    taken by a client that, retrying while the broker was down, connected to itself from that very port."""
+    low, _ = (int(v) for v in Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split())
+    rng = random.Random()
+    for _ in range(200):
+        port = rng.randrange(max(1024, low - 12000), low)
+        with socket.socket() as probe:
+            try:
+                probe.bind((host, port))
+                return port
+            except OSError:
+                continue
+    raise RuntimeError("no free port below the ephemeral range")
 
 
 def wait_listening(host: str, port: int, proc: subprocess.Popen[bytes] | None = None) -> None:

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.broker_fixtures import port_outside_ephemeral_range
 from tests.site_fixtures import tiny_site
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.broker.amqtt.server import BrokerStartError
@@ -61,9 +62,9 @@ def test_messages_are_queued_in_order_and_stamped_with_the_bus_clock(tmp_path: P
 
 
 def restarted(site: Path, creds: Path, data: Path, port: int, timeout_s: float = 20.0) -> BrokerThread:
-    """The broker started again on `port`. The port came from the ephemeral range (port=0), so in the moment it
-    was free any outgoing connection on the machine may have been given it as its own: wait for it to be let go
-    (a CI run once lost this race), as a restarted service would be retried."""
+    """The broker started again on `port`, retried while the port is still taken (a restarted service would be
+    retried too). The port lies below the ephemeral range: from it (port=0), the robot's own reconnects once
+    connected to themselves on the broker's port and held it past the retries (CI, twice)."""
     deadline = time.monotonic() + timeout_s
     while True:
         broker = BrokerThread(site, creds, data_dir=data, port=port)
@@ -82,8 +83,8 @@ def test_abort_publishes_the_will_and_a_restarted_broker_gets_the_subscriptions_
     status = topics.node_status(SITE, "n1")
     creds = tmp_path / "creds"
     write_credentials(load_site(site).spec, creds)
-    with BrokerThread(site, creds, data_dir=tmp_path / "data", port=0) as broker:
-        port = broker.port
+    port = port_outside_ephemeral_range()
+    with BrokerThread(site, creds, data_dir=tmp_path / "data", port=port) as broker:
         robot = bus_for(broker, "robot1")
         robot.subscribe(topics.all_node_statuses(SITE))
         node = bus_for(broker, "n1", will=Will(status, b"offline"), birth=Will(status, b"online"))
