@@ -90,8 +90,8 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         "--node-publish-rate",
         type=float,
         default=NODE_PUBLISH_RATE,
-        help="messages per second a node may publish (bursts of 100); over it QoS 0 is dropped and QoS 1 "
-        "ends the connection; 0 = no limit",
+        help="messages per second a node may publish (bursts of 100); faster ones are read at this rate "
+        "(TCP backpressure), nothing is dropped; 0 = no limit",
     )
     run.add_argument(
         "--session-expiry",

@@ -3,7 +3,7 @@
 An insider with one credential passes the ACL, so the ACL alone does not bound what it costs the broker:
 100,000 subscription filters from one robot made node -> robot latency 7 s on amqtt, 2,000 parked persistent
 sessions from one node never expired, and one node's QoS 0 flood delayed every other node's updates by
-seconds. Retained messages need no limit of their own: every identity but the operator may publish to a fixed
+seconds. Rates (a node's PUBLISH, anyone's SUBSCRIBE, anyone's logins) are held by backpressure, not drops. Retained messages need no limit of their own: every identity but the operator may publish to a fixed
 handful of topics (wsnav.broker.acl), so it holds at most that many retained messages of at most the packet cap.
 The numbers are far above what the site's own clients use (an agent holds 6 subscriptions, a node publishes a
 few messages a minute) and far below what hurt.
@@ -32,17 +32,35 @@ NODE_PUBLISH_RATE = 20.0
 NODE_PUBLISH_BURST = 100
 """Messages a node may send at once before the rate applies (a reconnect sends its state, status and info)."""
 
+SUBSCRIBE_RATE = 5.0
+"""SUBSCRIBE and UNSUBSCRIBE packets per second of any identity (an agent sends a handful at each connect)."""
+
+SUBSCRIBE_BURST = 50
+
+LOGIN_RATE = 2.0
+"""Logins per second of one identity (a node logs in once per Wi-Fi blip, the operator's tools a few times)."""
+
+LOGIN_BURST = 20
+
 
 @dataclass(frozen=True)
 class IdentityLimits:
-    """The per-identity limits amqtt enforces (Mosquitto 2.0 offers only the session expiry of these)."""
+    """The per-identity limits amqtt enforces (Mosquitto 2.0 offers only the session expiry of these).
+
+    Rates are enforced by backpressure: a packet over its identity's rate is read only when the rate allows it,
+    so the sender's socket fills and TCP slows it down; the broker spends nothing on the excess, and nothing a
+    client sent is dropped. A rate of None turns that limit off (a broker serving simulated nodes whose clock
+    runs faster than real time)."""
 
     max_subscriptions: int = MAX_SUBSCRIPTIONS
     session_expiry_s: int = SESSION_EXPIRY_S
     max_sessions: int = MAX_SESSIONS
     node_publish_rate: float | None = NODE_PUBLISH_RATE
-    """None: no rate limit (a broker serving simulated nodes whose clock runs faster than real time)."""
     node_publish_burst: int = NODE_PUBLISH_BURST
+    subscribe_rate: float | None = SUBSCRIBE_RATE
+    subscribe_burst: int = SUBSCRIBE_BURST
+    login_rate: float | None = LOGIN_RATE
+    login_burst: int = LOGIN_BURST
 
 
 @dataclass
@@ -52,41 +70,43 @@ class _Bucket:
 
 
 @dataclass
-class PublishBudget:
-    """A token bucket per node identity, shared by all its connections (16 connections get no more)."""
+class RateBudget:
+    """A token bucket per identity, shared by all its connections (16 connections get no more than one)."""
 
+    what: str
+    """What is counted, for the log line ("PUBLISH", "logins"...)."""
     rate: float
     burst: int
-    nodes: frozenset[str]
-    dropped: int = 0
+    delayed: int = 0
     _buckets: dict[str, _Bucket] = field(default_factory=dict[str, _Bucket])
     _last_report: float = 0.0
     _reported: int = 0
 
-    def allow(self, identity: str | None, now: float | None = None) -> bool:
-        """True if `identity` may publish one more message now; every refusal is counted."""
-        if identity not in self.nodes:
-            return True
-        assert identity is not None
+    def reserve(self, identity: str, now: float | None = None) -> float:
+        """Take one token for `identity`: the seconds to wait before the packet may be handled (0: at once)."""
         now = time.monotonic() if now is None else now
         bucket = self._buckets.get(identity)
         if bucket is None:
             bucket = self._buckets[identity] = _Bucket(float(self.burst), now)
         bucket.tokens = min(float(self.burst), bucket.tokens + (now - bucket.at) * self.rate)
         bucket.at = now
-        if bucket.tokens >= 1.0:
-            bucket.tokens -= 1.0
-            return True
-        self.dropped += 1
+        bucket.tokens -= 1.0
+        if bucket.tokens >= 0.0:
+            return 0.0
+        self.delayed += 1
         self._report(identity, now)
-        return False
+        return -bucket.tokens / self.rate
 
     def _report(self, identity: str, now: float) -> None:
-        """One warning per 10 s at most, however hard a node floods."""
+        """One warning per 10 s at most, however hard an identity pushes."""
         if now - self._last_report < 10.0:
             return
         log.warning(
-            f"node {identity!r} publishes faster than {self.rate:g}/s: dropped {self.dropped - self._reported} "
-            "message(s) over the rate since the last report (QoS 0 dropped, QoS 1 ends the connection)"
+            f"{identity!r} sends {self.what} faster than {self.rate:g}/s: {self.delayed - self._reported} held "
+            "back to the rate since the last report"
         )
-        self._last_report, self._reported = now, self.dropped
+        self._last_report, self._reported = now, self.delayed
+
+
+def budget(what: str, rate: float | None, burst: int) -> RateBudget | None:
+    return None if rate is None else RateBudget(what, rate, burst)

@@ -40,8 +40,9 @@ from wsnav.schemas.site_file import SiteFile
 
 SiteLike = Site | SiteFile | Path | str
 
-SIMULATION_LIMITS = IdentityLimits(node_publish_rate=None)
-"""Simulated nodes run as fast as the experiment's clock goes, far above a real node's rate."""
+SIMULATION_LIMITS = IdentityLimits(node_publish_rate=None, login_rate=None)
+"""Simulated nodes run as fast as the experiment's clock goes, far above a real node's rate (and reconnect as
+often)."""
 
 
 @dataclass

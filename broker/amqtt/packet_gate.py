@@ -212,9 +212,9 @@ class GateReader(ReaderAdapter):
         self._closed = False
         self.connect_seen = asyncio.Event()
         """Set once a well-formed CONNECT has been read (the connection is no longer an idle socket)."""
-        self.publish_allowed: Callable[[], bool] | None = None
-        """Asked for each PUBLISH once the client has logged in (a node's rate): False drops a QoS 0 message
-        unseen and ends the connection on QoS 1, which the client expects an answer to."""
+        self.packet_delay: Callable[[int], float] | None = None
+        """Asked with each packet's type after the CONNECT: seconds to wait before handing it on (its identity's
+        rate, wsnav.broker.identity_limits); the wait is backpressure, as the socket is not read meanwhile."""
 
     async def read(self, n: int = -1) -> bytes:
         while not self._closed and (n < 0 or len(self._buffer) < n):
@@ -244,10 +244,10 @@ class GateReader(ReaderAdapter):
         if self._first:
             self._first = False
             self.connect_seen.set()
-        elif header >> 4 == PUBLISH and self.publish_allowed is not None and not self.publish_allowed():
-            if (header >> 1) & 3:
-                return self._stop("QoS 1 messages over the publish rate")
-            return True
+        elif self.packet_delay is not None:
+            delay = self.packet_delay(header >> 4)
+            if delay > 0.0:
+                await asyncio.sleep(delay)
         self._buffer += bytes([header]) + encoded + body
         return True
 

@@ -48,9 +48,9 @@ from amqtt.utils import gen_client_id
 from websockets.asyncio.server import ServerConnection
 
 from wsnav.broker.amqtt.admission import Admission, Ticket
-from wsnav.broker.amqtt.packet_gate import MAX_PACKET_BYTES, GateReader
+from wsnav.broker.amqtt.packet_gate import MAX_PACKET_BYTES, PUBLISH, SUBSCRIBE, UNSUBSCRIBE, GateReader
 from wsnav.broker.credentials import file_stamp, read_password_file
-from wsnav.broker.identity_limits import IdentityLimits, PublishBudget
+from wsnav.broker.identity_limits import IdentityLimits, budget
 from wsnav.schemas.credentials import CredentialsError
 
 log = logging.getLogger("wsnav.broker")
@@ -147,10 +147,11 @@ class WsnavBroker(Broker):
         self.max_packet_bytes = max_packet_bytes
         self.connect_timeout_s = connect_timeout_s
         self.limits = limits or IdentityLimits()
-        rate = self.limits.node_publish_rate
-        self.publish_budget = (
-            None if rate is None else PublishBudget(rate, self.limits.node_publish_burst, nodes)
-        )
+        limits = self.limits
+        self.nodes = nodes
+        self.publish_budget = budget("PUBLISH", limits.node_publish_rate, limits.node_publish_burst)
+        self.subscribe_budget = budget("SUBSCRIBE", limits.subscribe_rate, limits.subscribe_burst)
+        self.login_budget = budget("logins", limits.login_rate, limits.login_burst)
         self._subscription_count: dict[str | None, int] = {}
         self.refused_subscriptions = 0
         self.dropped_sessions = 0
@@ -233,9 +234,7 @@ class WsnavBroker(Broker):
             reader, reject, max_bytes=self.max_packet_bytes, connect_timeout_s=self.connect_timeout_s
         )
         setattr(gate, "ticket", ticket)  # noqa: B010  (read back in _initialize_client_session)
-        budget = self.publish_budget
-        if budget is not None:
-            gate.publish_allowed = lambda: budget.allow(ticket.identity)
+        gate.packet_delay = partial(self._packet_delay, ticket)
         try:
             await self._client_connected(listener_name, gate, writer)
         finally:
@@ -272,6 +271,10 @@ class WsnavBroker(Broker):
             await handler.mqtt_connack_authorize(False)
             await writer.close()
             raise AMQTTError(f"connection refused: {username!r} holds its maximum of connections")
+        if self.login_budget is not None:
+            wait = self.login_budget.reserve(username)
+            if wait > 0.0:
+                await asyncio.sleep(wait)  # a login storm of one identity waits its turn, others do not
         if not session.client_id:
             session.client_id = gen_client_id()
         session.client_id = session_key(username, session.client_id)
@@ -292,6 +295,18 @@ class WsnavBroker(Broker):
             setattr(handler, "handle_read_timeout", partial(_drop_silent_client, handler))  # noqa: B010
         setattr(session, _PREAUTHORIZED, True)
         return handler, session
+
+    def _packet_delay(self, ticket: Ticket, kind: int) -> float:
+        """How long a packet of `kind` from this connection waits: its identity's PUBLISH (nodes only) or
+        SUBSCRIBE/UNSUBSCRIBE rate."""
+        identity = ticket.identity
+        if identity is None:
+            return 0.0
+        if kind == PUBLISH and identity in self.nodes and self.publish_budget is not None:
+            return self.publish_budget.reserve(identity)
+        if kind in (SUBSCRIBE, UNSUBSCRIBE) and self.subscribe_budget is not None:
+            return self.subscribe_budget.reserve(identity)
+        return 0.0
 
     async def _make_room_for_session(self, username: str) -> None:
         """A new persistent session of `username`: drop its longest-parked ones beyond `max_sessions`.
