@@ -14,6 +14,7 @@ if TYPE_CHECKING:  # the submodules load when imported, not with the package
         sim_node,
         zone_feed,
         zone_grid,
+        zone_source,
     )
 
 __all__ = [
@@ -26,4 +27,5 @@ __all__ = [
     "sim_node",
     "zone_feed",
     "zone_grid",
+    "zone_source",
 ]

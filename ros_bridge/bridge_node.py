@@ -27,15 +27,15 @@ from wsnav.ros_bridge.costmap_params import check_global_costmap
 from wsnav.ros_bridge.move_base_supervisor import Action, Cancel, Goal, MoveBaseSupervisor, Resend
 from wsnav.ros_bridge.ros_env import master_alive, master_param, master_uri, require_rospy, wait_for_master
 from wsnav.ros_bridge.zone_feed import ZoneFeed
-from wsnav.ros_bridge.zone_grid import UnrepresentableCost, UpdateWindow, ZoneGridCodec
+from wsnav.ros_bridge.zone_grid import UpdateWindow, ZoneGridCodec
+from wsnav.ros_bridge.zone_source import LinkWatch, load_bridge_site, refuse_bad_login, start_broker_link
 from wsnav.runtime.bus import Bus
 from wsnav.runtime.cli_support import CliError
 from wsnav.runtime.clock import WallClock
-from wsnav.runtime.mqtt_bus import BusError, connect_with_credentials
 from wsnav.schemas import topics
 from wsnav.schemas.credentials import Credentials
 from wsnav.schemas.messages import PayloadError, RobotGoal, parse_payload
-from wsnav.schemas.site import Site, SiteError, load_site
+from wsnav.schemas.site import Site
 from wsnav.zones.cost_values import LETHAL_OBSTACLE
 from wsnav.zones.geometry import Bounds, GridFrame
 
@@ -63,20 +63,10 @@ class BridgeOptions:
 
 def bridge_command(args: argparse.Namespace) -> int:
     require_rospy()
-    from wsnav.robot_agent.robot_command import read_credentials
-
-    try:
-        site = load_site(args.site)
-    except SiteError as exc:
-        raise CliError(str(exc)) from None
-    creds = read_credentials(args.credentials, site)
+    loaded = load_bridge_site(args.site, args.credentials)
+    site, creds, codec = loaded.site, loaded.creds, loaded.codec
     if args.robot is not None and args.robot != creds.username:
         raise CliError(f"--robot {args.robot}: the credentials are robot {creds.username!r}'s")
-    codec = ZoneGridCodec()
-    try:
-        codec.check({site.spec.policy.caution_cost})
-    except UnrepresentableCost as exc:
-        raise CliError(f"{site.path}: policy.caution_cost: {exc}") from None
     options = BridgeOptions(
         frame_id=args.frame,
         namespace=args.namespace.rstrip("/"),
@@ -93,15 +83,8 @@ def bridge_command(args: argparse.Namespace) -> int:
     wait_for_master(uri)
     if args.robot is not None and not args.no_costmap_check:
         check_move_base(uri, options)
-    host, port = args.broker
-    try:
-        bus = connect_with_credentials(host, port, creds, clock=WallClock(), wait=False, tls_ca=args.tls_ca)
-    except BusError as exc:
-        raise CliError(str(exc)) from None
-    bus.wait_answered(args.connect_timeout)
-    if bus.refusal is not None:  # a wrong password is a set-up to fix, not an outage to ride out
-        bus.abort()
-        raise CliError(f"MQTT broker {host}:{port} refused the login: {bus.refusal} (check the credentials)")
+    bus = start_broker_link(args.broker, creds, args.tls_ca)
+    refuse_bad_login(bus, args.connect_timeout)
     try:
         restart = ZoneBridgeNode(site, creds, bus, codec, options).run(uri)
     finally:
@@ -477,34 +460,6 @@ def say(text: str, *, warn: bool = False) -> None:
     import rospy
 
     (rospy.logwarn if warn else rospy.loginfo)(text)
-
-
-class LinkWatch:
-    """Says, loudly and once per change, when the MQTT link is down (the grid still serves its last states, read
-    by the site's stale policy) and when it is back: a bridge without its broker must keep the grid up, or a
-    StaticLayer waiting for its map holds move_base's start."""
-
-    REPEAT_S = 60.0
-
-    def __init__(self, stale_policy: str, now: float) -> None:
-        self.stale_policy = stale_policy
-        self.up: bool | None = None
-        self._said_at = now
-
-    def check(self, connected: bool, now: float) -> str | None:
-        if connected == self.up and (connected or now - self._said_at < self.REPEAT_S):
-            return None
-        was, self.up, self._said_at = self.up, connected, now
-        if connected:
-            return (
-                "MQTT broker connected: zone states are live"
-                if was is None
-                else "MQTT broker back: zone states are live again"
-            )
-        return (
-            "MQTT broker unreachable: the zone grid is served but not updated; zones whose nodes fall silent "
-            f"are read by the site's stale policy ({self.stale_policy!r})"
-        )
 
 
 def current_grid_message(node: ZoneBridgeNode) -> Any:

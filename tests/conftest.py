@@ -43,8 +43,9 @@ SLOW_MODULES = {
     "test_experiments_cluster.py",
     "test_firmware_update.py",
     "test_firmware_node.py",
+    "test_ros2_bridge.py",
 }
-"""Every test here runs a process stack: docker, a browser, ROS, MicroPython boards, Dask processes."""
+"""Every test here runs a process stack: docker, a browser, ROS, DDS peers, MicroPython boards, Dask processes."""
 SLOW_TESTS = {
     "test_broker_credentials.py::test_mosquitto_keeps_messages_for_a_subscriber_that_stalls",
     "test_ros_costmap_params.py::test_roslaunch_starts_the_bridge_with_its_parameters_from_a_yaml",

@@ -12,6 +12,7 @@ from wsnav.broker import cli as broker_cli
 from wsnav.console import cli as console_cli
 from wsnav.firmware import cli as firmware_cli
 from wsnav.robot_agent import cli as robot_agent_cli
+from wsnav.ros2_bridge import cli as ros2_bridge_cli
 from wsnav.ros_bridge import cli as ros_bridge_cli
 from wsnav.ros_bridge import robot_cli as ros_bridge_robot_cli
 from wsnav.runtime.cli_support import CliError, Parser
@@ -31,6 +32,7 @@ REGISTRARS: list[Registrar] = [
     fleet_cli.register,
     ros_bridge_cli.register,
     ros_bridge_robot_cli.register,
+    ros2_bridge_cli.register,
     console_cli.register,
 ]
 

@@ -1,0 +1,159 @@
+"""`wsnav ros2 bridge`: the ROS 1 bridge's zone grid (same MQTT intake, same values) as ROS 2 topics on DDS.
+
+The grid is written from the site before the broker answers (every zone as the site's policy reads a zone with no
+word yet), so a Nav2 costmap waiting for its second static map does not hold its start on MQTT; then it is written
+again, whole, on every change. Broker outages are ridden out and said once each way.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import re
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from wsnav.ros_bridge.zone_feed import ZoneFeed
+from wsnav.ros_bridge.zone_source import LinkWatch, load_bridge_site, refuse_bad_login, start_broker_link
+from wsnav.runtime.bus import Bus
+from wsnav.runtime.cli_support import CliError
+from wsnav.runtime.clock import WallClock
+from wsnav.schemas.site import Site
+from wsnav.zones.geometry import GridFrame
+
+if TYPE_CHECKING:
+    from wsnav.ros2_bridge.writer import ZoneGridWriter
+
+log = logging.getLogger(__name__)
+
+MAX_DOMAIN_ID = 232
+"""DDS's largest domain id with the standard port mapping (ROS 2 recommends 0-101 on Linux)."""
+RETRY_WRITE_S = 1.0
+_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+class OutageWatch(LinkWatch):
+    """The ROS 1 bridge's link watch, saying an outage once (not again every minute): logs go to a file here."""
+
+    REPEAT_S = float("inf")
+
+
+@dataclass(frozen=True)
+class Ros2Options:
+    namespace: str
+    frame_id: str
+    domain: int
+
+
+def ros2_options(args: argparse.Namespace) -> Ros2Options:
+    """The ROS 2 arguments checked, each problem one line: a name ROS 2 would refuse never reaches the wire."""
+    namespace = args.namespace.strip()
+    namespace = ("/" + namespace.strip("/")) if namespace.strip("/") else ""
+    if namespace and not all(_TOKEN.fullmatch(t) for t in namespace[1:].split("/")):
+        raise CliError(
+            f"--namespace {args.namespace!r}: not a ROS 2 namespace (tokens of letters, digits and _, "
+            "not starting with a digit, separated by single '/')"
+        )
+    frame = args.frame
+    if not frame or frame.startswith("/") or any(c.isspace() for c in frame):
+        raise CliError(f"--frame {frame!r}: ROS 2 frame ids are not empty and start without '/' (e.g. map)")
+    domain = args.domain
+    if domain is None:
+        env = os.environ.get("ROS_DOMAIN_ID", "").strip()
+        if not env:
+            domain = 0
+        elif env.isdigit():
+            domain = int(env)
+        else:
+            raise CliError(f"ROS_DOMAIN_ID={env!r}: not a domain id (0-{MAX_DOMAIN_ID})")
+    if not 0 <= domain <= MAX_DOMAIN_ID:
+        raise CliError(f"--domain {domain}: a ROS 2 domain id is 0-{MAX_DOMAIN_ID}")
+    return Ros2Options(namespace, frame, domain)
+
+
+def require_cyclonedds() -> None:
+    """Fail with one line (not an ImportError traceback) when the ros2 extra is not installed."""
+    try:
+        import cyclonedds.domain  # noqa: F401  # pyright: ignore[reportUnusedImport]
+    except ImportError as exc:
+        raise CliError(
+            f"Cyclone DDS's Python package is not installed ({exc}): pip install 'wsnav[ros2]' "
+            "(or rerun `make .venv/.installed-stamp`)"
+        ) from None
+
+
+def bridge_command(args: argparse.Namespace) -> int:
+    options = ros2_options(args)
+    loaded = load_bridge_site(args.site, args.credentials)
+    require_cyclonedds()
+    from wsnav.ros2_bridge.writer import Ros2Names, ZoneGridWriter
+
+    site = loaded.site
+    frame = GridFrame.of_grid(site.grid)
+    names = Ros2Names(options.namespace)
+    writer = ZoneGridWriter(options.domain, names, options.frame_id, frame, site.grid.origin[2], loaded.codec)
+    feed = ZoneFeed(site.spec, frame)
+    clock = WallClock()
+    feed.take([], clock.now())
+    writer.write_filter_info()
+    writer.write_grid(feed)
+    log.info(
+        "zone bridge for site %s on ROS 2 domain %d: %s (%dx%d cells, frame %s), %s",
+        site.name,
+        options.domain,
+        names.grid,
+        frame.width,
+        frame.height,
+        options.frame_id,
+        names.filter_info,
+    )
+    bus = start_broker_link(args.broker, loaded.creds, args.tls_ca)
+    for topic_filter in feed.subscriptions():
+        bus.subscribe(topic_filter, qos=1)
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGTERM, lambda _n, _f: stop.set())
+    try:
+        refuse_bad_login(bus, args.connect_timeout)
+        serve(site, feed, writer, bus, clock, stop)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        bus.close()
+    return 0
+
+
+def serve(
+    site: Site, feed: ZoneFeed, writer: ZoneGridWriter, bus: Bus, clock: WallClock, stop: threading.Event
+) -> None:
+    """Until SIGTERM: MQTT messages into the feed, the whole grid out on each change (again after a failed write)."""
+    from cyclonedds.core import DDSException
+
+    link = OutageWatch(site.spec.policy.stale, time.monotonic())
+    pending = False
+    next_try = 0.0
+    failed_writes = 0
+    while not stop.is_set():
+        said = link.check(bus.connected, time.monotonic())
+        if said is not None:
+            (log.info if said.endswith("zone states are live") else log.warning)(said)
+        bus.wait(0.05)
+        pending |= bool(feed.take(bus.poll(), clock.now()))
+        if pending and time.monotonic() >= next_try:
+            try:
+                writer.write_grid(feed)
+            except (
+                DDSException
+            ) as exc:  # a reliable reader held the write up: the next try sends the newer grid
+                failed_writes += 1
+                next_try = time.monotonic() + RETRY_WRITE_S
+                if failed_writes == 1:
+                    log.warning("zone grid not written (%s): trying again every %g s", exc, RETRY_WRITE_S)
+                continue
+            pending = False
+            if failed_writes:
+                log.warning("zone grid written again after %d failed tries", failed_writes)
+                failed_writes = 0
+            log.debug("zone grid written")

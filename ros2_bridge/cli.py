@@ -1,0 +1,49 @@
+"""`wsnav ros2 bridge ...`: the zone layer for ROS 2 / Nav2, published straight on DDS (no rclpy). The bridge's
+code, and cyclonedds, load only when it runs."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from wsnav.runtime.cli_support import add_broker_arguments
+
+if TYPE_CHECKING:
+    from wsnav.runtime.cli_support import Parser
+
+
+def register(sub: argparse._SubParsersAction[Parser]) -> None:
+    ros2 = sub.add_parser("ros2", help="wsnav on ROS 2: the zone grid for Nav2, straight on DDS (no rclpy)")
+    ros2_sub = ros2.add_subparsers(dest="ros2_command", required=True, parser_class=type(ros2))
+    bridge = ros2_sub.add_parser(
+        "bridge",
+        help="publish the zone layer as a nav_msgs/msg/OccupancyGrid and a nav2_msgs/msg/CostmapFilterInfo",
+        description="ROS 2 topics on DDS through Cyclone DDS (rt/<topic>, reliable, transient_local, depth 1). "
+        "See docs/ros.md.",
+    )
+    bridge.add_argument("--site", type=Path, required=True, help="site directory or site.yaml")
+    add_broker_arguments(bridge)
+    bridge.add_argument(
+        "--credentials", type=Path, required=True, metavar="FILE", help="the robot's <id>.json"
+    )
+    bridge.add_argument(
+        "--namespace",
+        default="/wsn",
+        help="topic namespace (default /wsn: /wsn/zone_grid, /wsn/costmap_filter_info)",
+    )
+    bridge.add_argument("--frame", default="map", help="frame_id of the zone grid (default map)")
+    bridge.add_argument(
+        "--domain",
+        type=int,
+        metavar="N",
+        help="ROS 2 domain id (default: $ROS_DOMAIN_ID, else 0)",
+    )
+    bridge.add_argument("--connect-timeout", type=float, default=10.0, metavar="S", help="MQTT, default 10")
+    bridge.set_defaults(func=bridge_command)
+
+
+def bridge_command(args: argparse.Namespace) -> int:
+    from wsnav.ros2_bridge.bridge import bridge_command as run
+
+    return run(args)

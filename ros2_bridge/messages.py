@@ -1,0 +1,117 @@
+"""ROS 2 Humble's messages for the zone grid as Cyclone DDS types, and the names and QoS ROS 2 gives them on the wire.
+
+ROS 2 (rmw_cyclonedds, rmw_fastrtps) maps a topic `/a/b` to the DDS topic `rt/a/b` and a message `pkg/msg/T` to
+the DDS type `pkg::msg::dds_::T_`, serialized as plain CDR (XCDR1): so a DDS writer with these names, these fields
+in this order and these types is a ROS 2 publisher to any ROS 2 subscriber, with no rclpy. The fields follow
+Humble's .msg files (builtin_interfaces, std_msgs, geometry_msgs, nav_msgs, nav2_msgs) exactly.
+"""
+
+# No `from __future__ import annotations` here: cyclonedds reads the field types from the live annotations.
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from cyclonedds.core import Policy, Qos
+from cyclonedds.idl import IdlStruct
+from cyclonedds.idl.types import float32, float64, int8, int32, sequence, uint8, uint32
+from cyclonedds.util import duration
+
+DDS_TOPIC_PREFIX = "rt"
+"""ROS 2's prefix for topics (rmw's ros_topic_prefix): `/wsn/zone_grid` is DDS topic `rt/wsn/zone_grid`."""
+
+WRITE_BLOCK_S = 1.0
+"""How long a write may wait for a slow reliable reader before it fails (and is tried again): never hang."""
+
+
+if TYPE_CHECKING:
+    Int8Sequence = list[int]
+else:  # cyclonedds's sequence[...] is Annotated[Sequence[...], ...] at run time, which pyright does not read
+    Int8Sequence = sequence[int8]
+"""ROS 2's int8[]: an unbounded IDL sequence (serialized in one piece, unlike a plain list[int8])."""
+
+
+def dds_topic(ros_topic: str) -> str:
+    """The DDS topic name of an absolute ROS 2 topic name."""
+    return DDS_TOPIC_PREFIX + ros_topic
+
+
+@dataclass
+class Time(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
+    sec: int32 = 0
+    nanosec: uint32 = 0
+
+
+@dataclass
+class Header(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
+    stamp: Time = field(default_factory=Time)
+    frame_id: str = ""
+
+
+@dataclass
+class Point(IdlStruct, typename="geometry_msgs::msg::dds_::Point_"):
+    x: float64 = 0.0
+    y: float64 = 0.0
+    z: float64 = 0.0
+
+
+@dataclass
+class Quaternion(IdlStruct, typename="geometry_msgs::msg::dds_::Quaternion_"):
+    x: float64 = 0.0
+    y: float64 = 0.0
+    z: float64 = 0.0
+    w: float64 = 1.0
+
+
+@dataclass
+class Pose(IdlStruct, typename="geometry_msgs::msg::dds_::Pose_"):
+    position: Point = field(default_factory=Point)
+    orientation: Quaternion = field(default_factory=Quaternion)
+
+
+@dataclass
+class MapMetaData(IdlStruct, typename="nav_msgs::msg::dds_::MapMetaData_"):
+    map_load_time: Time = field(default_factory=Time)
+    resolution: float32 = 0.0
+    width: uint32 = 0
+    height: uint32 = 0
+    origin: Pose = field(default_factory=Pose)
+
+
+@dataclass
+class OccupancyGrid(IdlStruct, typename="nav_msgs::msg::dds_::OccupancyGrid_"):
+    header: Header = field(default_factory=Header)
+    info: MapMetaData = field(default_factory=MapMetaData)
+    data: Int8Sequence = field(default_factory=list)
+
+
+@dataclass
+class CostmapFilterInfo(IdlStruct, typename="nav2_msgs::msg::dds_::CostmapFilterInfo_"):
+    header: Header = field(default_factory=Header)
+    type: uint8 = 0
+    filter_mask_topic: str = ""
+    base: float32 = 0.0
+    multiplier: float32 = 1.0
+
+
+KEEPOUT_FILTER = 0
+"""CostmapFilterInfo.type of Nav2's KeepoutFilter (nav2_costmap_2d's filter_values.hpp: KEEPOUT_FILTER)."""
+
+
+def latched_qos() -> Qos:
+    """ROS 2's reliable + transient_local + keep-last 1 (Nav2's map_server and costmap_filter_info_server), as
+    rmw_cyclonedds sets it: the durability service keeps the same history, instances are not disposed when the
+    writer goes, and the data goes as XCDR1, the only representation Humble's rmw accepts."""
+    return Qos(
+        Policy.Reliability.Reliable(max_blocking_time=duration(seconds=WRITE_BLOCK_S)),
+        Policy.Durability.TransientLocal,
+        Policy.History.KeepLast(1),
+        Policy.DurabilityService(
+            cleanup_delay=0,
+            history=Policy.History.KeepLast(1),
+            max_samples=-1,
+            max_instances=-1,
+            max_samples_per_instance=-1,
+        ),
+        Policy.WriterDataLifecycle(autodispose=False),
+        Policy.DataRepresentation(use_cdrv0_representation=True),
+    )

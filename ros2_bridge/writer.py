@@ -1,0 +1,125 @@
+"""The DDS side of `wsnav ros2 bridge`: one participant, the zone grid and its CostmapFilterInfo as ROS 2 topics.
+
+Both are written reliable + transient_local with depth 1, so Nav2's StaticLayer (map_subscribe_transient_local)
+and KeepoutFilter, and any subscriber that comes later, get the last grid; the whole grid goes out on each change
+(a KeepoutFilter mask has no `_updates` topic, and a StaticLayer takes a new whole map as it comes).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+from cyclonedds.core import DDSException
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.pub import DataWriter
+from cyclonedds.topic import Topic
+
+from wsnav.ros2_bridge.messages import (
+    KEEPOUT_FILTER,
+    CostmapFilterInfo,
+    Header,
+    MapMetaData,
+    OccupancyGrid,
+    Point,
+    Pose,
+    Quaternion,
+    Time,
+    dds_topic,
+    latched_qos,
+)
+from wsnav.ros_bridge.zone_feed import ZoneFeed
+from wsnav.ros_bridge.zone_grid import ZoneGridCodec
+from wsnav.runtime.cli_support import CliError
+from wsnav.zones.geometry import GridFrame
+
+GRID_TOPIC = "zone_grid"
+FILTER_INFO_TOPIC = "costmap_filter_info"
+
+
+@dataclass(frozen=True)
+class Ros2Names:
+    """The ROS 2 topic names under a namespace (`/wsn` -> `/wsn/zone_grid`)."""
+
+    namespace: str
+
+    @property
+    def grid(self) -> str:
+        return f"{self.namespace}/{GRID_TOPIC}"
+
+    @property
+    def filter_info(self) -> str:
+        return f"{self.namespace}/{FILTER_INFO_TOPIC}"
+
+
+def ros_time(t: float) -> Time:
+    """builtin_interfaces/Time of a Unix time."""
+    ns = round(t * 1e9)
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+class ZoneGridWriter:
+    """Writes the zone feed's grid, encoded by the ROS 1 bridge's codec, as nav_msgs/msg/OccupancyGrid."""
+
+    def __init__(
+        self,
+        domain: int,
+        names: Ros2Names,
+        frame_id: str,
+        frame: GridFrame,
+        origin_yaw: float,
+        codec: ZoneGridCodec,
+    ) -> None:
+        self.names = names
+        self.frame_id = frame_id
+        self.frame = frame
+        self.origin_yaw = origin_yaw
+        self.codec = codec
+        try:
+            self.participant = DomainParticipant(domain)
+            qos = latched_qos()
+            self._grid = DataWriter(
+                self.participant, Topic(self.participant, dds_topic(names.grid), OccupancyGrid), qos=qos
+            )
+            self._info = DataWriter(
+                self.participant,
+                Topic(self.participant, dds_topic(names.filter_info), CostmapFilterInfo),
+                qos=qos,
+            )
+        except DDSException as exc:
+            raise CliError(f"cannot start DDS on ROS 2 domain {domain}: {exc}") from None
+
+    def grid_message(self, feed: ZoneFeed, now: float) -> OccupancyGrid:
+        stamp = ros_time(now)
+        half = self.origin_yaw / 2
+        return OccupancyGrid(
+            header=Header(stamp=stamp, frame_id=self.frame_id),
+            info=MapMetaData(
+                map_load_time=stamp,
+                resolution=self.frame.resolution,
+                width=self.frame.width,
+                height=self.frame.height,
+                origin=Pose(
+                    position=Point(x=self.frame.origin_x, y=self.frame.origin_y, z=0.0),
+                    orientation=Quaternion(x=0.0, y=0.0, z=math.sin(half), w=math.cos(half)),
+                ),
+            ),
+            data=self.codec.encode(feed.costs).ravel().tolist(),
+        )
+
+    def write_grid(self, feed: ZoneFeed) -> None:
+        """Raises DDSException when a reliable reader held the write up for longer than WRITE_BLOCK_S."""
+        self._grid.write(self.grid_message(feed, time.time()))
+
+    def write_filter_info(self) -> None:
+        """The KeepoutFilter's info: keepout type, this grid as the mask, base 0 and multiplier 1 (as it wants)."""
+        self._info.write(
+            CostmapFilterInfo(
+                header=Header(stamp=ros_time(time.time()), frame_id=self.frame_id),
+                type=KEEPOUT_FILTER,
+                filter_mask_topic=self.names.grid,
+                base=0.0,
+                multiplier=1.0,
+            )
+        )
