@@ -12,9 +12,9 @@ from dataclasses import dataclass
 from pydantic import ValidationError
 
 from wsnav.schemas import topics
+from wsnav.schemas.goal_check import GoalRefused, goal_target
 from wsnav.schemas.ids import ID_PATTERN
-from wsnav.schemas.messages import MAX_YAW_RAD, OperatorBlock, RobotGoal
-from wsnav.schemas.ros_map import FREE
+from wsnav.schemas.messages import OperatorBlock, RobotGoal
 from wsnav.schemas.site import Site
 
 MAX_BLOCK_S = 7 * 24 * 3600.0
@@ -107,23 +107,16 @@ def _robot(site: Site, robot: str) -> None:
 
 
 def goal(site: Site, robot: str, target: str | tuple[float, float, float]) -> Publication:
-    """A named point of the site, or a pose [x, y, yaw] on free space of the map."""
+    """A named point of the site, or a pose [x, y, yaw] on free space of the map (schemas.goal_check)."""
     _robot(site, robot)
+    try:
+        goal_target(site, target)
+    except GoalRefused as refused:
+        raise CommandError(str(refused)) from None
     if isinstance(target, str):
-        if target not in site.spec.points:
-            raise CommandError(f"unknown point {target!r} (site {site.name} has {_names(site.spec.points)})")
         msg = RobotGoal(goal=target)
     else:
         x, y, yaw = target
-        if not all(map(_finite, target)):
-            raise CommandError("a goal pose needs finite numbers")
-        if not site.grid.contains(x, y):
-            raise CommandError(f"goal [{x:g}, {y:g}] lies outside the map")
-        row, col = site.grid.world_to_cell(x, y)
-        if int(site.grid.data[row, col]) != FREE:
-            raise CommandError(f"goal [{x:g}, {y:g}] lies in a wall or unknown space")
-        if not abs(yaw) <= MAX_YAW_RAD:
-            raise CommandError(f"goal yaw {yaw:g}: expected radians within +-{MAX_YAW_RAD:g}")
         msg = RobotGoal(goal=(round(x, 3), round(y, 3), round(yaw, 3)))
     return Publication(topics.robot_goal(site.name, robot), msg.to_payload(), False)
 
@@ -138,10 +131,6 @@ def clear_status(site: Site, robot: str) -> Publication:
     robot taken out of service (or a forged status) no longer greets every agent and console that starts."""
     _robot(site, robot)
     return Publication(topics.robot_status(site.name, robot), b"", True)
-
-
-def _finite(v: float) -> bool:
-    return v == v and abs(v) != float("inf")
 
 
 def _names(ids: object) -> str:

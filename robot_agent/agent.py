@@ -38,11 +38,11 @@ from wsnav.runtime.bus import Bus, Message
 from wsnav.runtime.clock import Clock
 from wsnav.runtime.timers import Every
 from wsnav.schemas import topics
+from wsnav.schemas.goal_check import GoalRefused, read_goal
 from wsnav.schemas.messages import (
     MAX_OPERATOR_PAYLOAD_BYTES,
     ROBOT_PATH_POINTS,
     PayloadError,
-    RobotGoal,
     RobotStatus,
     SimWorld,
     parse_payload,
@@ -344,25 +344,12 @@ class RobotAgent:
     # -- inbound ------------------------------------------------------------------------------------------
 
     def _goal_of(self, message: Message) -> tuple[Pose, GoalLabel] | str | None:
-        """The goal a goal message names, "cancel", or None (dropped and counted)."""
+        """The goal a goal message names, "cancel", or None (dropped and counted: schemas.goal_check)."""
         try:
-            msg = parse_payload(RobotGoal, message.payload)
-        except PayloadError:
-            self.stats.dropped["goal_invalid"] += 1
+            return read_goal(self.site, message.payload)
+        except GoalRefused as refused:
+            self.stats.dropped[f"goal_{refused.kind}"] += 1
             return None
-        if msg.cancel:
-            return "cancel"
-        if isinstance(msg.goal, str):
-            if msg.goal not in self.site.spec.points:
-                self.stats.dropped["goal_unknown_point"] += 1
-                return None
-            return self.site.point(msg.goal), msg.goal
-        assert msg.goal is not None
-        x, y, yaw = msg.goal
-        if not all(math.isfinite(v) for v in (x, y, yaw)):
-            self.stats.dropped["goal_invalid"] += 1
-            return None
-        return (x, y, yaw), (x, y, yaw)
 
     def _take_robot_status(self, message: Message) -> None:
         """Another robot's status: its footprint goes into the robots layer until the pose is too old."""

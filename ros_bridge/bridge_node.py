@@ -34,7 +34,7 @@ from wsnav.runtime.cli_support import CliError
 from wsnav.runtime.clock import WallClock
 from wsnav.schemas import topics
 from wsnav.schemas.credentials import Credentials
-from wsnav.schemas.messages import PayloadError, RobotGoal, parse_payload
+from wsnav.schemas.goal_check import GoalRefused, read_goal
 from wsnav.schemas.site import Site
 from wsnav.zones.cost_values import LETHAL_OBSTACLE
 from wsnav.zones.geometry import Bounds, GridFrame
@@ -347,22 +347,15 @@ class ZoneBridgeNode:
         """A goal or cancel from `robots/<id>/goal`, turned into a move_base goal (or cancel)."""
         assert self.supervisor is not None
         try:
-            msg = parse_payload(RobotGoal, payload)
-        except PayloadError as exc:
-            say(f"goal dropped: {exc}", warn=True)
+            target = read_goal(self.site, payload)
+        except GoalRefused as refused:
+            say(f"goal dropped: {refused}", warn=True)
             return
         say(f"MQTT goal: {payload.decode(errors='replace')[:200]}")
-        if msg.cancel:
+        if target == "cancel":
             self._act(self.supervisor.cancel("cancelled by the operator"))
             return
-        if isinstance(msg.goal, str):
-            if msg.goal not in self.site.spec.points:
-                say(f"goal dropped: {msg.goal!r} is not a point of site {self.site.name}", warn=True)
-                return
-            pose, label = self.site.point(msg.goal), msg.goal
-        else:
-            assert msg.goal is not None
-            pose = label = (msg.goal[0], msg.goal[1], msg.goal[2])
+        pose, label = target
         self._mqtt_goals += 1
         goal = Goal(f"wsnav-mqtt-{self._mqtt_goals}-{time.time():.3f}", pose, label)
         cancel = self.supervisor.sending(goal)

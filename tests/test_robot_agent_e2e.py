@@ -170,6 +170,8 @@ def test_garbage_and_spoofed_messages_change_nothing_and_are_counted(tmp_path: P
         )
         rig.operator.publish(f"wsn/{site}/robots/robot1/goal", b'{"v": 1, "goal": "nowhere"}')
         rig.operator.publish(f"wsn/{site}/robots/robot1/goal", b"{")
+        rig.operator.publish(f"wsn/{site}/robots/robot1/goal", b'{"v": 1, "goal": [500.0, 3.0, 0.0]}')
+        rig.operator.publish(f"wsn/{site}/robots/robot1/goal", b'{"v": 1, "goal": [0.05, 0.05, 0.0]}')
         rig.operator.publish(f"wsn/{site}/operator/blocks/b1", b'{"v": 1, "zone": "z99"}')
         # Sentinels: a client's messages arrive in order, so once these are in, everything above was handled.
         rig.set_zone("z4", "clear")
@@ -185,6 +187,8 @@ def test_garbage_and_spoofed_messages_change_nothing_and_are_counted(tmp_path: P
             "oversized": 1,
             "goal_unknown_point": 1,
             "goal_invalid": 1,
+            "goal_off_map": 1,
+            "goal_in_wall": 1,
             "unknown_zone": 1,
         }
         assert np.array_equal(rig.agent.costmap.master, master)

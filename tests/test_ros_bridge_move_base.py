@@ -255,6 +255,21 @@ def test_a_zone_on_the_plan_makes_move_base_replan_at_once(
     assert any("replan now (a zone on the plan changed)" in line for line in bridge.lines), bridge.lines
 
 
+def test_an_mqtt_goal_off_the_map_or_in_a_wall_never_reaches_move_base(
+    rig: tuple[WsnavChild, Operator, dict[str, MqttBus]], move_base: FakeMoveBase
+) -> None:
+    """The agent's goal check (schemas.goal_check), in the bridge too: only a reachable place goes to move_base."""
+    bridge, operator, _ = rig
+    before = len(move_base.goals)
+    send_goal(operator, [500.0, 3.0, 0.0])
+    send_goal(operator, [0.05, 0.05, 0.0])
+    send_goal(operator, "B")  # the sentinel: goals arrive in order
+    wait_until(lambda: len(move_base.goals) > before, 15, "the sentinel goal at move_base")
+    assert [(x, y) for _, x, y in move_base.goals[before:]] == [(29.0, 22.8)]
+    dropped = [line for line in bridge.lines if "goal dropped" in line]
+    assert any("outside the map" in line for line in dropped) and any("in a wall" in line for line in dropped)
+
+
 def test_a_goal_in_a_blocked_zone_is_cancelled_whoever_sent_it(
     rig: tuple[WsnavChild, Operator, dict[str, MqttBus]], move_base: FakeMoveBase
 ) -> None:
