@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from wsnav.ros_bridge.costmap_params import check_global_costmap
 from wsnav.ros_bridge.move_base_supervisor import Action, Cancel, Goal, MoveBaseSupervisor, Resend
 from wsnav.ros_bridge.ros_env import master_alive, master_param, master_uri, require_rospy, wait_for_master
-from wsnav.ros_bridge.zone_feed import ZoneFeed
+from wsnav.ros_bridge.zone_feed import ESCAPE_COST, ZoneFeed, exit_point
 from wsnav.ros_bridge.zone_grid import UpdateWindow, ZoneGridCodec
 from wsnav.ros_bridge.zone_source import LinkWatch, load_bridge_site, refuse_bad_login, start_broker_link
 from wsnav.runtime.bus import Bus
@@ -35,9 +35,11 @@ from wsnav.runtime.clock import WallClock
 from wsnav.schemas import topics
 from wsnav.schemas.credentials import Credentials
 from wsnav.schemas.goal_check import GoalRefused, read_goal
+from wsnav.schemas.ros_map import FREE
 from wsnav.schemas.site import Site
 from wsnav.zones.cost_values import LETHAL_OBSTACLE
 from wsnav.zones.geometry import Bounds, GridFrame
+from wsnav.zones.zone_layer import BlockedArea
 
 log = logging.getLogger(__name__)
 
@@ -144,6 +146,7 @@ class ZoneBridgeNode:
         if options.robot:
             bus.subscribe(topics.robot_goal(site.name, options.robot), qos=1)
         self.updates_sent = 0
+        self._walls = site.grid.data != FREE
 
     # -- ROS wiring ----------------------------------------------------------------------------------------
 
@@ -198,6 +201,7 @@ class ZoneBridgeNode:
                     self._flush_outbox()
             if self.supervisor is not None and (now >= next_status or changes):
                 self._publish_status()
+                self._check_escape(now, OccupancyGridUpdate)
                 next_status = now + STATUS_PERIOD_S
             if time.monotonic() >= next_master_check:
                 next_master_check = time.monotonic() + MASTER_CHECK_PERIOD_S
@@ -428,6 +432,27 @@ class ZoneBridgeNode:
         self._told_unconnected = False
         self._held_since = None
 
+    def _check_escape(self, now: float, update_type: Any) -> None:
+        """Drive out of a blocked area the robot stands in (MoveBaseSupervisor.on_pose): the grid sends those
+        areas passable but dear until it is out, then lethal again."""
+        assert self.supervisor is not None
+        if self._pose is None:
+            return
+        with self._lock:
+            waits = self._master_updates.get_num_connections() > 0
+            actions = self.supervisor.on_pose(self._pose, self._exit_of, now, wait_for_master=waits)
+            changes = self.feed.set_escape(self.supervisor.escape_areas)
+            window = self.window.add([c.window for c in changes], now)
+            if window is not None:
+                self.update_pub.publish(self._update_message(update_type, window))
+                self.updates_sent += 1
+            self._act(actions)
+            self._flush_outbox()
+
+    def _exit_of(self, areas: list[BlockedArea]) -> tuple[float, float] | None:
+        assert self._pose is not None
+        return exit_point(self.frame, self.feed.blocked_mask(areas), self._walls, self._pose[:2])
+
     def _publish_status(self) -> None:
         import rospy
 
@@ -496,8 +521,11 @@ def master_shows(
     shown = data[
         window.row0 - update.y : window.row1 - update.y, window.col0 - update.x : window.col1 - update.x
     ]
-    lethal = costs[window.rows, window.cols] == LETHAL_OBSTACLE
-    return bool(np.all(shown[lethal] >= MASTER_LETHAL))
+    held = costs[window.rows, window.cols]
+    escape = held == ESCAPE_COST  # sent passable for the robot to drive out: some of it must show so
+    return bool(np.all(shown[held == LETHAL_OBSTACLE] >= MASTER_LETHAL)) and (
+        not escape.any() or bool(np.any(shown[escape] < MASTER_LETHAL))
+    )
 
 
 def same_cells(a: GridFrame, b: GridFrame) -> bool:

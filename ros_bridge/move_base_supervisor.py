@@ -15,6 +15,7 @@ up in move_base's status, and never cancels by the empty id (to actionlib that m
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -23,6 +24,7 @@ from numpy.typing import NDArray
 from wsnav.ros_bridge.zone_feed import ZoneChange, ZoneFeed
 from wsnav.schemas.messages import RobotStateValue, RobotStatus
 from wsnav.zones.geometry import Bounds
+from wsnav.zones.zone_layer import BlockedArea
 
 Pose = tuple[float, float, float]
 
@@ -70,6 +72,16 @@ class WaitingReplan:
     deadline: float
 
 
+@dataclass(frozen=True)
+class Leaving:
+    """The robot stands in blocked areas: move_base drives it to `exit` first (the areas sent passable but dear,
+    ZoneFeed.set_escape), then on to `target`. navfn clears only the robot's own cell: without this, move_base
+    found no plan out of a zone that became blocked around the robot and gave up."""
+
+    areas: frozenset[BlockedArea]
+    target: Goal
+
+
 @dataclass
 class MoveBaseSupervisor:
     robot_id: str
@@ -98,6 +110,8 @@ class MoveBaseSupervisor:
     """A replan waiting for the master costmap (see `on_zones_changed`)."""
     _listed_current: bool = False
     """move_base has listed the current goal in its status: once it stops listing it, the goal is gone."""
+    leaving: Leaving | None = None
+    _exit_reached: bool = False
 
     # -- what move_base shows ------------------------------------------------------------------------------
 
@@ -147,6 +161,8 @@ class MoveBaseSupervisor:
             return
         if code in (PENDING, ACTIVE):
             self.state = "navigating"
+        elif code == SUCCEEDED and self.leaving is not None:
+            self._exit_reached = True  # at the exit: on_pose goes on to the target
         elif code == SUCCEEDED:
             self.state, self.reason = "arrived", None
         elif code in (ABORTED, REJECTED, LOST):
@@ -165,6 +181,72 @@ class MoveBaseSupervisor:
         rows, cols = frame.world_to_cells(xy[:, 0], xy[:, 1])
         self._plan_cells = np.stack([rows, cols], axis=1).astype(np.int64)
         self.plan_length_m = float(np.hypot(*np.diff(xy, axis=0).T).sum()) if len(xy) > 1 else 0.0
+
+    # -- where the robot is --------------------------------------------------------------------------------
+
+    @property
+    def escape_areas(self) -> frozenset[BlockedArea]:
+        """The blocked areas the grid must send passable (but dear) while the robot drives out of them."""
+        return self.leaving.areas if self.leaving is not None else frozenset()
+
+    def on_pose(
+        self,
+        pose: Pose,
+        exit_of: Callable[[list[BlockedArea]], tuple[float, float] | None],
+        now: float = 0.0,
+        *,
+        wait_for_master: bool = False,
+    ) -> list[Action]:
+        """Start driving out when the robot stands in a blocked area while navigating (to the exit `exit_of`
+        finds); once out (or at the exit), go on to the goal. With `wait_for_master`, the new goal waits, as a
+        replan does, for the master costmap to show the areas passable."""
+        x, y, yaw = pose
+        inside = self.feed.blocked_areas_at(x, y)
+        if self.leaving is not None:
+            if self.state != "navigating":
+                self.leaving, self._exit_reached = None, False
+                return []
+            if any(a in self.leaving.areas for a in inside) and not self._exit_reached:
+                return []
+            areas, target = self.leaving.areas, self.leaving.target
+            self.leaving, self._exit_reached = None, False
+            self.goal = replace(
+                target, goal_id=self.goal.goal_id if self.goal is not None else target.goal_id
+            )
+            self.reason = None
+            cancel = self._cancel_if_blocked()
+            return cancel or self._replan(
+                "out of the blocked area: on to the goal", areas, now, wait_for_master
+            )
+        if self.goal is None or self.state != "navigating" or not inside:
+            return []
+        names = ", ".join(a.name for a in inside)
+        exit_xy = exit_of(inside)
+        if exit_xy is None:
+            self.state, self.reason = "cancelled", f"the robot stands in blocked {names} and found no way out"
+            return self._cancel_current(self.reason)
+        self.leaving = Leaving(frozenset(inside), self.goal)
+        self.goal = replace(self.goal, pose=(exit_xy[0], exit_xy[1], yaw))
+        self.reason = f"leaving blocked {names} before going on"
+        why = f"the robot stands in blocked {names}: driving out first"
+        return self._replan(why, self.leaving.areas, now, wait_for_master)
+
+    def _replan(
+        self, why: str, areas: frozenset[BlockedArea], now: float, wait_for_master: bool
+    ) -> list[Action]:
+        """Re-send the current goal, at once or once the master costmap shows the grid of `areas` changed."""
+        if not wait_for_master:
+            return self._resend(why)
+        window: Bounds | None = None
+        for area, w in self.feed.layer.blocked_areas():
+            if area in areas:
+                window = Bounds(w.row0, w.col0, w.row0 + w.mask.shape[0], w.col0 + w.mask.shape[1]).union(
+                    window
+                )
+        if window is None:
+            return self._resend(why)
+        self.waiting = WaitingReplan(window, why, now + MASTER_WAIT_S)
+        return []
 
     # -- what the zones say --------------------------------------------------------------------------------
 

@@ -10,13 +10,20 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.ndimage import distance_transform_edt
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
 
 from wsnav.runtime.bus import Message
 from wsnav.schemas.site_file import SiteFile
-from wsnav.zones.cost_values import FREE_SPACE, NO_INFORMATION
+from wsnav.zones.cost_values import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION
 from wsnav.zones.geometry import Bounds, CellWindow, GridFrame
 from wsnav.zones.intake import ZoneIntake
-from wsnav.zones.zone_layer import ZoneLayer
+from wsnav.zones.zone_layer import BlockedArea, ZoneLayer
+
+ESCAPE_COST = 200
+"""What a cell lethal only because of an area the robot stands in is sent as while it drives out: passable for
+navfn, but dear, as in wsnav's own navigator (navigation/behaviors/escape.py)."""
 
 
 @dataclass(frozen=True)
@@ -35,6 +42,8 @@ class ZoneFeed:
         """The zone layer's cost of every cell of the map, as last sent: NO_INFORMATION (-1 on the grid) outside
         every zone and block, as the agent's own zone layer offers it, so costmap_2d's updateWithMax leaves the
         map there as it is (a 0 would make the map's unknown space free in move_base's master)."""
+        self.escaping: frozenset[BlockedArea] = frozenset()
+        """Blocked areas sent at ESCAPE_COST instead of lethal: the robot stands in them (`set_escape`)."""
 
     def subscriptions(self) -> list[str]:
         return self.intake.subscriptions()
@@ -44,10 +53,25 @@ class ZoneFeed:
         for message in messages:
             self.intake.handle(message)
         self.layer.refresh(now)
+        return self._repaint(self.layer.take_changes())
+
+    def set_escape(self, areas: frozenset[BlockedArea]) -> list[ZoneChange]:
+        """Send `areas` (and no others) at ESCAPE_COST where only they make a cell lethal; the changed windows."""
+        changed = areas ^ self.escaping
+        self.escaping = areas
+        windows = {area: window for area, window in self.layer.blocked_areas()}
+        return self._repaint([_bounds(windows[a]) for a in changed if a in windows])
+
+    def _repaint(self, windows: list[Bounds]) -> list[ZoneChange]:
         out: list[ZoneChange] = []
-        for window in self.layer.take_changes():
+        for window in windows:
             old = self.costs[window.rows, window.cols]
             new = self.layer.paint(window, outside=NO_INFORMATION)
+            if self.escaping:
+                without = self.layer.paint(window, exclude=self.escaping, outside=NO_INFORMATION)
+                only_theirs = (new == LETHAL_OBSTACLE) & (without != LETHAL_OBSTACLE)
+                kept = np.where(without == NO_INFORMATION, 0, without)
+                new = np.where(only_theirs, np.maximum(kept, ESCAPE_COST), new).astype(np.uint8)
             if np.array_equal(old, new):
                 continue
             cheaper = bool((_in_master(new) < _in_master(old)).any())
@@ -55,12 +79,75 @@ class ZoneFeed:
             out.append(ZoneChange(window, cheaper))
         return out
 
+    def blocked_mask(self, areas: list[BlockedArea]) -> NDArray[np.bool_]:
+        """The cells of `areas`, as a whole-grid mask."""
+        mask = np.zeros((self.frame.height, self.frame.width), dtype=bool)
+        for area, window in self.layer.blocked_areas():
+            if area in areas:
+                mask[window.rows, window.cols] |= window.mask
+        return mask
+
+    def blocked_areas_at(self, x: float, y: float) -> list[BlockedArea]:
+        """The blocked areas whose cells hold the point."""
+        row, col = self.frame.world_to_cell(x, y)
+        if not self.frame.contains_cell(row, col):
+            return []
+        return [area for area, window in self.layer.blocked_areas() if _in_window(window, row, col)]
+
     def blocked_zones_at(self, x: float, y: float) -> list[str]:
         """Blocked zones and operator polygon blocks whose cells hold the point, by their display names."""
         row, col = self.frame.world_to_cell(x, y)
         if not self.frame.contains_cell(row, col):
             return []
         return [area.name for area, window in self.layer.blocked_areas() if _in_window(window, row, col)]
+
+
+def exit_point(
+    frame: GridFrame,
+    blocked: NDArray[np.bool_],
+    walls: NDArray[np.bool_],
+    start: tuple[float, float],
+    margin_m: float = 0.35,
+    search_m: float = 6.0,
+) -> tuple[float, float] | None:
+    """The nearest place, by the way there (not as the crow flies: a room behind the corridor's wall is not an
+    exit), at least `margin_m` from every `blocked` cell and on no wall, within `search_m` of `start`."""
+    row, col = frame.world_to_cell(*start)
+    reach = int(search_m / frame.resolution)
+    r0, c0 = max(0, row - reach), max(0, col - reach)
+    r1, c1 = min(frame.height, row + reach + 1), min(frame.width, col + reach + 1)
+    passable = ~walls[r0:r1, c0:c1]
+    away = (
+        np.asarray(distance_transform_edt(~blocked[r0:r1, c0:c1]), dtype=float) * frame.resolution >= margin_m
+    )
+    height, width = passable.shape
+    index = np.arange(height * width).reshape(height, width)
+    rows_a: list[NDArray[np.int64]] = []
+    rows_b: list[NDArray[np.int64]] = []
+    weights: list[NDArray[np.float64]] = []
+    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):  # each 8-neighbour pair once (the graph is undirected)
+        ra, ca = slice(0, height - dr), slice(max(0, -dc), width - max(0, dc))
+        rb, cb = slice(dr, height), slice(max(0, dc), width - max(0, -dc))
+        both = passable[ra, ca] & passable[rb, cb]
+        rows_a.append(index[ra, ca][both])
+        rows_b.append(index[rb, cb][both])
+        weights.append(np.full(int(both.sum()), float(np.hypot(dr, dc))))
+    graph = csr_matrix(
+        (np.concatenate(weights), (np.concatenate(rows_a), np.concatenate(rows_b))),
+        shape=(index.size, index.size),
+    )
+    way = dijkstra(graph, directed=False, indices=int(index[row - r0, col - c0])).reshape(height, width)
+    candidates = np.where(passable & away & np.isfinite(way), way, np.inf)
+    best = np.unravel_index(int(np.argmin(candidates)), candidates.shape)
+    if not np.isfinite(candidates[best]):
+        return None
+    return frame.cell_to_world(int(best[0]) + r0, int(best[1]) + c0)
+
+
+def _bounds(window: CellWindow) -> Bounds:
+    return Bounds(
+        window.row0, window.col0, window.row0 + window.mask.shape[0], window.col0 + window.mask.shape[1]
+    )
 
 
 def _in_master(costs: NDArray[np.uint8]) -> NDArray[np.uint8]:

@@ -450,3 +450,49 @@ def test_the_goal_is_re_sent_only_once_move_bases_master_costmap_shows_the_zone(
     wait_until(lambda: len(move_base.goals) > before + 1, 10, "the goal re-sent after z1 was blocked")
     assert len(move_base.master_updates) > updates, "re-sent before the master costmap showed z1"
     assert move_base.goal_times[-1] >= move_base.master_updates[updates]
+
+
+def robot_at(move_base: FakeMoveBase, x: float, y: float) -> None:
+    """Move the robot (map -> base_footprint) where the test needs it."""
+    import rospy
+    from geometry_msgs.msg import TransformStamped
+
+    tf = TransformStamped()
+    tf.header.stamp = rospy.Time.now()
+    tf.header.frame_id, tf.child_frame_id = "map", "base_footprint"
+    tf.transform.translation.x, tf.transform.translation.y = x, y
+    tf.transform.rotation.w = 1.0
+    move_base.tf_broadcaster.sendTransform(tf)  # type: ignore[attr-defined]
+
+
+def test_a_robot_standing_in_a_zone_that_becomes_blocked_is_sent_out_first_then_on_to_its_goal(
+    rig: tuple[WsnavChild, Operator, dict[str, MqttBus]], move_base: FakeMoveBase
+) -> None:
+    """navfn clears only the robot's own cell, so move_base found no plan out of a zone blocked around the robot
+    and gave up. The bridge sends it to the nearest way out first (the zone passable but dear meanwhile), then
+    on to its goal. What the stand-in leaves out: it plans nothing, so the robot is moved by tf here."""
+    bridge, operator, nodes = rig
+    robot_at(move_base, 18.0, 7.2)  # inside z1
+    try:
+        send_goal(operator, "B")
+        wait_until(lambda: any(g[1:] == (29.0, 22.8) for g in move_base.goals), 15, "the goal at move_base")
+        before = len(move_base.goals)
+        zone_state(nodes["n1"], "z1", "n1", "blocked", 700)
+        zone_state(nodes["n2"], "z1", "n2", "blocked", 700)
+
+        def exits() -> list[tuple[str, float, float]]:
+            return [g for g in move_base.goals[before:] if g[1:] != (29.0, 22.8)]
+
+        wait_until(lambda: bool(exits()), 15, "a goal out of z1 at move_base")
+        _, ex, ey = exits()[0]
+        assert abs(ey - 7.2) < 1.0 and not 16.9 < ex < 19.1, (ex, ey)
+        status = operator.wait_status("leaving z1", lambda s: s.reason is not None and "leaving" in s.reason)
+        assert status.state == "navigating" and status.goal == "B"
+        after_exit = len(move_base.goals)
+        robot_at(move_base, ex, ey)
+        wait_until(
+            lambda: any(g[1:] == (29.0, 22.8) for g in move_base.goals[after_exit:]), 15, "on to B once out"
+        )
+        assert any("driving out first" in line for line in bridge.lines), bridge.lines
+    finally:
+        robot_at(move_base, *PLAN[0])

@@ -15,11 +15,13 @@ from wsnav.ros_bridge.move_base_supervisor import (
     MoveBaseSupervisor,
     Resend,
 )
-from wsnav.ros_bridge.zone_feed import ZoneFeed
+from wsnav.ros_bridge.zone_feed import ESCAPE_COST, ZoneFeed, exit_point
 from wsnav.runtime.bus import Message
 from wsnav.schemas import topics
 from wsnav.schemas.messages import ZoneState
+from wsnav.schemas.ros_map import FREE
 from wsnav.schemas.site import load_site
+from wsnav.zones.cost_values import LETHAL_OBSTACLE
 from wsnav.zones.geometry import GridFrame
 
 PLAN = np.array([(12.0 + 0.05 * i, 7.2) for i in range(200)])
@@ -103,3 +105,47 @@ def test_an_rviz_goal_is_named_even_when_its_first_status_comes_before_the_goal(
     ]
     sup.on_statuses([("g1", PREEMPTED), ("/move_base-9-5.0", ACTIVE)])
     assert sup.goal is not None and sup.goal.goal_id == "/move_base-9-5.0"
+
+
+def test_a_robot_standing_in_a_zone_that_becomes_blocked_drives_out_first_then_goes_on() -> None:
+    """navfn clears only the robot's own cell: in a blocked zone move_base finds no plan and gives up. So the
+    robot is sent to the nearest way out, the zone sent passable but dear meanwhile, then on to its goal."""
+    sup, feed = supervisor()
+    walls = load_site(SCHOOL).grid.data != FREE
+
+    def exit_of(areas: list) -> tuple[float, float] | None:  # type: ignore[type-arg]
+        return exit_point(feed.frame, feed.blocked_mask(areas), walls, (18.0, 7.2))
+
+    sup.on_goal(Goal("g1", (29.0, 22.8, 0.0), "B"))
+    sup.on_statuses([("g1", ACTIVE)])
+    assert sup.on_pose((18.0, 7.2, 0.0), exit_of) == []  # z1 clear: nothing to do
+    block(feed, "z1", "n1", 1.0)
+    [out] = sup.on_pose((18.0, 7.2, 0.0), exit_of)
+    assert isinstance(out, Resend) and out.goal.label == "B"
+    ex, ey, _ = out.goal.pose
+    assert feed.blocked_areas_at(ex, ey) == [] and abs(ey - 7.2) < 1.0, "an exit along the corridor"
+    assert not 16.9 < ex < 19.1 and min(abs(ex - 17.0), abs(ex - 19.0)) < 0.6, "just beyond the zone's edge"
+    assert sup.reason is not None and "leaving blocked z1" in sup.reason
+    assert [a.name for a in sup.escape_areas] == ["z1"]
+    feed.set_escape(sup.escape_areas)
+    row, col = feed.frame.world_to_cell(18.0, 7.2)
+    assert feed.costs[row, col] == ESCAPE_COST, "passable for navfn, but dear"
+    sup.on_statuses([("g1", PREEMPTED), (out.goal.goal_id, ACTIVE)])
+    assert sup.on_pose((18.5, 7.2, 0.0), exit_of) == [], "still inside: nothing new"
+    sup.on_statuses([("g1", PREEMPTED), (out.goal.goal_id, SUCCEEDED)])
+    assert sup.state == "navigating", "reaching the exit is not arriving"
+    [on] = sup.on_pose((ex, ey, 0.0), exit_of)
+    assert isinstance(on, Resend) and on.goal.pose == (29.0, 22.8, 0.0) and on.goal.label == "B"
+    assert sup.escape_areas == frozenset() and sup.reason is None
+    feed.set_escape(sup.escape_areas)
+    assert feed.costs[row, col] == LETHAL_OBSTACLE, "lethal again once the robot is out"
+
+
+def test_a_robot_in_a_blocked_zone_with_no_way_out_cancels_with_a_reason() -> None:
+    sup, feed = supervisor()
+    sup.on_goal(Goal("g1", (29.0, 22.8, 0.0), "B"))
+    sup.on_statuses([("g1", ACTIVE)])
+    block(feed, "z1", "n1", 1.0)
+    [cancel] = sup.on_pose((18.0, 7.2, 0.0), lambda _areas: None)
+    assert isinstance(cancel, Cancel) and cancel.goal_id == "g1"
+    assert sup.state == "cancelled" and sup.reason is not None and "no way out" in sup.reason
