@@ -228,8 +228,10 @@ class MoveBaseSupervisor:
         self.leaving = Leaving(frozenset(inside), self.goal)
         self.goal = replace(self.goal, pose=(exit_xy[0], exit_xy[1], yaw))
         self.reason = f"leaving blocked {names} before going on"
-        why = f"the robot stands in blocked {names}: driving out first"
-        return self._replan(why, self.leaving.areas, now, wait_for_master)
+        # At once, not after the master shows the zone passable: move_base, still on the old goal, would plan
+        # through the zone the moment it became passable (seen on the real move_base); its planner retries the
+        # exit until the grid is in.
+        return self._resend(f"the robot stands in blocked {names}: driving out first")
 
     def _replan(
         self, why: str, areas: frozenset[BlockedArea], now: float, wait_for_master: bool
