@@ -11,7 +11,8 @@ right parameters, and costmap_2d accepts a wrong set-up in silence:
   layer then reads no sensor at all;
 - a zone layer without `use_maximum: true` overwrites the master (walls vanish under every clear zone), with
   `trinary_costmap` (the default) caution costs become free or lethal, with a `lethal_cost_threshold` under 100
-  caution costs become lethal, and without `subscribe_to_updates` no zone change after the first grid arrives;
+  caution costs become lethal, without `subscribe_to_updates` no zone change after the first grid arrives, and
+  with `first_map_only` a restarted bridge's grid is never read;
 - a StaticLayer of the map placed after the zone layer overwrites the zones.
 `check_global_costmap` says each of these in a few words; the bridge refuses to start on any of them.
 """
@@ -104,6 +105,10 @@ def check_global_costmap(costmap: dict[str, Any], zone_topic: str, namespace: st
         )
     if value("lethal_cost_threshold") != 100:
         check.errors.append(f"{name}: lethal_cost_threshold must be 100 (else caution costs become lethal)")
+    if value("first_map_only") is not False:
+        check.errors.append(
+            f"{name}: first_map_only must be false (else a restarted bridge's grid is never read)"
+        )
     if value("subscribe_to_updates") is not True:
         check.errors.append(
             f"{name}: subscribe_to_updates must be true (else no zone change after the first grid)"

@@ -78,6 +78,8 @@ def trap(change: str) -> dict[str, Any]:
             zone["subscribe_to_updates"] = False
         case "map_after_zones":
             params["plugins"] = [params["plugins"][1], params["plugins"][0], *params["plugins"][2:]]
+        case "first_map_only":
+            zone["first_map_only"] = True
         case "other_topic":
             zone["map_topic"] = "/zones"
     return params
@@ -94,6 +96,7 @@ def trap(change: str) -> dict[str, Any]:
         ("threshold", "lethal_cost_threshold must be 100"),
         ("no_updates", "subscribe_to_updates must be true"),
         ("map_after_zones", "overwrites the zones"),
+        ("first_map_only", "first_map_only must be false"),
         ("other_topic", f"no StaticLayer of the global costmap reads {ZONES}"),
     ],
 )

@@ -145,3 +145,37 @@ def test_a_map_that_differs_from_the_site_by_any_amount_is_refused() -> None:
     assert map_mismatch(frame, info(y=-5.0 - 1e-9)) is not None
     assert map_mismatch(frame, info(resolution=0.051)) is not None
     assert map_mismatch(frame, info(width=201)) == "size 201x100 cells, the site's is 200x100"
+
+
+def test_the_zone_grid_keeps_the_walls_where_a_grid_a_fraction_of_a_cell_off_would_wipe_them() -> None:
+    """The transcription's resize rule: the bridge's grid carries the site map's metadata exactly, so the map's
+    walls survive it; a grid whose origin were off by a quarter cell (what the old check let through) resizes
+    the master and wipes them. Also: the costmap waits for the zone grid's first map, and first_map_only would
+    drop a restarted bridge's grid."""
+    from tests.costmap2d_model import LayeredModel, MapMeta
+    from wsnav.schemas.ros_map import FREE
+
+    site, feed = _school_feed()
+    grid = site.grid
+    frame = GridFrame.of_grid(grid)
+    meta = MapMeta(
+        frame.width, frame.height, float(np.float32(frame.resolution)), frame.origin_x, frame.origin_y
+    )
+    walls = [0 if v == FREE else 100 for v in np.flipud(grid.data).ravel()]
+    zones = ZoneGridCodec().encode(feed.costs).ravel().tolist()
+    for offset, wiped in ((0.0, False), (frame.resolution / 4, True)):
+        model = LayeredModel()
+        model.add_layer("map")
+        model.add_layer("zones")
+        model.incoming_map("map", meta, walls)
+        assert not model.initialized, "move_base waits for the zone grid's first map"
+        shifted = MapMeta(meta.width, meta.height, meta.resolution, meta.origin_x + offset, meta.origin_y)
+        model.incoming_map("zones", shifted, zones)
+        assert model.initialized
+        map_layer = model.layers["map"].costmap
+        assert map_layer is not None
+        assert bool((map_layer == LETHAL).any()) is not wiped
+    model = LayeredModel()
+    model.add_layer("zones", first_map_only=True)
+    assert model.incoming_map("zones", meta, zones)
+    assert not model.incoming_map("zones", meta, zones), "a restarted bridge's grid is never read"
