@@ -137,6 +137,9 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         help="let one identity hold several connections (simulation stacks); then any identity can kick "
         "another's connection by reusing its client id",
     )
+    mosq.add_argument("--tls-bind", type=host_port, help="HOST:PORT of an MQTT/TLS listener (as on amqtt)")
+    mosq.add_argument("--certfile", type=Path, help="TLS certificate chain (PEM), with --tls-bind")
+    mosq.add_argument("--keyfile", type=Path, help="TLS private key (PEM), with --tls-bind")
     mosq.set_defaults(func=mosquitto_command)
 
     revoke = bsub.add_parser(
@@ -289,15 +292,24 @@ def credentials_command(args: argparse.Namespace) -> int:
 
 
 def mosquitto_command(args: argparse.Namespace) -> int:
-    from wsnav.broker.mosquitto.config import MosquittoOptions, write_mosquitto_config
+    from wsnav.broker.mosquitto.config import MosquittoOptions, MosquittoTls, write_mosquitto_config
     from wsnav.schemas.credentials import CredentialsError
 
     site = _site(args.site)
+    tls = None
+    if args.tls_bind is not None or args.certfile is not None or args.keyfile is not None:
+        if args.tls_bind is None or args.certfile is None or args.keyfile is None:
+            raise CliError("--tls-bind, --certfile and --keyfile go together")
+        for path in (args.certfile, args.keyfile):
+            if not path.is_file():
+                raise CliError(f"{path}: no such file")
+        tls = MosquittoTls(args.tls_bind, args.certfile.resolve(), args.keyfile.resolve())
     options = MosquittoOptions(
         bind=args.bind,
         data_dir=args.data.resolve(),
         user=args.user,
         bind_client_ids=not args.shared_client_ids,
+        tls=tls,
     )
     try:
         files = write_mosquitto_config(site.spec, args.credentials, args.out, options)

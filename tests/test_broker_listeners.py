@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import datetime
 import ipaddress
+import os
 import ssl
 import subprocess
 import threading
+import time
 from pathlib import Path
 
 import paho.mqtt.client as mqtt
@@ -14,12 +16,18 @@ import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.reasoncodes import ReasonCode
 
-from tests.broker_fixtures import TIMEOUT, wsnav
+from tests.broker_fixtures import TIMEOUT, wait_listening, wsnav
+from tests.conftest import require_tool
 from tests.site_fixtures import tiny_site
 from wsnav.broker.amqtt.config import BrokerOptions, TlsListener
 from wsnav.broker.amqtt.embedded import BrokerThread
+from wsnav.broker.credentials import write_credentials
+from wsnav.broker.mosquitto.config import CONF
+from wsnav.broker.mosquitto.process import free_port
 from wsnav.runtime.mqtt_bus import connect_with_credentials
 from wsnav.schemas import topics
+from wsnav.schemas.credentials import load_credentials
+from wsnav.schemas.site import load_site
 
 
 def self_signed(directory: Path) -> tuple[Path, Path]:
@@ -138,3 +146,48 @@ def test_the_agents_bus_and_the_operator_commands_work_over_tls_and_refuse_a_wro
                 assert len(failed.stderr.strip().splitlines()) == 1, failed.stderr
         finally:
             robot.close()
+
+
+def test_mosquitto_gets_the_same_tls_listener_from_its_generated_config(tmp_path: Path) -> None:
+    """`wsnav broker mosquitto-config --tls-bind ... --certfile ... --keyfile ...`: the real Mosquitto serves
+    TLS with the site's passwords and ACL; a goal sent with `wsnav goal --tls-ca` reaches a robot over TLS."""
+    mosquitto = require_tool("mosquitto")
+    site = tiny_site(tmp_path / "site")
+    certfile, keyfile = self_signed(tmp_path)
+    creds = tmp_path / "creds"
+    write_credentials(load_site(site).spec, creds)
+    port, tls_port = free_port(), free_port()
+    user = ["--user", "root"] if os.geteuid() == 0 else []
+    made = wsnav(
+        "broker", "mosquitto-config", "--site", site, "--credentials", creds, "--out", tmp_path / "mq",
+        "--bind", f"127.0.0.1:{port}", "--data", tmp_path / "mq-data", "--tls-bind", f"127.0.0.1:{tls_port}",
+        "--certfile", certfile, "--keyfile", keyfile, *user,
+    )  # fmt: skip
+    assert made.returncode == 0, made.stderr
+    proc = subprocess.Popen([mosquitto, "-c", str(tmp_path / "mq" / CONF)], stderr=subprocess.PIPE)
+    try:
+        wait_listening("127.0.0.1", tls_port, proc)
+        robot = connect_with_credentials(
+            "127.0.0.1", tls_port, load_credentials(creds / "robot1.json"), tls_ca=certfile
+        )
+        try:
+            robot.subscribe(topics.robot_goal("tiny", "robot1"))
+            time.sleep(0.5)
+            sent = wsnav(
+                "goal", "--site", site, "--broker", f"127.0.0.1:{tls_port}", "--credentials",
+                creds / "operator.json", "--tls-ca", certfile, "robot1", "B",
+            )  # fmt: skip
+            assert sent.returncode == 0, sent.stderr
+            assert robot.wait(TIMEOUT)
+            assert [m.topic for m in robot.poll()] == [topics.robot_goal("tiny", "robot1")]
+        finally:
+            robot.close()
+        wrong = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="robot1")
+        wrong.tls_set(ca_certs=str(certfile), cert_reqs=ssl.CERT_REQUIRED)
+        wrong.username_pw_set("robot1", "wrong-password-wrong-password")
+        assert connack(wrong, "127.0.0.1", tls_port).is_failure
+    finally:
+        proc.terminate()
+        proc.wait(30)
+        if proc.stderr:
+            proc.stderr.close()

@@ -34,6 +34,15 @@ PBKDF2_ITERATIONS = 101
 
 
 @dataclass(frozen=True)
+class MosquittoTls:
+    """A second listener, MQTT over TLS, for robots, console and operator tools (the nodes stay on 1883)."""
+
+    bind: tuple[str, int]
+    certfile: Path
+    keyfile: Path
+
+
+@dataclass(frozen=True)
 class MosquittoOptions:
     bind: tuple[str, int] = ("0.0.0.0", 1883)
     data_dir: Path = Path("/var/lib/mosquitto")
@@ -47,6 +56,7 @@ class MosquittoOptions:
     """Per client: QoS 1 messages Mosquitto holds for a subscriber that is not reading (its default, 1000, is
     half a second of a 2000-node site: a robot whose loop stalls that long lost heartbeats, bench.zone_fanin).
     write_mosquitto_config raises it to 10 s of the site's heartbeats for bigger sites."""
+    tls: MosquittoTls | None = None
     bind_client_ids: bool = True
     """False (`--shared-client-ids`): one identity may hold several connections under distinct client ids, and
     then any identity can kick another's connection by using its client id. For simulation stacks only."""
@@ -99,6 +109,13 @@ def conf_text(out: Path, options: MosquittoOptions) -> str:
     ]
     if options.user is not None:
         lines.append(f"user {options.user}")
+    if options.tls is not None:  # per_listener_settings false: auth, ACL and limits apply here too
+        tls_host, tls_port = options.tls.bind
+        lines += [
+            f"listener {tls_port} {tls_host}",
+            f"certfile {options.tls.certfile}",
+            f"keyfile {options.tls.keyfile}",
+        ]
     return "\n".join(lines) + "\n"
 
 
