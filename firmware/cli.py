@@ -13,6 +13,7 @@ from wsnav.firmware.board import MpremoteBoard
 from wsnav.firmware.build import SIZE_TARGET, BuildError, build, compile_commands
 from wsnav.firmware.deploy import (
     FLASH_BAUD,
+    FLASH_MODES,
     Deployer,
     DeployError,
     check_config,
@@ -48,6 +49,11 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     d.add_argument(
         "--build", type=Path, help="an existing build folder (default: build now, into a temp folder)"
     )
+    d.add_argument(
+        "--keep-wifi",
+        action="store_true",
+        help="allow a config without wifi.ssid: the board keeps the network it joined before",
+    )
     d.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
     d.set_defaults(func=deploy_command)
 
@@ -55,6 +61,12 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     f.add_argument("--port", required=True, help="serial port of the board, e.g. /dev/ttyUSB0")
     f.add_argument("--image", type=Path, required=True, help="ESP8266_GENERIC-*.bin from micropython.org")
     f.add_argument("--baud", type=int, default=FLASH_BAUD, help=f"write speed (default {FLASH_BAUD})")
+    f.add_argument(
+        "--flash-mode",
+        choices=FLASH_MODES,
+        default="keep",
+        help="SPI flash mode written into the image (default keep; dout when a board boots garbage)",
+    )
     f.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
     f.set_defaults(func=flash_command)
 
@@ -102,7 +114,7 @@ def build_command(args: argparse.Namespace) -> int:
 
 def deploy_command(args: argparse.Namespace) -> int:
     try:
-        cfg = check_config(args.config)
+        cfg = check_config(args.config, keep_wifi=args.keep_wifi)
     except DeployError as exc:
         raise CliError(str(exc)) from None
     if args.build is not None and not args.dry_run and not (args.build / "app.mpy").is_file():
@@ -136,7 +148,7 @@ def flash_command(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     if not 9600 <= args.baud <= 2_000_000:
         raise CliError(f"--baud {args.baud} is out of range (9600..2000000)")
-    cmds = flash_commands(args.port, args.image, args.baud)
+    cmds = flash_commands(args.port, args.image, args.baud, args.flash_mode)
     if args.dry_run:
         for cmd in cmds:
             _print(cmd)

@@ -34,11 +34,18 @@ FLASH_BAUD = 460800
 """Fast and reliable on CH340/CP2102 USB-serial bridges; esptool falls back to nothing, so lower it if it fails."""
 
 
+ESP8266_IRAM = (0x40100000, 0x40140000)
+"""Where an ESP8266 image's entry point lies (its instruction RAM); an ESP32's lies in 0x40080000..0x400A0000."""
+FLASH_MODES = ("keep", "qio", "qout", "dio", "dout")
+"""esptool's --flash-mode; `keep` leaves the image's; `dout` is the one every ESP8266 module boots with (ESP-01S,
+some 16 MB boards)."""
+
+
 class DeployError(Exception):
     """A bad config or image file, or a missing tool; one line."""
 
 
-def check_config(path: Path) -> NodeConfig:
+def check_config(path: Path, keep_wifi: bool = False) -> NodeConfig:
     """The node config must be a valid NodeConfig with a broker host: the board cannot tell us otherwise."""
     try:
         text = path.read_text()
@@ -52,6 +59,12 @@ def check_config(path: Path) -> NodeConfig:
         raise DeployError(f"{path}: {where}: {first.get('msg', 'invalid')}") from None
     if not cfg.broker.host:
         raise DeployError(f"{path}: broker.host is empty: set the broker's address before deploying")
+    if not cfg.wifi.ssid and not keep_wifi:
+        raise DeployError(
+            f"{path}: wifi.ssid is empty: a new board could never join (`wsnav broker credentials --wifi-ssid "
+            "NAME --wifi-password PASS` writes it into every node's config; --keep-wifi keeps the network a "
+            "board already joined)"
+        )
     return cfg
 
 
@@ -211,14 +224,23 @@ def check_image(path: Path) -> None:
             f"{path}: {size} bytes is not an ESP8266 MicroPython image (expected 64 KiB..4 MiB)"
         )
     with path.open("rb") as f:
-        if f.read(1) != b"\xe9":
-            raise DeployError(f"{path}: not an ESP8266 image (first byte is not 0xE9)")
+        header = f.read(8)
+    if header[:1] != b"\xe9":
+        raise DeployError(f"{path}: not an ESP8266 image (first byte is not 0xE9)")
+    entry = int.from_bytes(header[4:8], "little")
+    if not ESP8266_IRAM[0] <= entry < ESP8266_IRAM[1]:
+        raise DeployError(
+            f"{path}: not an ESP8266 image (its entry point 0x{entry:08x} lies outside the ESP8266's IRAM; "
+            "an ESP32 image's lies near 0x40080000): take ESP8266_GENERIC-*.bin"
+        )
 
 
-def flash_commands(port: str, image: Path, baud: int = FLASH_BAUD) -> list[list[str]]:
+def flash_commands(
+    port: str, image: Path, baud: int = FLASH_BAUD, flash_mode: str = "keep"
+) -> list[list[str]]:
     esptool = tool_path("esptool")
     base = [esptool, "--chip", "esp8266", "--port", port]
-    return [
-        [*base, "erase-flash"],
-        [*base, "--baud", str(baud), "write-flash", "--flash-size=detect", "0", str(image)],
-    ]
+    write = [*base, "--baud", str(baud), "write-flash", "--flash-size=detect"]
+    if flash_mode != "keep":
+        write.append(f"--flash-mode={flash_mode}")
+    return [[*base, "erase-flash"], [*write, "0", str(image)]]

@@ -103,6 +103,7 @@ def test_deploy_dry_run_prints_the_mpremote_commands(tmp_path: Path) -> None:
         ({"broker": {"host": "", "port": 1883}}, "broker.host is empty"),
         ({"sensor": {"type": "pir"}}, "sensor.pir.pin: Field required"),
         ({"password": "short"}, "password"),
+        ({"wifi": {"ssid": "", "password": ""}}, "wifi.ssid is empty"),
     ],
 )
 def test_deploy_refuses_bad_configs(tmp_path: Path, changes: dict[str, Any], message: str) -> None:
@@ -122,7 +123,7 @@ def test_deploy_missing_config_and_bad_build(tmp_path: Path) -> None:
 
 def test_flash_dry_run_prints_esptool_commands(tmp_path: Path) -> None:
     image = tmp_path / "ESP8266_GENERIC-v1.27.0.bin"
-    image.write_bytes(b"\xe9" + bytes(600 * 1024))
+    image.write_bytes(esp_image(0x40100004))
     proc = wsnav("flash", "--port", "/dev/ttyUSB0", "--image", image, "--dry-run")
     assert proc.returncode == 0, proc.stderr
     cmds = [shlex.split(line) for line in proc.stdout.splitlines()]
@@ -140,6 +141,13 @@ def test_flash_dry_run_prints_esptool_commands(tmp_path: Path) -> None:
         "0",
         str(image),
     ]
+    dout = wsnav("flash", "--port", "/dev/ttyUSB0", "--image", image, "--flash-mode", "dout", "--dry-run")
+    assert shlex.split(dout.stdout.splitlines()[1])[-3:] == ["--flash-mode=dout", "0", str(image)]
+
+
+def esp_image(entry: int) -> bytes:
+    """A firmware image's header as esptool writes it (magic, segments, flash mode and size, entry point)."""
+    return b"\xe9\x03\x02\x40" + entry.to_bytes(4, "little") + bytes(600 * 1024)
 
 
 def test_flash_refuses_bad_images_and_args(tmp_path: Path) -> None:
@@ -152,4 +160,14 @@ def test_flash_refuses_bad_images_and_args(tmp_path: Path) -> None:
     text = tmp_path / "readme.bin"
     text.write_bytes(b"#" * 100_000)
     one_line_error(wsnav("flash", "--port", "p", "--image", text, "--dry-run"), "first byte")
+    esp32 = tmp_path / "ESP32_GENERIC-v1.27.0.bin"
+    esp32.write_bytes(esp_image(0x40081000))
+    one_line_error(wsnav("flash", "--port", "p", "--image", esp32, "--dry-run"), "an ESP32 image's")
     one_line_error(wsnav("flash", "--image", text), "--port")
+
+
+def test_deploy_takes_a_config_without_wifi_only_when_told_to_keep_the_boards_network(tmp_path: Path) -> None:
+    cfg = node_config(tmp_path, wifi={"ssid": "", "password": ""})
+    one_line_error(wsnav("deploy", "--port", "p", "--config", cfg, "--dry-run"), "--keep-wifi")
+    kept = wsnav("deploy", "--port", "p", "--config", cfg, "--keep-wifi", "--dry-run")
+    assert kept.returncode == 0, kept.stderr
