@@ -34,6 +34,9 @@ FLASH_BAUD = 460800
 """Fast and reliable on CH340/CP2102 USB-serial bridges; esptool falls back to nothing, so lower it if it fails."""
 
 
+MPY_VERSION = 6
+"""The .mpy format mpy-cross writes (MicroPython 1.19 and later read it); a board reports its own in
+sys.implementation._mpy."""
 ESP8266_IRAM = (0x40100000, 0x40140000)
 """Where an ESP8266 image's entry point lies (its instruction RAM); an ESP32's lies in 0x40080000..0x400A0000."""
 FLASH_MODES = ("keep", "qio", "qout", "dio", "dout")
@@ -158,6 +161,23 @@ class Deployer:
         self.log(
             f"maintenance mode (the board's watchdog is fed for {self.hold_ms // 1000} s after each step)"
         )
+        self.check_mpy()
+
+    def check_mpy(self) -> None:
+        """Refuse a board whose MicroPython cannot load our .mpy files (another .mpy version: older than 1.19,
+        or a future format), before anything on it is touched."""
+        out = self._run("import sys;print('wsnav-mpy', sys.implementation._mpy & 0xff, sys.version)")
+        words = next(
+            (line.split(maxsplit=2) for line in out.splitlines() if line.startswith("wsnav-mpy")), []
+        )
+        if len(words) < 2 or not words[1].isdigit():
+            raise DeployError(f"board: cannot tell its MicroPython's .mpy version ({out.strip()[-80:]})")
+        if int(words[1]) != MPY_VERSION:
+            release = words[2] if len(words) > 2 else "?"
+            raise DeployError(
+                f"board: its MicroPython ({release}) loads .mpy version {words[1]}, ours are version "
+                f"{MPY_VERSION}: flash MicroPython 1.19 or later (`wsnav firmware flash`)"
+            )
 
     def deploy(self, files: dict[str, Path]) -> list[str]:
         """Put `files` (board name -> host file) on the board, verified; returns the names that were copied."""

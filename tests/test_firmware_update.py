@@ -15,6 +15,7 @@ import shutil
 import socket
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -217,3 +218,28 @@ def test_deploy_refuses_a_board_that_left_maintenance(board: FlakyLine, new_file
     with pytest.raises(DeployError, match="left maintenance mode"):
         deployer.hashes(sorted(new_files))
     assert module_names()  # the firmware's module list is what the deploy copies
+
+
+@dataclass
+class OldMicroPython:
+    """The board as a MicroPython older than 1.19 would answer (its .mpy format is 5): what cannot be run here."""
+
+    board: FlakyLine
+
+    def run(self, code: str) -> str:
+        return self.board.run(code).replace("wsnav-mpy 6", "wsnav-mpy 5")
+
+    def put(self, local: Path, remote: str) -> None:
+        self.board.put(local, remote)
+
+    def reset(self) -> None:
+        self.board.reset()
+
+
+def test_deploy_refuses_a_micropython_that_cannot_load_our_files_before_touching_anything(
+    board: FlakyLine, new_files: dict[str, Path]
+) -> None:
+    with pytest.raises(DeployError, match=r"loads \.mpy version 5, ours are version 6"):
+        Deployer(OldMicroPython(board)).deploy(new_files)
+    assert board.puts == 0
+    assert Deployer(board).deploy(new_files), "the real unix port (mpy 6) passes the same check"
