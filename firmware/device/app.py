@@ -107,6 +107,8 @@ class Node:
         self.reset_cause = reset_cause
         self.last_error = None  # why the broker link last went down, for the diagnostics
         self.info_due_ms = 0
+        self.command_id = 0  # the last command applied (command.py): QoS 1 may deliver it again
+        self.bad_commands = 0
         self.uptime_s = 0  # whole seconds since boot, counted from the ticks: small int for 34 years
         self._second = self.ticks()  # the tick at which the current uptime second began
 
@@ -140,6 +142,7 @@ class Node:
         client = self.client
         try:
             client.connect(self.logic.will())
+            self._with_command(None, now_ms)  # subscribe to the node's commands
             self.feed()
             for topic, payload, retain, qos in self.logic.on_connect(now_ms):
                 client.publish(topic, payload, retain, qos)
@@ -202,12 +205,27 @@ class Node:
                         self.client.publish(msg[0], msg[1], msg[2], msg[3])
                     elif ticks_diff(now, self.info_due_ms) >= 0:  # not in the same pass as a state: one send per feed
                         self._send_info(now)
-                self.client.poll()
+                cmd = self.client.poll()
+                if cmd is not None:
+                    self._with_command(cmd, now)
                 self.client.maintain()
             except OSError as exc:
                 self._go_offline(now, exc)
         else:
             self.logic.step(reading, now)
+
+    def _with_command(self, body, now_ms: int) -> None:
+        """command.py loaded for one job and dropped after (its code is heap the loop needs meanwhile): the
+        subscription after a connect (`body` None), or a command's payload. After an OSError it stays loaded
+        until the next job ends."""
+        import command
+        import sys
+
+        if body is None:
+            command.subscribe(self)
+        else:
+            command.apply(self, body, now_ms)
+        del sys.modules["command"]
 
     def _send_info(self, now_ms: int) -> None:
         """The retained diagnostics (diagnostics.info, kept loaded: ~1.3 KB on the unix port), a str the client
@@ -225,6 +243,7 @@ class Node:
                 wifi.rssi() if wifi is not None else None,
                 gc.mem_free(),
                 self.last_error,
+                self.bad_commands,
             )
         except MemoryError:
             self.info_due_ms = ticks_add(now_ms, _INFO_RETRY_MS)

@@ -8,12 +8,14 @@ the watchdog bites. This client:
 - calls `feed()` before every step that can block (the board's watchdog budget, docs/firmware-esp8266.md), and
   keeps feeding from a timer while a DNS lookup runs (getaddrinfo takes no timeout);
 - sends its own keepalive pings (`maintain`) and declares the link dead when a PINGRESP is overdue;
-- tolerates PUBLISH packets it never asked for (amqtt 0.12 sends retained messages matching *other* clients'
-  subscriptions): they are read and thrown away in small chunks, never buffered whole, and QoS 1 ones are
-  acknowledged so the broker does not resend them;
+- hands the caller, from `poll`, the payload of each live (not retained) message on the one topic it subscribed
+  to (the node's commands; command.py subscribes, and sends the DISCONNECT before a commanded restart: a node
+  never leaves otherwise, and its will must be published when it goes);
+- tolerates every other PUBLISH (amqtt 0.12 sends retained messages matching *other* clients' subscriptions):
+  read and thrown away in small chunks, never buffered whole; QoS 1 ones are acknowledged so the broker does
+  not resend them;
 - raises OSError (MQTTError is one) for every failure, so the caller has one thing to catch.
-No DISCONNECT: a node never leaves on purpose, and its will must be published when it goes.
-It only publishes: no SUBSCRIBE, no QoS 2, no incoming message callback.
+No QoS 2, no callbacks.
 """
 
 import select
@@ -102,11 +104,13 @@ class MQTTClient:
         self._poller = None
         self._pid = 0
         self._last_tx = 0
-        self._ping_sent = 0
-        self._ping_pending = False
+        self._ping_sent = None  # when the unanswered PINGREQ went out; None: no ping pending
         self.pings = 0
         self.feed = feed
         self.addr = None  # the broker's address: built once for an IPv4 literal, else the last one DNS gave
+        self.sub = None  # type: list | None
+        """[the subscribed topic's bytes, a command a PUBACK wait read or None]: one attribute, not two (a 17th
+        would grow the instance's dict: heap)."""
 
     # -- socket helpers: every call is bounded by the socket timeout, every wait by a deadline --------------
     def _fed(self, ms: int):
@@ -174,17 +178,20 @@ class MQTTClient:
             qos = (first >> 1) & 3
             tlen = self._recv(2, deadline)
             tl = (tlen[0] << 8) | tlen[1]
-            self._skip(tl, deadline)
+            sub = self.sub
+            want = sub[0] if sub is not None and not first & 1 else None  # retained ones are ignored
+            ours = want is not None and tl == len(want) and self._recv(tl, deadline) == want
+            if not ours and (want is None or tl != len(want)):
+                self._skip(tl, deadline)
             rest = length - 2 - tl
-            if qos:
-                pid = self._recv(2, deadline)
-                rest -= 2
-                self._skip(rest, deadline)
-                if qos == 1:
-                    self._send(bytes((_PUBACK, 2)) + pid)
-            else:
-                self._skip(rest, deadline)
-            return kind, b""
+            pid = self._recv(2, deadline) if qos else b""
+            rest -= len(pid)
+            # A command is kept up to 128 bytes (NodeCommand's take under 70); a longer one becomes b"-",
+            # which the node counts as malformed.
+            body = self._recv(rest, deadline) if ours and rest <= 128 else self._skip(rest, deadline) or b""
+            if qos == 1:
+                self._send(bytes((_PUBACK, 2)) + pid)
+            return kind, body or (b"-" if ours else b"")
         if length <= 4:
             return kind, self._recv(length, deadline) if length else b""
         self._skip(length, deadline)
@@ -199,7 +206,9 @@ class MQTTClient:
             if k == kind and (body is None or b == body):
                 return b
             if k == _PINGRESP:
-                self._ping_pending = False
+                self._ping_sent = None
+            elif k == _PUBLISH and b:
+                self.sub[1] = b  # pyright: ignore[reportOptionalSubscript] (a command: subscribed)
 
     # -- the protocol -----------------------------------------------------------------------------------
     def connect(self, will=None, clean: bool = True) -> None:
@@ -233,7 +242,8 @@ class MQTTClient:
         poller = select.poll()
         poller.register(sock, select.POLLIN)
         self._poller = poller
-        self._ping_pending = False
+        self._ping_sent = None
+        self.sub = None
 
     def _address(self):
         """The broker's socket address. An IPv4 literal is parsed once (locally: no DNS query, nothing that can
@@ -299,32 +309,41 @@ class MQTTClient:
         if qos:
             self._wait_for(_PUBACK, bytes((self._pid >> 8, self._pid & 0xFF)))
 
-    def poll(self) -> None:
-        """Handle whatever the broker sent, without blocking when nothing is waiting."""
+    def poll(self):
+        """Handle whatever the broker sent, without blocking when nothing is waiting; returns the first command
+        (a live message on the subscribed topic) that came, else None; the next call goes on from there."""
         poller = self._poller
         if poller is None:
             raise MQTTError("not connected")
+        sub = self.sub
+        if sub is not None and sub[1] is not None:  # read during a PUBACK wait
+            body = sub[1]
+            sub[1] = None
+            return body
         for _ in range(_MAX_UNSOLICITED):
             events = poller.poll(0)
             if not events:
-                return
+                return None
             if events[0][1] & (select.POLLHUP | select.POLLERR):
                 raise MQTTError("connection lost")
-            kind, _body = self._read_packet(ticks_add(ticks_ms(), self.timeout_ms))
+            kind, body = self._read_packet(ticks_add(ticks_ms(), self.timeout_ms))
             if kind == _PINGRESP:
-                self._ping_pending = False
+                self._ping_sent = None
+            elif kind == _PUBLISH and body:
+                return body
+        return None
 
     def maintain(self) -> None:
         """Keepalive: ping after half the keepalive period without sending; fail if a PINGRESP is overdue."""
         now = ticks_ms()
         half = self.keepalive_s * 500
-        if self._ping_pending:
-            if ticks_diff(now, self._ping_sent) > max(half, self.timeout_ms):
+        sent = self._ping_sent
+        if sent is not None:
+            if ticks_diff(now, sent) > max(half, self.timeout_ms):
                 raise MQTTError("no PINGRESP from broker")
         elif ticks_diff(now, self._last_tx) >= half:
             self._send(bytes((_PINGREQ, 0)))  # its PINGRESP is collected by `poll` or any later wait
             self._ping_sent = ticks_ms()
-            self._ping_pending = True
             self.pings += 1
 
     def close(self) -> None:

@@ -6,7 +6,8 @@ Sensor from the fake pin files ($WSNAV_PINS), fake Wi-Fi, real MQTT. Runs until 
 capped at 1 s so a restarted broker is found within seconds. DNS is the real getaddrinfo while the file
 $WSNAV_PINS/dns says 0 or is missing; 1: every lookup fails ("dns down HOST"); 2: a lookup never returns ("dns
 hang HOST"), as lwIP's can (soft timers run meanwhile, as in lwIP's wait on the board). Lines on stdout ("mqtt up N", "mqtt down: ...")
-are what the tests wait for.
+are what the tests wait for. A `restart` command ends the process with status 75 (machine.reset, as
+soft_timers.reset does): the test starts it again, as a board reboots.
 """
 
 import gc
@@ -33,4 +34,8 @@ if not node.client.host[-1:].isdigit():  # a name: the client feeds from a machi
     import soft_timers  # after the heap is measured: the board has machine.Timer in ROM
 
     soft_timers.install()
+else:
+    import machine
+
+    machine.reset = lambda: sys.exit(75)  # pyright: ignore[reportAttributeAccessIssue] (soft_timers.reset's, lighter)
 node.run()
