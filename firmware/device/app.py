@@ -109,6 +109,8 @@ class Node:
         self.info_due_ms = 0
         self.command_id = 0  # the last command applied (command.py): QoS 1 may deliver it again
         self.bad_commands = 0
+        # Two ints cost less than one tuple or list of both: the instance's dict has 23 slots for 18 to 23
+        # attributes (17 would take 17 slots, 96 B less on the unix port), and a tuple constant is heap too.
         self.uptime_s = 0  # whole seconds since boot, counted from the ticks: small int for 34 years
         self._second = self.ticks()  # the tick at which the current uptime second began
 
@@ -141,8 +143,7 @@ class Node:
     def _connect_broker(self, now_ms: int) -> None:
         client = self.client
         try:
-            client.connect(self.logic.will())
-            self._with_command(None, now_ms)  # subscribe to the node's commands
+            client.connect(self.logic.will(), self.logic.status_topic[:-6] + "command")  # its nodes/<node>/command
             self.feed()
             for topic, payload, retain, qos in self.logic.on_connect(now_ms):
                 client.publish(topic, payload, retain, qos)
@@ -207,25 +208,18 @@ class Node:
                         self._send_info(now)
                 cmd = self.client.poll()
                 if cmd is not None:
-                    self._with_command(cmd, now)
+                    # command.py loaded for this one command and dropped after (as main.py drops the config
+                    # parser): its code is heap the loop needs the rest of the time.
+                    import command
+                    import sys
+
+                    command.apply(self, cmd, now)
+                    del sys.modules["command"]
                 self.client.maintain()
             except OSError as exc:
                 self._go_offline(now, exc)
         else:
             self.logic.step(reading, now)
-
-    def _with_command(self, body, now_ms: int) -> None:
-        """command.py loaded for one job and dropped after (its code is heap the loop needs meanwhile): the
-        subscription after a connect (`body` None), or a command's payload. After an OSError it stays loaded
-        until the next job ends."""
-        import command
-        import sys
-
-        if body is None:
-            command.subscribe(self)
-        else:
-            command.apply(self, body, now_ms)
-        del sys.modules["command"]
 
     def _send_info(self, now_ms: int) -> None:
         """The retained diagnostics (diagnostics.info, kept loaded: ~1.3 KB on the unix port), a str the client

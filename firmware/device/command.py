@@ -1,26 +1,12 @@
 """The operator's commands to this node (`nodes/<node>/command`, schemas.messages.NodeCommand), on the board.
 
-Loaded only while it works and dropped after (app.py: `_with_command`), as main.py drops the config parser:
-its code is heap the main loop needs the rest of the time. `subscribe` runs after each connect, `apply` for each
-command `mqtt.MQTTClient.poll` hands over (a live message on the node's own command topic, which the broker's
-ACL lets only the operator write).
+Loaded for each command `mqtt.MQTTClient.poll` hands over (a live message on the node's own command topic, to
+which app.py subscribes after each connect and which the broker's ACL lets only the operator write), and dropped
+after (app.py, `Node.iteration`), as main.py drops the config parser: its code is heap the main loop needs the
+rest of the time.
 """
 
 import json
-
-
-def subscribe(node) -> None:
-    """SUBSCRIBE to `nodes/<node>/command` at QoS 1 and wait (bounded) for the SUBACK. Refused (a broker with
-    an older ACL): the node works on without commands."""
-    client = node.client
-    topic = node.logic.status_topic[:-6] + "command"
-    client._pid = pid = client._pid + 1 if client._pid < 0xFFFF else 1
-    n = len(topic)
-    client._send(bytes((0x82, n + 5, pid >> 8, pid & 0xFF, n >> 8, n & 0xFF)) + topic + b"\x01")
-    client.sub = [topic.encode(), None]
-    code = client._wait_for(0x90)  # SUBACK: packet id, then the granted QoS or 0x80
-    if len(code) != 3 or code[2] & 0x80:
-        print("commands refused")
 
 
 def apply(node, body, now_ms: int) -> None:

@@ -8,9 +8,9 @@ the watchdog bites. This client:
 - calls `feed()` before every step that can block (the board's watchdog budget, docs/firmware-esp8266.md), and
   keeps feeding from a timer while a DNS lookup runs (getaddrinfo takes no timeout);
 - sends its own keepalive pings (`maintain`) and declares the link dead when a PINGRESP is overdue;
-- hands the caller, from `poll`, the payload of each live (not retained) message on the one topic it subscribed
-  to (the node's commands; command.py subscribes, and sends the DISCONNECT before a commanded restart: a node
-  never leaves otherwise, and its will must be published when it goes);
+- subscribes to one topic after the CONNACK (`connect`'s `topic`: the node's commands) and hands the caller,
+  from `poll`, the payload of each live (not retained) message on it (command.py sends the DISCONNECT before a
+  commanded restart: a node never leaves otherwise, and its will must be published when it goes);
 - tolerates every other PUBLISH (amqtt 0.12 sends retained messages matching *other* clients' subscriptions):
   read and thrown away in small chunks, never buffered whole; QoS 1 ones are acknowledged so the broker does
   not resend them;
@@ -29,6 +29,8 @@ _CONNECT = const(0x10)
 _CONNACK = const(0x20)
 _PUBLISH = const(0x30)
 _PUBACK = const(0x40)
+_SUBSCRIBE = const(0x82)
+_SUBACK = const(0x90)
 _PINGREQ = const(0xC0)
 _PINGRESP = const(0xD0)
 
@@ -109,8 +111,8 @@ class MQTTClient:
         self.feed = feed
         self.addr = None  # the broker's address: built once for an IPv4 literal, else the last one DNS gave
         self.sub = None  # type: list | None
-        """[the subscribed topic's bytes, a command a PUBACK wait read or None]: one attribute, not two (a 17th
-        would grow the instance's dict: heap)."""
+        """[the subscribed topic's bytes, then the commands a wait read, oldest first]: one attribute, not two
+        (the 17th fills the instance's 17-slot dict; an 18th would grow it: heap)."""
 
     # -- socket helpers: every call is bounded by the socket timeout, every wait by a deadline --------------
     def _fed(self, ms: int):
@@ -155,10 +157,14 @@ class MQTTClient:
             data += more
         return data
 
-    def _skip(self, n: int, deadline) -> None:
-        """Discard n bytes in small chunks: an unsolicited message must not cost its size in heap."""
+    def _skip(self, n: int, deadline) -> bytes:
+        """Read n bytes in chunks of at most 128 (an unsolicited message must not cost its size in heap); returns
+        the last chunk: all of them, for n <= 128."""
+        data = b""
         while n > 0:
-            n -= len(self._recv(n if n < 64 else 64, deadline))
+            data = self._recv(n if n < 128 else 128, deadline)
+            n -= len(data)
+        return data
 
     def _read_packet(self, deadline):
         """Read one packet by `deadline`; returns (type, short_body) where short_body is what we need of it (or b'')."""
@@ -174,24 +180,21 @@ class MQTTClient:
             if shift > 21:
                 raise MQTTError("bad remaining length")
         kind = first & 0xF0
-        if kind == _PUBLISH:
-            qos = (first >> 1) & 3
-            tlen = self._recv(2, deadline)
-            tl = (tlen[0] << 8) | tlen[1]
+        if kind == _PUBLISH:  # (_PUBLISH, payload) for a command, else (0, ...): read in chunks and dropped
+            t = self._recv(2, deadline)
+            n = (t[0] << 8) | t[1]
+            t = self._skip(n, deadline)  # the topic (its whole, at most 128 bytes)
             sub = self.sub
-            want = sub[0] if sub is not None and not first & 1 else None  # retained ones are ignored
-            ours = want is not None and tl == len(want) and self._recv(tl, deadline) == want
-            if not ours and (want is None or tl != len(want)):
-                self._skip(tl, deadline)
-            rest = length - 2 - tl
-            pid = self._recv(2, deadline) if qos else b""
-            rest -= len(pid)
-            # A command is kept up to 128 bytes (NodeCommand's take under 70); a longer one becomes b"-",
-            # which the node counts as malformed.
-            body = self._recv(rest, deadline) if ours and rest <= 128 else self._skip(rest, deadline) or b""
-            if qos == 1:
+            # A command: a live message (a retained one never is) on the subscribed topic.
+            ours = n <= 128 and sub is not None and not first & 1 and t == sub[0]
+            pid = self._recv(2, deadline) if first & 6 else b""  # QoS 1 (or 2): a packet id
+            length -= 2 + n + len(pid)
+            body = self._skip(length, deadline)
+            if (first & 6) == 2:
                 self._send(bytes((_PUBACK, 2)) + pid)
-            return kind, body or (b"-" if ours else b"")
+            # A command is whole up to 128 bytes (NodeCommand's take under 70); a longer one is handed over as
+            # b"", which the node counts as malformed.
+            return (kind if ours else 0), (body if length <= 128 else b"")
         if length <= 4:
             return kind, self._recv(length, deadline) if length else b""
         self._skip(length, deadline)
@@ -207,19 +210,22 @@ class MQTTClient:
                 return b
             if k == _PINGRESP:
                 self._ping_sent = None
-            elif k == _PUBLISH and b:
-                self.sub[1] = b  # pyright: ignore[reportOptionalSubscript] (a command: subscribed)
+            elif k == _PUBLISH:  # a command: handed over by the next `poll`
+                self.sub.append(b)  # pyright: ignore[reportOptionalMemberAccess] (subscribed)
 
     # -- the protocol -----------------------------------------------------------------------------------
-    def connect(self, will=None, clean: bool = True) -> None:
-        """Open TCP and do CONNECT/CONNACK; `will` is (topic, payload, retain, qos) or None."""
+    def connect(self, will=None, topic=None) -> None:
+        """Open TCP and do CONNECT/CONNACK (a clean session); `will` is (topic, payload, retain, qos) or None.
+        `topic`, if given, is then subscribed to at QoS 1 (SUBSCRIBE/SUBACK: a subscription lasts one
+        connection), and `poll` hands over its live messages; a refused one (a broker with an older ACL) is
+        said, and the client works on without."""
         self.close()
         addr = self._address()
         sock = socket.socket()
         self.sock = sock
         try:
             self._fed(_STEP_MS).connect(addr)
-            flags = 0x02 if clean else 0
+            flags = 0x02
             payload = _str(self.client_id)
             if will is not None:
                 flags |= 0x04 | (will[3] << 3) | (0x20 if will[2] else 0)
@@ -236,6 +242,16 @@ class MQTTClient:
             body = self._wait_for(_CONNACK)
             if len(body) != 2 or body[1] != 0:
                 raise MQTTError("connection refused, code " + (str(body[1]) if len(body) == 2 else "?"))
+            if topic is not None:  # SUBSCRIBE: packet id 1 (nothing else is in flight yet), QoS 1
+                t = _str(topic)
+                packet = bytearray((_SUBSCRIBE, len(t) + 3, 0, 1)) + t  # ids make topics far under 128 bytes
+                packet.append(1)
+                self._send(packet)
+                if self.sub is None:  # kept across connects, with any command not handed over yet
+                    self.sub = [t[2:]]
+                code = self._wait_for(_SUBACK)  # packet id, then the granted QoS or 0x80
+                if len(code) != 3 or code[2] & 0x80:
+                    print("refused", topic)
         except Exception:
             self.close()
             raise
@@ -243,7 +259,6 @@ class MQTTClient:
         poller.register(sock, select.POLLIN)
         self._poller = poller
         self._ping_sent = None
-        self.sub = None
 
     def _address(self):
         """The broker's socket address. An IPv4 literal is parsed once (locally: no DNS query, nothing that can
@@ -316,10 +331,8 @@ class MQTTClient:
         if poller is None:
             raise MQTTError("not connected")
         sub = self.sub
-        if sub is not None and sub[1] is not None:  # read during a PUBACK wait
-            body = sub[1]
-            sub[1] = None
-            return body
+        if sub is not None and len(sub) > 1:  # read during a wait
+            return sub.pop(1)
         for _ in range(_MAX_UNSOLICITED):
             events = poller.poll(0)
             if not events:
@@ -329,7 +342,7 @@ class MQTTClient:
             kind, body = self._read_packet(ticks_add(ticks_ms(), self.timeout_ms))
             if kind == _PINGRESP:
                 self._ping_sent = None
-            elif kind == _PUBLISH and body:
+            elif kind == _PUBLISH:
                 return body
         return None
 
