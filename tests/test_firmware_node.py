@@ -21,6 +21,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from tests.conftest import REPO
 from wsnav.firmware.testing import (
+    SIMULATED_TIME,
     NodeProcess,
     SiteBroker,
     build_for_host,
@@ -139,8 +140,9 @@ def creds(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture
-def broker(creds: Path, tmp_path: Path) -> Iterator[SiteBroker]:
-    b = SiteBroker(SITE_DIR, creds, tmp_path / "broker-data")
+def broker(creds: Path, tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[SiteBroker]:
+    """The site's broker; a test parametrizes it (indirect) with more `wsnav broker run` options."""
+    b = SiteBroker(SITE_DIR, creds, tmp_path / "broker-data", getattr(request, "param", ()))
     b.start()
     yield b
     b.kill()
@@ -402,6 +404,7 @@ def test_board_publishes_its_diagnostics_retained_and_again_after_a_reconnect(
     assert "MemoryError" not in out and "info: no heap" not in out and "Traceback" not in out, out
 
 
+@pytest.mark.parametrize("broker", [SIMULATED_TIME], indirect=True, ids=["no-node-rate-limit"])
 def test_hours_of_simulated_time_on_a_38k_heap(
     broker: SiteBroker, creds: Path, subscriber: Subscriber, host_build: tuple[Path, Path], tmp_path: Path
 ) -> None:
