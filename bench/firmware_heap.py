@@ -27,6 +27,7 @@ from bench.benchmarks_md import bench_parser, machine_note, write_section
 from wsnav.firmware.build import build, mpy_cross_exe
 from wsnav.firmware.testing import (
     HEAP,
+    SIMULATED_TIME,
     SiteBroker,
     build_for_host,
     host_stubs_of,
@@ -236,7 +237,7 @@ def main() -> None:
         base_device, base_stubs = build_revision(args.baseline, tmp / "baseline")
         base_pir = setup_free(base_device, base_stubs, tmp / "pir.json", pins)
         base_hcsr04 = setup_free(base_device, base_stubs, sonar_cfg, pins)
-        broker = SiteBroker(SITE, creds, tmp / "broker-data")
+        broker = SiteBroker(SITE, creds, tmp / "broker-data", SIMULATED_TIME)  # longrun's accelerated clock
         broker.start()
         try:
             cfg = node_config(creds, tmp / "long.json", broker.host, broker.port)

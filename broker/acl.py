@@ -1,10 +1,11 @@
 """The site's topic access rules, derived once from the site file and enforced by amqtt and Mosquitto alike.
 
 - a node publishes only `zones/<its zone>/state/<itself>`, `nodes/<itself>/status` and `nodes/<itself>/info`
-  (its diagnostics), and may read back the first two (e.g. to resume its `seq` after a reboot);
+  (its diagnostics), may read back the first two (e.g. to resume its `seq` after a reboot), and reads its own
+  `nodes/<itself>/command`, which only the operator writes (a node cannot command another);
 - a robot reads zones, nodes, operator topics, robots' statuses, its goal and the simulated world, and publishes
   only its status (one topic: it can hold one retained message, never fill the store);
-- the operator publishes `operator/...`, robot goals, robot statuses (to clear a retained one) and the simulated world (`sim/...`, used by the zone
+- the operator publishes `operator/...`, node commands (`nodes/+/command`), robot goals, robot statuses (to clear a retained one) and the simulated world (`sim/...`, used by the zone
   simulator), and reads everything of the site; it also publishes and reads Home Assistant's discovery configs
   (`homeassistant/#`, `wsnav broker ha-discovery`);
 - the dashboard (Home Assistant) reads everything of the site and the discovery configs, and publishes only
@@ -54,7 +55,7 @@ def site_rules(spec: SiteFile) -> AclRules:
     for node in spec.nodes:
         own = [topics.zone_state(site, node.zone, node.id), topics.node_status(site, node.id)]
         publish[node.id] = [*own, topics.node_info(site, node.id)]
-        subscribe[node.id] = own
+        subscribe[node.id] = [*own, topics.node_command(site, node.id)]
     for robot in spec.robots:
         publish[robot.id] = [topics.robot_status(site, robot.id)]
         subscribe[robot.id] = [
@@ -67,6 +68,7 @@ def site_rules(spec: SiteFile) -> AclRules:
         ]
     publish[OPERATOR] = [
         f"{root}/operator/#",
+        topics.all_node_commands(site),
         f"{root}/robots/+/goal",
         topics.all_robot_statuses(site),  # to clear a retained status (`wsnav clear-status`)
         f"{root}/sim/#",

@@ -1,4 +1,5 @@
-"""The operator's commands: `wsnav console` (the web page) and `wsnav status|watch|block|unblock|goal|cancel|clear-status`.
+"""The operator's commands: `wsnav console` (the web page) and
+`wsnav status|watch|block|unblock|goal|cancel|clear-status|node-command`.
 
 Each takes the site, the broker and the operator's credentials file; the work lives in console.terminal and
 console.serve, imported only when a command runs.
@@ -86,6 +87,18 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     _common(clear)
     clear.add_argument("robot", metavar="ROBOT")
     clear.set_defaults(func=_run("terminal", "clear_status_command"))
+
+    node = sub.add_parser(
+        "node-command",
+        help="command a zone node over the network: restart it, have it send its info, set its heartbeat (RAM)",
+    )
+    _common(node)
+    node.add_argument("node", metavar="NODE")
+    node.add_argument("action", choices=["restart", "send-info", "heartbeat"])
+    node.add_argument(
+        "seconds", nargs="?", metavar="SECONDS", help="heartbeat only: the new period, (0, 3600]"
+    )
+    node.set_defaults(func=_run("terminal", "node_command_command"))
 
 
 def _run(module: str, name: str):

@@ -14,7 +14,14 @@ from pydantic import ValidationError
 from wsnav.schemas import topics
 from wsnav.schemas.goal_check import GoalRefused, goal_target
 from wsnav.schemas.ids import ID_PATTERN
-from wsnav.schemas.messages import OperatorBlock, RobotGoal
+from wsnav.schemas.messages import (
+    MAX_COMMAND_ID,
+    MAX_HEARTBEAT_S,
+    NodeCommand,
+    NodeCommandName,
+    OperatorBlock,
+    RobotGoal,
+)
 from wsnav.schemas.site import Site
 
 MAX_BLOCK_S = 7 * 24 * 3600.0
@@ -131,6 +138,21 @@ def clear_status(site: Site, robot: str) -> Publication:
     robot taken out of service (or a forged status) no longer greets every agent and console that starts."""
     _robot(site, robot)
     return Publication(topics.robot_status(site.name, robot), b"", True)
+
+
+def node_command(
+    site: Site, node: str, command: NodeCommandName, heartbeat_s: float | None = None
+) -> Publication:
+    """A command to one node of the site (not retained: a node ignores retained ones), with a fresh random id
+    so the node applies it once even if QoS 1 delivers it twice."""
+    if node not in {n.id for n in site.spec.nodes}:
+        raise CommandError(
+            f"unknown node {node!r} (site {site.name} has {_names(n.id for n in site.spec.nodes)})"
+        )
+    if command == "set_heartbeat" and (heartbeat_s is None or not 0 < heartbeat_s <= MAX_HEARTBEAT_S):
+        raise CommandError(f"a heartbeat is more than 0 s and at most {MAX_HEARTBEAT_S} s, not {heartbeat_s}")
+    msg = NodeCommand(id=secrets.randbelow(MAX_COMMAND_ID) + 1, command=command, heartbeat_s=heartbeat_s)
+    return Publication(topics.node_command(site.name, node), msg.to_payload(), False)
 
 
 def _names(ids: object) -> str:

@@ -1,4 +1,5 @@
-"""`wsnav status | watch | block | unblock | goal | cancel`: the console's view and steering in a terminal."""
+"""`wsnav status | watch | block | unblock | goal | cancel | node-command`: the console's view and steering in a
+terminal."""
 
 from __future__ import annotations
 
@@ -254,4 +255,31 @@ def clear_status_command(args: argparse.Namespace) -> int:
 def cancel_command(args: argparse.Namespace) -> int:
     _publish(args, "cancel", lambda link: commands.cancel(link.site, args.robot))
     print(f"cancel sent to {args.robot}")
+    return 0
+
+
+NODE_ACTIONS: dict[str, commands.NodeCommandName] = {
+    "restart": "restart",
+    "send-info": "send_info",
+    "heartbeat": "set_heartbeat",
+}
+
+
+def node_command_command(args: argparse.Namespace) -> int:
+    """`wsnav node-command NODE restart|send-info|heartbeat SECONDS`: one QoS 1 message the broker confirms."""
+    action = NODE_ACTIONS[args.action]
+    if (args.seconds is None) == (action == "set_heartbeat"):
+        raise CliError("heartbeat takes SECONDS (e.g. heartbeat 10); restart and send-info take nothing")
+    heartbeat_s = None
+    if args.seconds is not None:
+        try:
+            heartbeat_s = float(args.seconds)
+        except ValueError:
+            raise CliError(f"SECONDS: expected a number, got {args.seconds!r}") from None
+        if not math.isfinite(heartbeat_s):
+            raise CliError(f"SECONDS: expected a finite number, got {args.seconds!r}")
+    _publish(
+        args, "node-command", lambda link: commands.node_command(link.site, args.node, action, heartbeat_s)
+    )
+    print(f"{args.action} sent to {args.node}" + (f" ({heartbeat_s:g} s)" if heartbeat_s is not None else ""))
     return 0

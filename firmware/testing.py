@@ -48,15 +48,22 @@ def micropython_env(device: Path, stubs: Path, pins_dir: Path | None = None) -> 
     return env
 
 
+SIMULATED_TIME = ("--node-publish-rate", "0")
+"""`wsnav broker run` options for a driver on an accelerated clock (host_stubs/longrun.py): its node sends hours
+of heartbeats in minutes, hundreds of messages a second, far over the broker's rate for a node (20/s; over it,
+a QoS 1 publisher's connection is ended), as the simulator's embedded broker allows its simulated nodes."""
+
+
 class SiteBroker:
     """The project's broker (`wsnav broker run`, broker/) for a site, as a process a test can kill -9 and
     restart on the same port with the same data folder. The one place that decides which broker the firmware
-    tests talk to."""
+    tests talk to; `extra_args` are more `wsnav broker run` options (SIMULATED_TIME)."""
 
-    def __init__(self, site: Path, credentials: Path, data: Path) -> None:
+    def __init__(self, site: Path, credentials: Path, data: Path, extra_args: tuple[str, ...] = ()) -> None:
         self.site = site
         self.credentials = credentials
         self.data = data
+        self.extra_args = extra_args
         self.host = "127.0.0.1"
         self.port = 0
         self._proc: EmbeddedBroker | None = None
@@ -71,6 +78,7 @@ class SiteBroker:
             host=self.host,
             port=self.port,
             data_dir=self.data,
+            extra_args=list(self.extra_args),
             start_timeout_s=timeout_s,
         )
         self._proc = proc.start()

@@ -91,6 +91,8 @@ ResetCause = Literal[
 ]
 """`machine.reset_cause()` on the ESP8266 is the SDK's rst_info reason 0..6, named in this order
 (firmware/device/diagnostics.py maps them); anything else is `unknown`."""
+MAX_HEARTBEAT_S = 3600
+"""A node's heartbeat period is at most an hour (the site file's bound, and a `set_heartbeat` command's)."""
 MAX_INFO_ERROR_CHARS = 32
 """A node's last error is cut to this many characters: the whole message must fit the largest free block of a
 node's fragmented heap (firmware/device/diagnostics.py)."""
@@ -115,6 +117,35 @@ class NodeInfo(_Message):
     """Broker connections since boot, minus the first."""
     error: Annotated[str, Field(pattern=r'^[^"\\\x00-\x1f]*$', max_length=MAX_INFO_ERROR_CHARS)] | None = None
     """Why the broker link last went down (no quotes, backslashes or control characters), if it ever did."""
+    heartbeat_ms: Annotated[int, Field(ge=0, le=MAX_HEARTBEAT_S * 1000)] | None = None
+    """The heartbeat period the node runs now: its config's, or what a `set_heartbeat` command set (RAM only)."""
+    bad_commands: Annotated[int, Field(ge=0)] | None = None
+    """Commands ignored since boot: malformed, unknown, or out of range (a node that takes commands says 0)."""
+
+
+NodeCommandName = Literal["restart", "send_info", "set_heartbeat"]
+MAX_COMMAND_ID = 2**30 - 1
+"""Command ids stay below 2**30: a small int (no heap) on the ESP8266, as ZoneState's seq on the node."""
+
+
+class NodeCommand(_Message):
+    """`nodes/<node>/command`: the operator's command to one node; QoS 1, never retained (a node ignores a
+    retained one, which would otherwise greet it at every connect).
+
+    `restart`: the node publishes `offline`, disconnects and resets; `send_info`: it publishes its `info` at
+    once; `set_heartbeat`: its heartbeat period becomes `heartbeat_s` until it restarts (reported in `info`).
+    `id` is the sender's, random per command: the node applies a command once even if QoS 1 delivers it again."""
+
+    id: Annotated[int, Field(ge=1, le=MAX_COMMAND_ID)]
+    command: NodeCommandName
+    heartbeat_s: Annotated[float, Field(gt=0, le=MAX_HEARTBEAT_S)] | None = None
+    """Only with `set_heartbeat`, bounded as the site file's heartbeat."""
+
+    @model_validator(mode="after")
+    def _heartbeat_with_set_heartbeat(self) -> NodeCommand:
+        if (self.heartbeat_s is None) == (self.command == "set_heartbeat"):
+            raise ValueError("heartbeat_s goes with set_heartbeat, and only with it")
+        return self
 
 
 class RobotStatus(_Message):
@@ -203,6 +234,7 @@ MESSAGE_MODELS: dict[str, type[_Message]] = {
     "zone_state": ZoneState,
     "node_status": NodeStatus,
     "node_info": NodeInfo,
+    "node_command": NodeCommand,
     "robot_status": RobotStatus,
     "robot_goal": RobotGoal,
     "operator_block": OperatorBlock,

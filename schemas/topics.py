@@ -15,7 +15,14 @@ ROOT = "wsn"
 _ID = re.compile(ID_PATTERN)
 
 TopicKind = Literal[
-    "zone_state", "node_status", "node_info", "robot_status", "robot_goal", "operator_block", "sim_world"
+    "zone_state",
+    "node_status",
+    "node_info",
+    "node_command",
+    "robot_status",
+    "robot_goal",
+    "operator_block",
+    "sim_world",
 ]
 
 
@@ -39,6 +46,12 @@ def node_info(site: str, node: str) -> str:
     """A node's diagnostics (schemas.messages.NodeInfo), retained."""
     _check(site, node)
     return f"{ROOT}/{site}/nodes/{node}/info"
+
+
+def node_command(site: str, node: str) -> str:
+    """The operator's commands to one node (schemas.messages.NodeCommand): QoS 1, never retained."""
+    _check(site, node)
+    return f"{ROOT}/{site}/nodes/{node}/command"
 
 
 def robot_status(site: str, robot: str) -> str:
@@ -77,6 +90,11 @@ def all_node_infos(site: str) -> str:
     return f"{ROOT}/{site}/nodes/+/info"
 
 
+def all_node_commands(site: str) -> str:
+    _check(site)
+    return f"{ROOT}/{site}/nodes/+/command"
+
+
 def all_operator_blocks(site: str) -> str:
     _check(site)
     return f"{ROOT}/{site}/operator/blocks/+"
@@ -112,6 +130,8 @@ def parse(topic: str) -> Topic | None:
             return Topic("node_status", site, node=node)
         case ["nodes", node, "info"]:
             return Topic("node_info", site, node=node)
+        case ["nodes", node, "command"]:
+            return Topic("node_command", site, node=node)
         case ["robots", robot, "status"]:
             return Topic("robot_status", site, robot=robot)
         case ["robots", robot, "goal"]:

@@ -218,6 +218,9 @@ def test_node_waits_for_a_loaded_broker_that_answers_after_2_5_s(
                 tl = int.from_bytes(body[:2], "big")
                 threading.Event().wait(late_s)
                 conn.sendall(bytes([0x40, 2]) + body[2 + tl : 4 + tl])
+            elif kind == 0x82:  # SUBSCRIBE (the node's commands): SUBACK with its packet id, QoS 1 granted
+                threading.Event().wait(late_s)
+                conn.sendall(bytes([0x90, 3]) + body[:2] + b"\x01")
             elif kind == 0xC0:
                 conn.sendall(bytes([0xD0, 0]))
 

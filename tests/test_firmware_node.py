@@ -21,6 +21,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from tests.conftest import REPO
 from wsnav.firmware.testing import (
+    SIMULATED_TIME,
     NodeProcess,
     SiteBroker,
     build_for_host,
@@ -30,8 +31,8 @@ from wsnav.firmware.testing import (
     write_credentials,
 )
 from wsnav.schemas import topics
-from wsnav.schemas.credentials import Credentials, NodeConfig
-from wsnav.schemas.messages import NodeInfo, NodeStatus, ZoneState, parse_payload
+from wsnav.schemas.credentials import Credentials, NodeConfig, load_credentials
+from wsnav.schemas.messages import NodeCommand, NodeInfo, NodeStatus, ZoneState, parse_payload
 from wsnav.zone_sim.firmware_modules import diagnostics
 
 SITE_DIR = REPO / "sites" / "school"
@@ -139,8 +140,9 @@ def creds(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture
-def broker(creds: Path, tmp_path: Path) -> Iterator[SiteBroker]:
-    b = SiteBroker(SITE_DIR, creds, tmp_path / "broker-data")
+def broker(creds: Path, tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[SiteBroker]:
+    """The site's broker; a test parametrizes it (indirect) with more `wsnav broker run` options."""
+    b = SiteBroker(SITE_DIR, creds, tmp_path / "broker-data", getattr(request, "param", ()))
     b.start()
     yield b
     b.kill()
@@ -199,7 +201,8 @@ def start_node(
     def start(config: Path) -> NodeProcess:
         device, stubs = host_build
         env = micropython_env(device, stubs, pins.folder)
-        node = NodeProcess(micropython_cmd("run_node", str(config)), env, tmp_path / "node.log")
+        log = tmp_path / f"node{len(started)}.log" if started else tmp_path / "node.log"
+        node = NodeProcess(micropython_cmd("run_node", str(config)), env, log)
         started.append(node)
         return node
 
@@ -401,6 +404,7 @@ def test_board_publishes_its_diagnostics_retained_and_again_after_a_reconnect(
     assert "MemoryError" not in out and "info: no heap" not in out and "Traceback" not in out, out
 
 
+@pytest.mark.parametrize("broker", [SIMULATED_TIME], indirect=True, ids=["no-node-rate-limit"])
 def test_hours_of_simulated_time_on_a_38k_heap(
     broker: SiteBroker, creds: Path, subscriber: Subscriber, host_build: tuple[Path, Path], tmp_path: Path
 ) -> None:
@@ -516,3 +520,90 @@ def test_ipv4_broker_address_needs_no_dns(
     broker.start()
     assert node.wait_output("mqtt up 2", WAIT), node.output()
     assert "dns hang" not in node.output()
+
+
+def send_command(
+    broker: SiteBroker, creds: Path, node: str, payload: bytes, sender: str = "operator"
+) -> None:
+    """One command as QoS 1, not retained, from `sender`'s identity; waits for the broker's PUBACK."""
+    who = load_credentials(creds / f"{sender}.json")
+    client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=f"{sender}-cmd-{time.monotonic_ns()}")
+    client.username_pw_set(who.username, who.password)
+    client.connect(broker.host, broker.port)
+    client.loop_start()
+    try:
+        info = client.publish(topics.node_command(SITE, node), payload, qos=1)
+        info.wait_for_publish(WAIT)
+        assert info.is_published()
+    finally:
+        client.loop_stop()
+        client.disconnect()
+
+
+def command(cmd: str, ident: int, heartbeat_s: float | None = None) -> bytes:
+    return NodeCommand(id=ident, command=cmd, heartbeat_s=heartbeat_s).to_payload()  # type: ignore[arg-type]
+
+
+def test_operator_commands_reach_the_node_and_are_applied(
+    broker: SiteBroker, creds: Path, subscriber: Subscriber, start_node, tmp_path: Path
+) -> None:
+    """send_info: an info at once; set_heartbeat 2: heartbeats every ~2 s and the period in the info; a
+    redelivered id, a malformed and an unknown command change nothing but the count; restart: offline, the
+    process resets (75) and, started again as a board reboots, the node comes back online."""
+    cfg = node_config(creds, broker, tmp_path / "config.json", heartbeat_s=60)
+    node = start_node(cfg)
+    assert node.wait_output("mqtt up 1", WAIT), node.output()
+    subscriber.wait(is_info())
+    mark = len(subscriber.snapshot())
+    send_command(broker, creds, NODE, command("send_info", 11))
+    first = info_of(subscriber.wait(is_info(), after=mark))
+    assert first is not None and first.heartbeat_ms == 60000 and first.bad_commands == 0
+    mark = len(subscriber.snapshot())
+    send_command(broker, creds, NODE, command("set_heartbeat", 12, 2))
+    assert info_of(subscriber.wait(is_info(lambda i: i.heartbeat_ms == 2000), after=mark)) is not None
+    beats: list[float] = []
+    after = len(subscriber.snapshot())
+    while len(beats) < 4:
+        beat = subscriber.wait(is_state("clear"), after=after, timeout=10)
+        beats.append(time.monotonic())
+        after = subscriber.snapshot().index(beat) + 1
+    gaps = [b - a for a, b in itertools.pairwise(beats[1:])]
+    assert all(1.0 < g < 3.5 for g in gaps), gaps
+    for bad in (b"{nope", b'{"v":1,"id":13,"command":"format_flash"}', command("set_heartbeat", 12, 5)):
+        send_command(broker, creds, NODE, bad)  # the last one: id 12 again, a redelivery, ignored silently
+    send_command(broker, creds, NODE, b'{"v":1,"id":14,"command":"set_heartbeat","heartbeat_s":7200}')
+    mark = len(subscriber.snapshot())
+    send_command(broker, creds, NODE, command("send_info", 15))
+    counted = info_of(subscriber.wait(is_info(), after=mark))
+    assert counted is not None and counted.bad_commands == 3 and counted.heartbeat_ms == 2000, counted
+    mark = len(subscriber.snapshot())
+    send_command(broker, creds, NODE, command("restart", 16))
+    node.proc.wait(WAIT)
+    assert node.proc.returncode == 75, node.output()
+    assert "restart" in node.output() and "Traceback" not in node.output(), node.output()
+    subscriber.wait(is_status("offline"), after=mark)
+    mark = len(subscriber.snapshot())
+    rebooted = start_node(cfg)
+    assert rebooted.wait_output("mqtt up 1", WAIT), rebooted.output()
+    subscriber.wait(is_status("online"), after=mark)
+    again = info_of(subscriber.wait(is_info(), after=mark))
+    assert again is not None and again.heartbeat_ms == 60000  # the commanded period was RAM only
+
+
+def test_a_node_cannot_command_another_node(
+    broker: SiteBroker, creds: Path, subscriber: Subscriber, start_node, tmp_path: Path
+) -> None:
+    """n2 (its own credentials) publishing a restart and a send_info to n1's command topic: the broker drops
+    them; n1 stays up and sends no info for them. The operator's next command still works."""
+    cfg = node_config(creds, broker, tmp_path / "config.json", heartbeat_s=60)
+    node = start_node(cfg)
+    assert node.wait_output("mqtt up 1", WAIT), node.output()
+    subscriber.wait(is_info())
+    mark = len(subscriber.snapshot())
+    send_command(broker, creds, NODE, command("restart", 21), sender="n2")
+    send_command(broker, creds, NODE, command("send_info", 22), sender="n2")
+    send_command(broker, creds, NODE, command("send_info", 23))
+    subscriber.wait(is_info(), after=mark)
+    infos = [m for m in subscriber.snapshot()[mark:] if info_of(m) is not None]
+    assert len(infos) == 1 and node.proc.poll() is None, node.output()
+    assert "restart" not in node.output() and "bad command" not in node.output()

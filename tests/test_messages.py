@@ -10,6 +10,7 @@ from wsnav.schemas import topics
 from wsnav.schemas.export import stale_files
 from wsnav.schemas.messages import (
     MAX_PAYLOAD_BYTES,
+    NodeCommand,
     NodeStatus,
     OperatorBlock,
     PayloadError,
@@ -78,10 +79,31 @@ def test_status_messages() -> None:
         parse_payload(RobotStatus, b'{"v":1,"robot":"robot1","state":"dancing","pose":[0,0,0]}')
 
 
+def test_node_commands() -> None:
+    """A node parses these few bytes by hand (firmware/device/app.py): compact, `heartbeat_s` only where it
+    belongs, bounded as the site file's heartbeat."""
+    beat = NodeCommand(id=42, command="set_heartbeat", heartbeat_s=2)
+    assert beat.to_payload() == b'{"v":1,"id":42,"command":"set_heartbeat","heartbeat_s":2.0}'
+    assert NodeCommand(id=1, command="restart").to_payload() == b'{"v":1,"id":1,"command":"restart"}'
+    assert parse_payload(NodeCommand, beat.to_payload()) == beat
+    for bad, where in [
+        (b'{"v":1,"id":1,"command":"set_heartbeat"}', "heartbeat_s goes with"),
+        (b'{"v":1,"id":1,"command":"send_info","heartbeat_s":5}', "heartbeat_s goes with"),
+        (b'{"v":1,"id":1,"command":"set_heartbeat","heartbeat_s":3601}', "heartbeat_s"),
+        (b'{"v":1,"id":1,"command":"set_heartbeat","heartbeat_s":0}', "heartbeat_s"),
+        (b'{"v":1,"id":0,"command":"restart"}', "id"),
+        (b'{"v":1,"id":1073741824,"command":"restart"}', "id"),
+        (b'{"v":1,"id":1,"command":"format_flash"}', "command"),
+    ]:
+        with pytest.raises(PayloadError, match=where):
+            parse_payload(NodeCommand, bad)
+
+
 def test_topics_round_trip() -> None:
     cases = {
         topics.zone_state("school", "z4", "n7"): ("zone_state", {"zone": "z4", "node": "n7"}),
         topics.node_status("school", "n7"): ("node_status", {"node": "n7"}),
+        topics.node_command("school", "n7"): ("node_command", {"node": "n7"}),
         topics.robot_status("school", "robot1"): ("robot_status", {"robot": "robot1"}),
         topics.robot_goal("school", "robot1"): ("robot_goal", {"robot": "robot1"}),
         topics.operator_block("school", "spill-3"): ("operator_block", {"block_id": "spill-3"}),

@@ -8,12 +8,14 @@ the watchdog bites. This client:
 - calls `feed()` before every step that can block (the board's watchdog budget, docs/firmware-esp8266.md), and
   keeps feeding from a timer while a DNS lookup runs (getaddrinfo takes no timeout);
 - sends its own keepalive pings (`maintain`) and declares the link dead when a PINGRESP is overdue;
-- tolerates PUBLISH packets it never asked for (amqtt 0.12 sends retained messages matching *other* clients'
-  subscriptions): they are read and thrown away in small chunks, never buffered whole, and QoS 1 ones are
-  acknowledged so the broker does not resend them;
+- subscribes to one topic after the CONNACK (`connect`'s `topic`: the node's commands) and hands the caller,
+  from `poll`, the payload of each live (not retained) message on it (command.py sends the DISCONNECT before a
+  commanded restart: a node never leaves otherwise, and its will must be published when it goes);
+- tolerates every other PUBLISH (amqtt 0.12 sends retained messages matching *other* clients' subscriptions):
+  read and thrown away in small chunks, never buffered whole; QoS 1 ones are acknowledged so the broker does
+  not resend them;
 - raises OSError (MQTTError is one) for every failure, so the caller has one thing to catch.
-No DISCONNECT: a node never leaves on purpose, and its will must be published when it goes.
-It only publishes: no SUBSCRIBE, no QoS 2, no incoming message callback.
+No QoS 2, no callbacks.
 """
 
 import select
@@ -27,6 +29,8 @@ _CONNECT = const(0x10)
 _CONNACK = const(0x20)
 _PUBLISH = const(0x30)
 _PUBACK = const(0x40)
+_SUBSCRIBE = const(0x82)
+_SUBACK = const(0x90)
 _PINGREQ = const(0xC0)
 _PINGRESP = const(0xD0)
 
@@ -102,11 +106,13 @@ class MQTTClient:
         self._poller = None
         self._pid = 0
         self._last_tx = 0
-        self._ping_sent = 0
-        self._ping_pending = False
+        self._ping_sent = None  # when the unanswered PINGREQ went out; None: no ping pending
         self.pings = 0
         self.feed = feed
         self.addr = None  # the broker's address: built once for an IPv4 literal, else the last one DNS gave
+        self.sub = None  # type: list | None
+        """[the subscribed topic's bytes, then the commands a wait read, oldest first]: one attribute, not two
+        (the 17th fills the instance's 17-slot dict; an 18th would grow it: heap)."""
 
     # -- socket helpers: every call is bounded by the socket timeout, every wait by a deadline --------------
     def _fed(self, ms: int):
@@ -151,10 +157,14 @@ class MQTTClient:
             data += more
         return data
 
-    def _skip(self, n: int, deadline) -> None:
-        """Discard n bytes in small chunks: an unsolicited message must not cost its size in heap."""
+    def _skip(self, n: int, deadline) -> bytes:
+        """Read n bytes in chunks of at most 128 (an unsolicited message must not cost its size in heap); returns
+        the last chunk: all of them, for n <= 128."""
+        data = b""
         while n > 0:
-            n -= len(self._recv(n if n < 64 else 64, deadline))
+            data = self._recv(n if n < 128 else 128, deadline)
+            n -= len(data)
+        return data
 
     def _read_packet(self, deadline):
         """Read one packet by `deadline`; returns (type, short_body) where short_body is what we need of it (or b'')."""
@@ -170,21 +180,21 @@ class MQTTClient:
             if shift > 21:
                 raise MQTTError("bad remaining length")
         kind = first & 0xF0
-        if kind == _PUBLISH:
-            qos = (first >> 1) & 3
-            tlen = self._recv(2, deadline)
-            tl = (tlen[0] << 8) | tlen[1]
-            self._skip(tl, deadline)
-            rest = length - 2 - tl
-            if qos:
-                pid = self._recv(2, deadline)
-                rest -= 2
-                self._skip(rest, deadline)
-                if qos == 1:
-                    self._send(bytes((_PUBACK, 2)) + pid)
-            else:
-                self._skip(rest, deadline)
-            return kind, b""
+        if kind == _PUBLISH:  # (_PUBLISH, payload) for a command, else (0, ...): read in chunks and dropped
+            t = self._recv(2, deadline)
+            n = (t[0] << 8) | t[1]
+            t = self._skip(n, deadline)  # the topic (its whole, at most 128 bytes)
+            sub = self.sub
+            # A command: a live message (a retained one never is) on the subscribed topic.
+            ours = n <= 128 and sub is not None and not first & 1 and t == sub[0]
+            pid = self._recv(2, deadline) if first & 6 else b""  # QoS 1 (or 2): a packet id
+            length -= 2 + n + len(pid)
+            body = self._skip(length, deadline)
+            if (first & 6) == 2:
+                self._send(bytes((_PUBACK, 2)) + pid)
+            # A command is whole up to 128 bytes (NodeCommand's take under 70); a longer one is handed over as
+            # b"", which the node counts as malformed.
+            return (kind if ours else 0), (body if length <= 128 else b"")
         if length <= 4:
             return kind, self._recv(length, deadline) if length else b""
         self._skip(length, deadline)
@@ -199,18 +209,23 @@ class MQTTClient:
             if k == kind and (body is None or b == body):
                 return b
             if k == _PINGRESP:
-                self._ping_pending = False
+                self._ping_sent = None
+            elif k == _PUBLISH:  # a command: handed over by the next `poll`
+                self.sub.append(b)  # pyright: ignore[reportOptionalMemberAccess] (subscribed)
 
     # -- the protocol -----------------------------------------------------------------------------------
-    def connect(self, will=None, clean: bool = True) -> None:
-        """Open TCP and do CONNECT/CONNACK; `will` is (topic, payload, retain, qos) or None."""
+    def connect(self, will=None, topic=None) -> None:
+        """Open TCP and do CONNECT/CONNACK (a clean session); `will` is (topic, payload, retain, qos) or None.
+        `topic`, if given, is then subscribed to at QoS 1 (SUBSCRIBE/SUBACK: a subscription lasts one
+        connection), and `poll` hands over its live messages; a refused one (a broker with an older ACL) is
+        said, and the client works on without."""
         self.close()
         addr = self._address()
         sock = socket.socket()
         self.sock = sock
         try:
             self._fed(_STEP_MS).connect(addr)
-            flags = 0x02 if clean else 0
+            flags = 0x02
             payload = _str(self.client_id)
             if will is not None:
                 flags |= 0x04 | (will[3] << 3) | (0x20 if will[2] else 0)
@@ -227,13 +242,23 @@ class MQTTClient:
             body = self._wait_for(_CONNACK)
             if len(body) != 2 or body[1] != 0:
                 raise MQTTError("connection refused, code " + (str(body[1]) if len(body) == 2 else "?"))
+            if topic is not None:  # SUBSCRIBE: packet id 1 (nothing else is in flight yet), QoS 1
+                t = _str(topic)
+                packet = bytearray((_SUBSCRIBE, len(t) + 3, 0, 1)) + t  # ids make topics far under 128 bytes
+                packet.append(1)
+                self._send(packet)
+                if self.sub is None:  # kept across connects, with any command not handed over yet
+                    self.sub = [t[2:]]
+                code = self._wait_for(_SUBACK)  # packet id, then the granted QoS or 0x80
+                if len(code) != 3 or code[2] & 0x80:
+                    print("refused", topic)
         except Exception:
             self.close()
             raise
         poller = select.poll()
         poller.register(sock, select.POLLIN)
         self._poller = poller
-        self._ping_pending = False
+        self._ping_sent = None
 
     def _address(self):
         """The broker's socket address. An IPv4 literal is parsed once (locally: no DNS query, nothing that can
@@ -299,32 +324,39 @@ class MQTTClient:
         if qos:
             self._wait_for(_PUBACK, bytes((self._pid >> 8, self._pid & 0xFF)))
 
-    def poll(self) -> None:
-        """Handle whatever the broker sent, without blocking when nothing is waiting."""
+    def poll(self):
+        """Handle whatever the broker sent, without blocking when nothing is waiting; returns the first command
+        (a live message on the subscribed topic) that came, else None; the next call goes on from there."""
         poller = self._poller
         if poller is None:
             raise MQTTError("not connected")
+        sub = self.sub
+        if sub is not None and len(sub) > 1:  # read during a wait
+            return sub.pop(1)
         for _ in range(_MAX_UNSOLICITED):
             events = poller.poll(0)
             if not events:
-                return
+                return None
             if events[0][1] & (select.POLLHUP | select.POLLERR):
                 raise MQTTError("connection lost")
-            kind, _body = self._read_packet(ticks_add(ticks_ms(), self.timeout_ms))
+            kind, body = self._read_packet(ticks_add(ticks_ms(), self.timeout_ms))
             if kind == _PINGRESP:
-                self._ping_pending = False
+                self._ping_sent = None
+            elif kind == _PUBLISH:
+                return body
+        return None
 
     def maintain(self) -> None:
         """Keepalive: ping after half the keepalive period without sending; fail if a PINGRESP is overdue."""
         now = ticks_ms()
         half = self.keepalive_s * 500
-        if self._ping_pending:
-            if ticks_diff(now, self._ping_sent) > max(half, self.timeout_ms):
+        sent = self._ping_sent
+        if sent is not None:
+            if ticks_diff(now, sent) > max(half, self.timeout_ms):
                 raise MQTTError("no PINGRESP from broker")
         elif ticks_diff(now, self._last_tx) >= half:
             self._send(bytes((_PINGREQ, 0)))  # its PINGRESP is collected by `poll` or any later wait
             self._ping_sent = ticks_ms()
-            self._ping_pending = True
             self.pings += 1
 
     def close(self) -> None:

@@ -203,6 +203,8 @@ class FakeSocket:
                 answer = b"\x20\x02\x00\x00"
             elif kind == 0xC0:
                 answer = b"\xd0\x00"
+            elif kind == 0x80:  # SUBSCRIBE (the node's commands): SUBACK, its packet id, QoS 1 granted
+                answer = b"\x90\x03" + data[2:4] + b"\x01"
             elif kind == 0x30:
                 i = 1
                 while data[i] & 0x80:

@@ -142,15 +142,18 @@ def check_diagnostics_payload():
     assert msg[0] == "wsn/s/nodes/n1/info" and msg[2:] == (True, 0) and INFO_PERIOD_MS == 300000
     assert msg[1].encode() == (
         b'{"v":1,"node":"n1","fw":"' + FIRMWARE_VERSION.encode() + b'","reset":"watchdog","uptime_s":3723,'
-        b'"rssi":-61,"heap_free":8000,"reconnects":2,"error":"OSError: \'x\'/y"}'
+        b'"rssi":-61,"heap_free":8000,"reconnects":2,"error":"OSError: \'x\'/y","heartbeat_ms":1000,'
+        b'"bad_commands":0}'
     )
     plain = info(n, 0, 0, 42, 31)[1].encode()  # no link RSSI (the SDK's 31), nothing measured, unknown cause
     assert (
         plain
         == b'{"v":1,"node":"n1","fw":"'
         + FIRMWARE_VERSION.encode()
-        + b'","reset":"unknown","uptime_s":0,"reconnects":0}'
+        + b'","reset":"unknown","uptime_s":0,"reconnects":0,"heartbeat_ms":1000,"bad_commands":0}'
     )
+    n.heartbeat_ms = 2000  # a set_heartbeat command
+    assert info(n, 0, 1, 0, None, None, None, 3)[1].endswith(',"heartbeat_ms":2000,"bad_commands":3}')
 
 
 def check_heartbeat_and_debounce_across_the_clock_wrap():

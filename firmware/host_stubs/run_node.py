@@ -6,7 +6,8 @@ Sensor from the fake pin files ($WSNAV_PINS), fake Wi-Fi, real MQTT. Runs until 
 capped at 1 s so a restarted broker is found within seconds. DNS is the real getaddrinfo while the file
 $WSNAV_PINS/dns says 0 or is missing; 1: every lookup fails ("dns down HOST"); 2: a lookup never returns ("dns
 hang HOST"), as lwIP's can (soft timers run meanwhile, as in lwIP's wait on the board). Lines on stdout ("mqtt up N", "mqtt down: ...")
-are what the tests wait for.
+are what the tests wait for. A `restart` command ends the process with status 75 (fake_dns's machine.reset,
+as soft_timers.reset does): the test starts it again, as a board reboots.
 """
 
 import gc
@@ -28,7 +29,7 @@ gc.collect()
 print("heap free", gc.mem_free())
 import fake_dns  # noqa: E402  after the heap is measured: the board has no such thing
 
-fake_dns.install()
+fake_dns.install()  # and machine.reset
 if not node.client.host[-1:].isdigit():  # a name: the client feeds from a machine.Timer while it looks it up
     import soft_timers  # after the heap is measured: the board has machine.Timer in ROM
 
