@@ -48,6 +48,15 @@ SLOW_MODULES = {
 """Every test here runs a process stack: docker, a browser, ROS, DDS peers, MicroPython boards, Dask processes."""
 SLOW_TESTS = {
     "test_broker_credentials.py::test_mosquitto_keeps_messages_for_a_subscriber_that_stalls",
+    "test_broker_protocol.py::test_fuzzed_subscribe",
+    "test_broker_protocol.py::test_fuzzed_publish",
+    "test_firmware_mqtt.py::test_node_waits_for_a_loaded_broker_that_answers_after_2_5_s",
+    "test_broker_limits.py::test_one_node_parks_at_most_its_share_of_persistent_sessions",
+    "test_broker_limits.py::test_a_flooding_node_is_held_to_its_rate_loses_nothing_and_the_other_node_gets_through",
+    "test_broker_limits.py::test_a_parked_session_expires",
+    "test_broker_listeners.py::test_the_agents_bus_and_the_operator_commands_work_over_tls_and_refuse_a_wrong_ca",
+    "test_firmware_watchdog.py::test_a_month_across_the_wraps_of_the_boards_clock",
+    "test_broker_revoke.py::test_a_revoked_node_is_cut_off_and_its_retained_word_is_gone",
     "test_ros_costmap_params.py::test_roslaunch_starts_the_bridge_with_its_parameters_from_a_yaml",
     "test_ros_costmap_params.py::test_the_bridge_reads_move_bases_parameters_and_refuses_a_wrong_set_in_one_line",
     "test_broker_embedded.py::test_a_subscriber_that_never_acknowledges_costs_one_warning_line_not_a_traceback",
