@@ -100,3 +100,46 @@ def test_robot_check_wants_a_live_status_not_a_retained_one(
             stop.set()
             reporter.join()
             robot.close()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("writable", [True, False])
+def test_mosquitto_that_cannot_save_its_store_is_unhealthy(
+    writable: bool, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A Mosquitto that cannot write its store (the usual cause: started as root without `user`, it drops to
+    `mosquitto`, who cannot write a root-owned folder; here the folder is replaced by a file) only logs an error
+    at each autosave, and an operator block is gone at the next restart. The check says so."""
+    import os
+    import subprocess
+    import time
+
+    from tests.broker_fixtures import wait_listening
+    from tests.conftest import require_tool
+    from wsnav.broker.credentials import write_credentials
+    from wsnav.broker.mosquitto.config import CONF, MosquittoOptions, write_mosquitto_config
+    from wsnav.broker.mosquitto.process import free_port
+    from wsnav.schemas.site import load_site
+
+    mosquitto = require_tool("mosquitto")
+    site = tiny_site(tmp_path / "site")
+    write_credentials(load_site(site).spec, tmp_path / "creds")
+    port, data = free_port(), tmp_path / "data"
+    user = "root" if os.geteuid() == 0 else None
+    options = MosquittoOptions(bind=("127.0.0.1", port), data_dir=data, user=user, autosave_interval_s=1)
+    write_mosquitto_config(load_site(site).spec, tmp_path / "creds", tmp_path / "mq", options)
+    if not writable:
+        data.rmdir()
+        data.write_text("")
+    proc = subprocess.Popen([mosquitto, "-c", str(tmp_path / "mq" / CONF)], stderr=subprocess.DEVNULL)
+    try:
+        wait_listening("127.0.0.1", port, proc)
+        time.sleep(3.0)  # three autosave intervals
+        code, line = check(capsys, "mosquitto-store", "--data", str(data), "--autosave", "1")
+    finally:
+        proc.terminate()
+        proc.wait(30)
+    if writable:
+        assert code == 0 and "saved" in line, line
+    else:
+        assert code == 1 and "has not saved its store" in line and "--user" in line, line

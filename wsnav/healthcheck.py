@@ -7,6 +7,7 @@ exits 0 (healthy) or 1 (not):
     python -m wsnav.healthcheck broker --broker HOST:PORT --credentials FILE
     python -m wsnav.healthcheck nodes --site DIR --broker HOST:PORT --credentials FILE   # operator's file
     python -m wsnav.healthcheck robot --site DIR --robot ID --broker HOST:PORT --credentials FILE
+    python -m wsnav.healthcheck mosquitto-store --data DIR [--autosave 60]
 """
 
 from __future__ import annotations
@@ -98,6 +99,26 @@ def check_robot(args: argparse.Namespace) -> str:
     raise Unhealthy(f"no status from {args.robot} within {args.timeout:g} s")
 
 
+def check_mosquitto_store(args: argparse.Namespace) -> str:
+    """Mosquitto saves its store every `autosave_interval`; when it cannot (its user may not write the folder), it
+    only logs an error each time and loses the operator's blocks at the next restart. A store older than two
+    intervals is that case."""
+    store = args.data / "mosquitto.db"
+    try:
+        age = time.time() - store.stat().st_mtime
+    except OSError:
+        raise Unhealthy(
+            f"{store}: Mosquitto has not saved its store (is {args.data} writable by Mosquitto's user? "
+            "`wsnav broker mosquitto-config --data DIR --user USER` hands it over)"
+        ) from None
+    if age > 2 * args.autosave + 5:
+        raise Unhealthy(
+            f"{store}: last saved {age:.0f} s ago, every {args.autosave:g} s expected (is {args.data} writable "
+            "by Mosquitto's user? a full disk?)"
+        )
+    return f"{store} saved {age:.0f} s ago"
+
+
 def _site(path: Path) -> Site:
     try:
         return load_site(path)
@@ -125,6 +146,10 @@ def build_parser() -> Parser:
         if name == "robot":
             p.add_argument("--robot", required=True, help="robot id")
         p.set_defaults(func=func)
+    store = sub.add_parser("mosquitto-store", help="Mosquitto saved its retained messages lately")
+    store.add_argument("--data", type=Path, required=True, help="Mosquitto's persistence_location")
+    store.add_argument("--autosave", type=float, default=60.0, help="its autosave_interval (default 60)")
+    store.set_defaults(func=check_mosquitto_store)
     return parser
 
 
