@@ -178,10 +178,16 @@ class WsnavBroker(Broker):
             self._watch = asyncio.create_task(self._watch_passwords(self._password_file))
 
     async def shutdown(self) -> None:
+        """amqtt's, but the listeners stop listening first: amqtt closes them last, after the sessions' cleanup,
+        and a cleanup that failed or hung left the port bound, so a broker restarted on it could not listen
+        ("address already in use" for over 20 s, twice in CI)."""
         if self._watch is not None:
             self._watch.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._watch
+        for server in self._servers.values():
+            if server.instance is not None:
+                server.instance.close()
         await super().shutdown()
 
     async def _watch_passwords(self, path: Path, every_s: float = 0.5) -> None:
