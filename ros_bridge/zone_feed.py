@@ -60,7 +60,7 @@ class ZoneFeed:
         changed = areas ^ self.escaping
         self.escaping = areas
         windows = {area: window for area, window in self.layer.blocked_areas()}
-        return self._repaint([_bounds(windows[a]) for a in changed if a in windows])
+        return self._repaint([window_bounds(windows[a]) for a in changed if a in windows])
 
     def _repaint(self, windows: list[Bounds]) -> list[ZoneChange]:
         out: list[ZoneChange] = []
@@ -144,7 +144,8 @@ def exit_point(
     return frame.cell_to_world(int(best[0]) + r0, int(best[1]) + c0)
 
 
-def _bounds(window: CellWindow) -> Bounds:
+def window_bounds(window: CellWindow) -> Bounds:
+    """The rectangle of cells a polygon's window spans."""
     return Bounds(
         window.row0, window.col0, window.row0 + window.mask.shape[0], window.col0 + window.mask.shape[1]
     )

@@ -10,9 +10,7 @@ cap or publish rate: docs/security.md says what that leaves open).
 from __future__ import annotations
 
 import contextlib
-import os
 import queue
-import subprocess
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -21,15 +19,14 @@ import paho.mqtt.client as mqtt
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
-from tests.broker_fixtures import TIMEOUT, Endpoint, client, connect_reason, wait_listening, wsnav
+from tests.broker_fixtures import TIMEOUT, Endpoint, client, connect_reason, wsnav
 from tests.conftest import require_tool
 from tests.site_fixtures import tiny_site
 from wsnav.broker.amqtt.config import BrokerOptions
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.broker.credentials import write_credentials
 from wsnav.broker.identity_limits import IdentityLimits
-from wsnav.broker.mosquitto.config import CONF, MosquittoOptions, write_mosquitto_config
-from wsnav.broker.mosquitto.process import free_port
+from wsnav.broker.mosquitto.process import mosquitto_process
 from wsnav.schemas import topics
 from wsnav.schemas.site import load_site
 
@@ -72,22 +69,9 @@ def amqtt(site_dir: Path, creds_dir: Path) -> Iterator[Endpoint]:
 def mosquitto(
     site_dir: Path, creds_dir: Path, tmp_path_factory: pytest.TempPathFactory
 ) -> Iterator[Endpoint]:
-    binary = require_tool("mosquitto")
-    work = tmp_path_factory.mktemp("mosquitto")
-    port = free_port()
-    options = MosquittoOptions(
-        bind=("127.0.0.1", port), data_dir=work / "data", user="root" if os.geteuid() == 0 else None
-    )
-    write_mosquitto_config(load_site(site_dir).spec, creds_dir, work / "conf", options)
-    proc = subprocess.Popen([binary, "-c", str(work / "conf" / CONF)], stderr=subprocess.PIPE)
-    try:
-        wait_listening("127.0.0.1", port, proc)
-        yield Endpoint("mosquitto", "127.0.0.1", port, creds_dir)
-    finally:
-        proc.terminate()
-        proc.wait(30)
-        if proc.stderr:
-            proc.stderr.close()
+    require_tool("mosquitto")
+    with mosquitto_process(load_site(site_dir).spec, creds_dir, tmp_path_factory.mktemp("mosquitto")) as mq:
+        yield Endpoint("mosquitto", mq.host, mq.port, creds_dir)
 
 
 @pytest.fixture(params=["amqtt", "mosquitto"])
