@@ -108,7 +108,11 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         "--broker", type=host_port, help="HOST:PORT the devices connect to (kept when omitted)"
     )
     creds.add_argument("--wifi-ssid", help="Wi-Fi network written into every node's config")
-    creds.add_argument("--wifi-password", help="Wi-Fi password written into every node's config")
+    creds.add_argument(
+        "--wifi-password",
+        help="Wi-Fi password written into every node's config; `-` reads it from the first line of stdin "
+        "(kept out of the process list and the shell history)",
+    )
     creds.set_defaults(func=credentials_command)
 
     mosq = bsub.add_parser("mosquitto-config", help="mosquitto.conf, password and ACL files: the same model")
@@ -275,8 +279,13 @@ def credentials_command(args: argparse.Namespace) -> int:
     from wsnav.schemas.credentials import CredentialsError
 
     site = _site(args.site)
+    wifi_password = args.wifi_password
+    if wifi_password == "-":
+        wifi_password = sys.stdin.readline().rstrip("\r\n")
+        if not wifi_password:
+            raise CliError("--wifi-password -: stdin gave no password (one line expected)")
     try:
-        report = write_credentials(site.spec, args.out, args.broker, args.wifi_ssid, args.wifi_password)
+        report = write_credentials(site.spec, args.out, args.broker, args.wifi_ssid, wifi_password)
     except CredentialsError as exc:
         raise CliError(str(exc)) from None
     for ident in report.created:

@@ -37,9 +37,13 @@ from wsnav.schemas.credentials import Credentials, NodeConfig, load_credentials
 from wsnav.schemas.site import load_site
 
 
-def wsnav(*args: str | Path) -> subprocess.CompletedProcess[str]:
+def wsnav(*args: str | Path, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "wsnav.cli", *map(str, args)], capture_output=True, text=True, timeout=120
+        [sys.executable, "-m", "wsnav.cli", *map(str, args)],
+        input=stdin,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
 
 
@@ -97,6 +101,27 @@ def test_rerun_keeps_secrets_adds_new_ids_reports_removed(tmp_path: Path) -> Non
     assert "n2" not in read_password_file(out / PASSWORD_FILE)  # ... but can no longer log in
     assert "n2.json: n2 is no longer in the site" in result.stdout
     assert NodeConfig.model_validate_json((out / "n1.json").read_text()).heartbeat_s == 2.0
+
+
+def test_wifi_set_for_every_node_and_the_key_read_from_stdin(tmp_path: Path) -> None:
+    """The installer's Wi-Fi goes into every node's config without editing JSON; `-` keeps the key off the
+    command line, and an empty stdin is refused without touching the files written before."""
+    site = tiny_site(tmp_path / "site")
+    out = tmp_path / "creds"
+    result = wsnav(
+        *("broker", "credentials", "--site", site, "--out", out),
+        *("--wifi-ssid", "site-iot", "--wifi-password", "-"),
+        stdin="s3cret key\n",
+    )
+    assert result.returncode == 0, result.stderr
+    for name in ("n1.json", "n2.json"):
+        wifi = NodeConfig.model_validate_json((out / name).read_text()).wifi
+        assert (wifi.ssid, wifi.password) == ("site-iot", "s3cret key")
+    before = (out / "n1.json").read_text()
+    empty = wsnav("broker", "credentials", "--site", site, "--out", out, "--wifi-password", "-", stdin="")
+    assert empty.returncode != 0
+    assert len(empty.stderr.splitlines()) == 1 and "stdin gave no password" in empty.stderr
+    assert (out / "n1.json").read_text() == before
 
 
 def test_damaged_existing_file_is_not_replaced(tmp_path: Path) -> None:
