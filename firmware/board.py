@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import shlex
 import subprocess
+import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Protocol
 
@@ -33,6 +35,11 @@ class Board(Protocol):
 
     def reset(self) -> None:
         """Hard reset (machine.reset()); returns without waiting for the board to boot."""
+        ...
+
+    def console(self, timeout_s: float) -> Iterator[str]:
+        """The lines the board prints on its serial console from now on (after a reset: its boot, then the
+        node's own messages), until `timeout_s` has passed; the caller stops reading when it has seen enough."""
         ...
 
 
@@ -71,3 +78,24 @@ class MpremoteBoard:
 
     def reset(self) -> None:
         self._session("reset")
+
+    def console(self, timeout_s: float) -> Iterator[str]:
+        import serial  # pyserial: mpremote's own dependency
+
+        link = serial.Serial()
+        link.port = self.port
+        link.baudrate = 115200
+        link.timeout = 0.5
+        link.dtr = link.rts = (
+            False  # a NodeMCU's auto-reset circuit: opening the port must not reset the board
+        )
+        try:
+            link.open()
+        except serial.SerialException as exc:
+            raise BoardError(f"cannot open {self.port}: {exc}") from None
+        deadline = time.monotonic() + timeout_s
+        with link:
+            while time.monotonic() < deadline:
+                raw = link.readline()
+                if raw:
+                    yield raw.decode(errors="replace").rstrip("\r\n")

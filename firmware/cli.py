@@ -14,6 +14,7 @@ from wsnav.firmware.build import SIZE_TARGET, BuildError, build, compile_command
 from wsnav.firmware.deploy import (
     FLASH_BAUD,
     FLASH_MODES,
+    ONLINE_S,
     Deployer,
     DeployError,
     check_config,
@@ -53,6 +54,14 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         "--keep-wifi",
         action="store_true",
         help="allow a config without wifi.ssid: the board keeps the network it joined before",
+    )
+    d.add_argument(
+        "--wait-online",
+        type=float,
+        default=ONLINE_S,
+        metavar="S",
+        help=f"after the reset, read the board's console until the node reaches its broker (default {ONLINE_S:.0f} "
+        "s; 0: do not wait, e.g. on a workbench away from the site's network)",
     )
     d.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
     d.set_defaults(func=deploy_command)
@@ -133,11 +142,20 @@ def deploy_command(args: argparse.Namespace) -> int:
         if out is None:
             out = Path(tmp)
             _build(out)
+        deployer = Deployer(MpremoteBoard(args.port))
         try:
-            copied = Deployer(MpremoteBoard(args.port)).deploy(firmware_files(out, args.config))
+            copied = deployer.deploy(firmware_files(out, args.config))
         except DeployError as exc:
             raise CliError(str(exc)) from None
     print(f"deployed: {len(copied)} files changed, all verified; the board is restarting")
+    if args.wait_online > 0:
+        try:
+            took = deployer.wait_online(args.wait_online)
+        except DeployError as exc:
+            raise CliError(str(exc)) from None
+        print(
+            f"node {cfg.node} is online: it reached {cfg.broker.host}:{cfg.broker.port} {took:.1f} s after the reset"
+        )
     return 0
 
 

@@ -7,7 +7,9 @@ Deploy updates a node safely, whether it runs or not (docs/firmware-esp8266.md, 
    source file would silently shadow the new build), and leftover `.tmp` files of an interrupted deploy;
 3. each file whose sha256 on the board differs from the host's is copied under a temporary name, its hash
    checked on the board, then renamed over the old one: a file under its real name is always whole, old or new;
-4. every file's hash is checked on the board once more, then the board is reset into the new firmware.
+4. every file's hash is checked on the board once more, then the board is reset into the new firmware;
+5. the board's serial console is read until the node says it reached the broker (`mqtt up`), so an installer on
+   the ladder learns there and then that the node joined (or, from its last words, why not).
 An interrupted deploy (cable pulled, host killed) leaves the old or new version of each file, and the board,
 no longer kept in maintenance, resets into its application a few minutes later; running deploy again copies
 what still differs and finishes. The board is reached through `firmware.board.Board` (mpremote for real).
@@ -18,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import shlex
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -37,6 +40,11 @@ FLASH_BAUD = 460800
 MPY_VERSION = 6
 """The .mpy format mpy-cross writes (MicroPython 1.19 and later read it); a board reports its own in
 sys.implementation._mpy."""
+ONLINE_S = 90.0
+"""How long after the reset the deploy waits for the node to reach its broker: a boot, a Wi-Fi join (up to the
+node's 20 s join timeout, twice) and a connect with its backoff."""
+ONLINE_LINE = "mqtt up"
+"""What the node prints on its console when the broker accepted it (app.py)."""
 ESP8266_IRAM = (0x40100000, 0x40140000)
 """Where an ESP8266 image's entry point lies (its instruction RAM); an ESP32's lies in 0x40080000..0x400A0000."""
 FLASH_MODES = ("keep", "qio", "qout", "dio", "dout")
@@ -211,6 +219,26 @@ class Deployer:
         except BoardError as exc:
             raise DeployError(f"board: reset: {exc}") from None
         return copied
+
+    def wait_online(self, timeout_s: float = ONLINE_S) -> float:
+        """Seconds from the reset until the node reached its broker, read from the board's console; DeployError
+        with the node's last words (`mqtt down: ...`, a config error, a traceback's last line) if it did not."""
+        start = time.monotonic()
+        last = ""
+        try:
+            for line in self.board.console(timeout_s):
+                text = line.strip()
+                if text.startswith(ONLINE_LINE):
+                    return time.monotonic() - start
+                if text and text.isprintable():
+                    last = text
+        except BoardError as exc:
+            raise DeployError(f"board: reading its console: {exc}") from None
+        said = f"its last words: {last!r}" if last else "it printed nothing"
+        raise DeployError(
+            f"the files are on the board and verified, but the node did not reach its broker within "
+            f"{timeout_s:.0f} s of the reset ({said})"
+        )
 
 
 def deploy_plan(port: str, files: dict[str, Path]) -> list[list[str]]:

@@ -24,6 +24,7 @@ import subprocess
 import threading
 import time
 import tty
+from collections.abc import Iterator
 from pathlib import Path
 
 from wsnav.firmware.board import BoardError
@@ -242,6 +243,31 @@ class UnixBoard:
     def reset(self) -> None:
         boot = self._session()
         boot.send(b"import machine\nmachine.reset()\x04")
+
+    def console(self, timeout_s: float) -> Iterator[str]:
+        """What the board prints from now on, across resets (each boot's output follows the last's)."""
+        deadline = time.monotonic() + timeout_s
+        with self._lock:
+            boot, start = self._boot, len(self._boot.out) if self._boot else 0
+        pending = b""
+        while time.monotonic() < deadline:
+            with self._lock:
+                if self._boot is not boot:
+                    boot, start = self._boot, 0
+            if boot is None:
+                time.sleep(0.05)
+                continue
+            with boot.cond:
+                if len(boot.out) == start and boot.alive():
+                    boot.cond.wait(min(0.1, max(0.0, deadline - time.monotonic())))
+                chunk = bytes(boot.out[start:])
+            start += len(chunk)
+            if not chunk and not boot.alive():
+                time.sleep(0.05)  # reset: the supervisor starts the next boot
+            pending += chunk
+            *lines, pending = pending.split(b"\n")
+            for line in lines:
+                yield line.decode(errors="replace").rstrip("\r")
 
     # -- the same board behind a pseudo-terminal, for mpremote --------------------------------------------
     def serve_pty(self) -> str:

@@ -11,9 +11,13 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import pty
 import shutil
 import socket
+import threading
 import time
+import tty
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +27,7 @@ import pytest
 from wsnav.firmware.board import BoardError, MpremoteBoard
 from wsnav.firmware.build import build
 from wsnav.firmware.deploy import Deployer, DeployError, firmware_files, module_names
-from wsnav.firmware.testing import DEVICE, build_for_host
+from wsnav.firmware.testing import DEVICE, SiteBroker, build_for_host, write_credentials
 from wsnav.firmware.unix_board import CHUNK, WDT_TIMEOUT_S, UnixBoard
 
 WAIT = 60.0
@@ -220,6 +224,63 @@ def test_deploy_refuses_a_board_that_left_maintenance(board: FlakyLine, new_file
     assert module_names()  # the firmware's module list is what the deploy copies
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("password_ok", [True, False], ids=["right-password", "wrong-password"])
+def test_deploy_waits_until_the_node_reaches_its_broker_or_says_why_not(
+    board: FlakyLine, builds: tuple[Path, Path, Path], tmp_path: Path, password_ok: bool
+) -> None:
+    """After the reset the deploy reads the board's console: with the site's credentials the node reaches the
+    project's broker and the deploy says so; with a password the broker refuses, the deploy fails with the
+    node's own words (the refused CONNACK) instead of leaving the installer to find out at the robot."""
+    site = Path(__file__).resolve().parent.parent / "sites" / "school"
+    creds = tmp_path / "creds"
+    write_credentials(site, creds)
+    broker = SiteBroker(site, creds, tmp_path / "broker-data")
+    broker.start()
+    try:
+        data = json.loads((creds / "n1.json").read_text())
+        data["broker"] = {"host": broker.host, "port": broker.port}
+        if not password_ok:
+            data["password"] = "x" * 24
+        cfg = tmp_path / "site.json"
+        cfg.write_text(json.dumps(data))
+        deployer = Deployer(board)
+        deployer.deploy(firmware_files(builds[0], cfg))
+        if password_ok:
+            assert 0 < deployer.wait_online(60) < 60
+        else:
+            with pytest.raises(DeployError, match=r"did not reach its broker within 20 s .*refused"):
+                deployer.wait_online(20)
+    finally:
+        broker.kill()
+
+
+@pytest.mark.parametrize(
+    ("console", "online"),
+    [
+        (b"\x00\xffets Jan  8 2013\r\nmqtt down: [Errno 113] EHOSTUNREACH\r\nmqtt up 1\r\n", True),
+        (b"mqtt down: connection refused, code 5\r\n\x1b\x00\r\n", False),
+    ],
+    ids=["online", "refused"],
+)
+def test_deploy_reads_the_real_serial_console_for_the_nodes_word(console: bytes, online: bool) -> None:
+    """`MpremoteBoard.console` (pyserial on the port, as on a USB board) over a pseudo-terminal: the deploy takes
+    `mqtt up` as the node online; otherwise it reports the last readable line, not boot noise or binary."""
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    threading.Timer(0.3, os.write, (master, console)).start()
+    deployer = Deployer(MpremoteBoard(os.ttyname(slave)))
+    try:
+        if online:
+            assert deployer.wait_online(10) < 10
+        else:
+            with pytest.raises(DeployError, match="last words: 'mqtt down: connection refused, code 5'"):
+                deployer.wait_online(2)
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
 @dataclass
 class OldMicroPython:
     """The board as a MicroPython older than 1.19 would answer (its .mpy format is 5): what cannot be run here."""
@@ -234,6 +295,9 @@ class OldMicroPython:
 
     def reset(self) -> None:
         self.board.reset()
+
+    def console(self, timeout_s: float) -> Iterator[str]:
+        return self.board.console(timeout_s)
 
 
 def test_deploy_refuses_a_micropython_that_cannot_load_our_files_before_touching_anything(
