@@ -100,7 +100,9 @@ def test_wsnav_robot_ros_drives_the_ros_sim_around_a_zone_blocked_mid_route(
             operator.close()
             node.close()
 
-            assert robot.finish(150) == 0, "\n".join(robot.lines)
+            # A bound against a hang, not a speed check: alone the detour takes about 95 s of wall time, and
+            # beside a benchmark on the 2 cores it once took more than 150 s.
+            assert robot.finish(300) == 0, "\n".join(robot.lines)
         finally:
             if robot is not None:
                 robot.stop()
