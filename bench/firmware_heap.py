@@ -176,7 +176,8 @@ def wasm_port_ready() -> str:
 
 
 def wasm_setup(node: str, device: Path, config: Path) -> dict[str, int]:
-    """The node set up on the 32-bit WebAssembly port at 38 KiB (setup_heap.mjs): used, free, total, bare bytes."""
+    """The node set up on the 32-bit WebAssembly port at 38 KiB (setup_heap.mjs): used, free, total, bare bytes
+    and the largest free block."""
     proc = subprocess.run(
         [node, str(WASM_PORT / "setup_heap.mjs"), str(device), str(config)],
         capture_output=True,
@@ -251,6 +252,8 @@ def main() -> None:
         ("bare interpreter (baseline)", w_bare),
         ("PIR node after setup", w_pir["free"]),
         ("HC-SR04 node (15 samples) after setup", w_sonar["free"]),
+        ("PIR node after setup: the largest free block", w_pir["largest"]),
+        ("HC-SR04 node (15 samples) after setup: the largest free block", w_sonar["largest"]),
         ("PIR node after setup, built without -O3", w_pir_plain["free"]),
         ("HC-SR04 node (15 samples) after setup, built without -O3", w_sonar_plain["free"]),
         ("HC-SR04 node after setup, less the board's boot (bound)", w_sonar["free"] - boot),
@@ -291,7 +294,9 @@ def main() -> None:
         "(4-byte pointers and 16-byte GC blocks, as on the ESP8266). machine, network, socket and select are "
         "JavaScript modules there: like the board's, which are in ROM, they take no heap; what the firmware keeps "
         "of them (a Pin, a WLAN) is one small object each. After setup: main.py's sequence (config parsed, parser "
-        "dropped, app imported one module at a time, the Node built), after a collection. The port has no "
+        "dropped, app imported one module at a time, the Node built), after a collection. The largest free "
+        "block (`micropython.mem_info`'s max free size, in 16-byte blocks) bounds the biggest single allocation "
+        "the node can still make (a message, a module's bytecode). The port has no "
         "sockets, so the connected row adds what being connected cost in the unix port's long run below "
         f"({connected_cost} B: its lowest less its own start). The board's boot (`_boot.py`) leaves its flash "
         "block device and littlefs mount on the heap, which neither node measurement has; measured apart, "

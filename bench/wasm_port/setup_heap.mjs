@@ -8,7 +8,8 @@
 // (almost) nothing from the heap; each object the firmware keeps from them (a Pin, a WLAN) is one small proxy
 // object, as on the board. Then main.py's sequence: parse the config, drop the parser, import app (which
 // imports the rest one module at a time), and app.setup builds the node as app.main does. Prints one line,
-// "heap used U free F total T bare B" (bytes, after gc.collect(); bare: used before anything is imported), or
+// "heap used U free F total T bare B largest L" (bytes, after gc.collect(); bare: used before anything is
+// imported; largest: the largest free block, which bounds the biggest message the node can still build), or
 // "error ..." when the node does not set up. The port's heap would grow by itself past 38 KiB; a total other than the first one is reported as
 // an error, so a number is always what a 38 KiB heap holds.
 import { loadMicroPython } from "@micropython/micropython-webassembly-pyscript/micropython.mjs";
@@ -84,8 +85,9 @@ print("heap used", _used, "bare", _bare)
 }
 const now = Number(/GC: total: (\d+)/.exec(out)[1]);
 const used = /heap used (\d+) bare (\d+)/.exec(out);
+const largest = 16 * Number(/max free sz: (\d+)/.exec(out)[1]); // in 16-byte GC blocks
 if (now !== total) {
   console.log(`error the heap grew past ${total} bytes (to ${now}): the node does not fit`);
 } else {
-  console.log(`heap used ${used[1]} free ${total - Number(used[1])} total ${total} bare ${used[2]}`);
+  console.log(`heap used ${used[1]} free ${total - Number(used[1])} total ${total} bare ${used[2]} largest ${largest}`);
 }
