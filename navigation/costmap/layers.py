@@ -309,8 +309,9 @@ class InflationLayer:
         return out
 
     def update_costs(self, master: Costs, bounds: Bounds) -> None:
-        """`master`'s window, inflated from this layer's copy of the costs below it (it reaches beyond `bounds`)."""
-        master[...] = self.inflate(self.costs, (bounds.rows, bounds.cols))
+        """`master`'s window, inflated from this layer's copy of the costs below it (it reaches beyond `bounds`):
+        the inflated costs already hold those below, so they overwrite master."""
+        update_with_true_overwrite(master, self.inflate(self.costs, (bounds.rows, bounds.cols)))
 
     def clear(self, window: Bounds, *, outside: bool = False) -> bool:
         """Holds nothing of its own to clear: it re-inflates what the layers before it cleared."""
