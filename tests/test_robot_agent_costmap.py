@@ -361,6 +361,7 @@ def test_clear_empties_the_clearable_layers_in_a_window_and_master_is_inflated_a
     assert costmap.clear(east) is not None and costmap.version == version + 1
     assert costmap.cost_at(3.0, 1.25) < INSCRIBED_INFLATED_OBSTACLE, "cleared, and its inflation gone"
     assert costmap.cost_at(1.0, 1.25) == LETHAL_OBSTACLE, "a mark outside the window stays"
+    assert costmap.cost_at(7.0, 1.5) == LETHAL_OBSTACLE, "the blocked zone in the window stays"
     assert (puddle.costs == NO_INFORMATION).all()
     cleared = costmap.master.copy()
     costmap.rebuild()
