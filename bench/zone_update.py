@@ -2,8 +2,9 @@
 
 On synthetic building floors of 1000 x 1000 and 4000 x 4000 cells (0.05 m), a corridor-sized zone (2 x 2.6 m)
 flips between `blocked` and `clear`; one sample is the zone layer taking the message plus
-`LayeredCostmap.update_zones` (repaint, re-merge, re-inflate the neighbourhood). The whole-map baseline is
-`rebuild()` (every layer merged and the whole map inflated, as a costmap without bounds would). Checks that both
+`LayeredCostmap.update_zones` (repaint, re-merge, re-inflate the neighbourhood, through the layer list's
+update_bounds/update_costs). The whole-map baseline is `rebuild()` (every layer recomputed and the whole map
+merged and inflated, as a costmap without bounds would). Checks that both
 give the same map. Writes its section of BENCHMARKS.md unless --no-write. Target: <= 2 ms at 4000 x 4000.
 """
 
@@ -95,9 +96,11 @@ def main() -> None:
         f"```\n{COMMAND}\n```\n\n"
         "A corridor-sized zone (2 x 2.6 m) flips between `blocked` and `clear` on a synthetic building floor "
         "(bench/synthetic_building.py, 0.05 m cells, 20 zones, inflation radius 1 m): one sample is the zone layer "
-        "taking the message plus `LayeredCostmap.update_zones` (repaint the zone's window, merge the layers "
-        "there, re-inflate the window grown by the inflation radius from the lethal cells within reach of it, "
-        "wsnav.navigation.costmap.inflation's numba distance transform). "
+        "taking the message plus `LayeredCostmap.update_zones` (every layer's `update_bounds` in turn: repaint "
+        "the zone's window, the inflation layer merging the layers before it there and growing the changed "
+        "cells by the inflation radius; then every layer's `update_costs` in that window, the inflation layer's "
+        "from the lethal cells within reach of it, wsnav.navigation.costmap.inflation's numba distance "
+        "transform). "
         "The baseline is `rebuild()`, the whole map merged and inflated. Both give the same map, cell for cell "
         f"(the benchmark checks). {args.changes} changes, {args.rebuilds} rebuilds, {machine_note()}:\n\n"
         "| map | bounded p50 | bounded p99 | whole map p50 | whole map p99 | speed-up (p50) |\n"

@@ -100,7 +100,7 @@ class Costmap(PlanningCostmap, Protocol):
     """What the navigator reads of wsnav.navigation.costmap.layered_costmap.LayeredCostmap."""
 
     def in_lethal(self, x: float, y: float) -> bool: ...
-    def clear_obstacles_outside(self, x: float, y: float, size_m: float) -> Bounds | None: ...
+    def clear_except_region(self, x: float, y: float, size_m: float) -> Bounds | None: ...
     def local_window(
         self, pose: Pose, size_m: float, overlay: tuple[Bounds, NDArray[np.uint8]] | None = None
     ) -> tuple[NDArray[np.uint8], GridFrame]: ...
@@ -408,7 +408,7 @@ class Navigator:
             self._rotate_tick(now)
             return
         x, y, _ = self.backend.pose()
-        self.costmap.clear_obstacles_outside(x, y, side)
+        self.costmap.clear_except_region(x, y, side)
         self._after_behaviour(now)
 
     def _rotate_tick(self, now: float) -> None:

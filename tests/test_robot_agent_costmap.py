@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import random
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -14,8 +15,10 @@ from tests.conftest import SITES
 from tests.robot_agent_rig import scan_from
 from tests.site_fixtures import tiny_site
 from wsnav.navigation.behaviors.escape import ZoneEscape
-from wsnav.navigation.costmap.inflation import InflationParams, inflate, static_layer
+from wsnav.navigation.costmap.inflation import InflationParams, cost_lut, inflate, static_layer
 from wsnav.navigation.costmap.layered_costmap import CHANGE_LOG, Bounds, LayeredCostmap
+from wsnav.navigation.costmap.layers import InflationLayer, Layer, RobotsLayer
+from wsnav.navigation.costmap.merge import update_with_max, update_with_overwrite
 from wsnav.navigation.planning.costmap_planner import PlannerWeights
 from wsnav.navigation.planning.global_planner import PlannerParams, plan_path, weights_for
 from wsnav.navigation.planning.offline_plan import zone_lethal
@@ -26,6 +29,7 @@ from wsnav.zones.cost_values import FREE_SPACE, INSCRIBED_INFLATED_OBSTACLE, LET
 from wsnav.zones.geometry import GridFrame
 from wsnav.zones.zone_layer import ZoneLayer
 
+MergeRule = Callable[[np.ndarray, np.ndarray], None]
 INFLATION = InflationParams(inscribed_radius=0.105, inflation_radius=1.0, cost_scaling_factor=3.0)
 
 
@@ -223,27 +227,42 @@ def test_planner_weights_of_a_planner_left_far_behind_are_recomputed_whole(schoo
 
 
 class Puddle:
-    """A layer written against the Layer protocol alone: a square the robot should avoid but may cross."""
+    """A layer written against the Layer protocol alone: a square of one cost, merged by `rule`; clearable."""
 
-    def __init__(self, bounds: Bounds, cost: int) -> None:
-        self.bounds, self.cost, self._pending = bounds, cost, [bounds]
+    def __init__(self, bounds: Bounds, cost: int, rule: MergeRule = update_with_max) -> None:
+        self.bounds, self.rule, self._pending = bounds, rule, [bounds]
+        self.costs = np.full(bounds.shape, cost, dtype=np.uint8)
 
-    def take_bounds(self) -> list[Bounds]:
-        out, self._pending = self._pending, []
+    def update_bounds(self, bounds: list[Bounds]) -> list[Bounds]:
+        out, self._pending = [*bounds, *self._pending], []
         return out
 
     def update_costs(self, master: np.ndarray, bounds: Bounds) -> None:
         common = self.bounds.intersection(bounds)
         if not common.empty:
-            window = master[common.within(bounds)]
-            np.maximum(window, np.uint8(self.cost), out=window)
+            self.rule(master[common.within(bounds)], self.costs[common.within(self.bounds)])
+
+    def clear(self, window: Bounds, *, outside: bool = False) -> bool:
+        common = self.bounds.intersection(window)
+        if outside or common.empty or (self.costs[common.within(self.bounds)] == NO_INFORMATION).all():
+            return False
+        self.costs[common.within(self.bounds)] = NO_INFORMATION
+        self._pending.append(common)
+        return True
+
+    def rebuild(self) -> None:
+        self._pending = []
+
+
+def before_inflation(costmap: LayeredCostmap, layer: Layer) -> None:
+    costmap.layers.insert(costmap.layers.index(costmap.inflation), layer)
 
 
 def test_a_new_layer_is_one_class_in_the_stack_and_updates_only_its_bounds(school: Site) -> None:
     costmap, _ = school_costmap(school)
     before = costmap.master.copy()
     puddle = Puddle(Bounds(100, 300, 110, 320), 120)
-    costmap.layers.append(puddle)
+    before_inflation(costmap, puddle)
     changed = costmap.update()
     assert changed is not None
     assert (costmap.master[puddle.bounds.rows, puddle.bounds.cols] >= 120).all()
@@ -256,6 +275,102 @@ def test_a_new_layer_is_one_class_in_the_stack_and_updates_only_its_bounds(schoo
     costmap.rebuild()
     assert np.array_equal(bounded, costmap.master), "the bounded update equals the whole-map recomputation"
     assert costmap.update() is None, "a layer with nothing new costs nothing"
+
+
+def test_inflation_is_the_last_layer_of_the_list_called_like_the_others(school: Site) -> None:
+    layer = ZoneLayer(school.spec, GridFrame.of_grid(school.grid))
+    robots = RobotsLayer(GridFrame.of_grid(school.grid))
+    costmap = LayeredCostmap(school.grid, INFLATION, zone_layer=layer, robots_layer=robots)
+    assert costmap.layers == [costmap.static, costmap.obstacles, costmap.zones, robots, costmap.inflation]
+    assert isinstance(costmap.inflation, InflationLayer)
+    # master is the list applied in order and nothing else: no inflation step beside it
+    assert np.array_equal(costmap.merge(costmap.whole), costmap.master)
+    assert np.array_equal(costmap.merge(costmap.whole, costmap.layers[:-1]), costmap.inflation.costs)
+
+
+def test_the_layers_apply_in_the_order_of_the_list(school: Site) -> None:
+    """A lethal square before inflation is inflated around; after it, it is lethal alone. An overwriting
+    layer after the zone layer hides a blocked zone; before it, the zone's max merge wins over it."""
+    costmap, layer = school_costmap(school)
+    square = Bounds(370, 409, 374, 413)  # a hall, over 1.5 m from any wall
+    next_to = (372, 414)  # two cells east of the square: within the robot's radius
+    assert costmap.master[next_to] == FREE_SPACE
+    lethal = Puddle(square, LETHAL_OBSTACLE)
+    before_inflation(costmap, lethal)
+    costmap.update()
+    assert costmap.master[next_to] == INSCRIBED_INFLATED_OBSTACLE
+    costmap.layers.remove(lethal)
+    costmap.layers.append(Puddle(square, LETHAL_OBSTACLE))
+    costmap.rebuild()
+    assert (costmap.master[square.rows, square.cols] == LETHAL_OBSTACLE).all()
+    assert costmap.master[next_to] == FREE_SPACE, "a layer after inflation is not inflated"
+
+    costmap, layer = school_costmap(school)
+    layer.on_operator_block("z4", OperatorBlock(zone="z4"), 0.0)
+    costmap.update_zones(0.0)
+    row, col = costmap.frame.world_to_cell(25.0, 15.0)  # the middle of z4
+    assert costmap.inflation.costs[row, col] == LETHAL_OBSTACLE
+    assert costmap.zones is not None
+    zones_at = costmap.layers.index(costmap.zones)
+    mop = Puddle(Bounds(row - 2, col - 2, row + 3, col + 3), FREE_SPACE, update_with_overwrite)
+    costmap.layers.insert(zones_at + 1, mop)
+    costmap.rebuild()
+    assert costmap.inflation.costs[row, col] == FREE_SPACE, "after the zone layer, the overwrite wins"
+    costmap.layers.remove(mop)
+    costmap.layers.insert(zones_at, mop)
+    costmap.rebuild()
+    assert costmap.inflation.costs[row, col] == LETHAL_OBSTACLE, "before it, the zone's max merge wins"
+
+
+def test_inflation_after_the_zone_layer_inflates_a_blocked_zone_and_not_a_caution_cost(school: Site) -> None:
+    costmap, layer = school_costmap(school, ZonePolicy(caution_cost=150))
+    window = layer.zone_window("z4")
+    edge = Bounds.of_window(window)
+    row, col = edge.row1 + 2, (edge.col0 + edge.col1) // 2  # 3 cells north of z4, mid-corridor
+    free = int(costmap.master[row, col])
+    layer.on_zone_state(ZoneState(zone="z4", node="n5", state="caution", seq=1), 1.0)
+    costmap.update_zones(1.0)
+    assert costmap.master[row, col] == free, "a caution cost is not lethal: nothing to inflate"
+    layer.on_zone_state(ZoneState(zone="z4", node="n5", state="blocked", seq=2), 2.0)
+    costmap.update_zones(2.0)
+    lut = cost_lut(school.grid.resolution, INFLATION)
+    assert costmap.master[row, col] == max(free, lut[3 * 3]), "the zone's edge spreads its cost 3 cells out"
+    assert costmap.master[row, col] > free
+
+
+def test_clear_empties_the_clearable_layers_in_a_window_and_master_is_inflated_again(tiny: Site) -> None:
+    """Every layer is asked: the lidar's marks and a clearable extra layer go in the window only; the map and
+    the blocked zone stay (a recovery must not drive the robot into a zone the network reports blocked)."""
+    layer = ZoneLayer(tiny.spec, GridFrame.of_grid(tiny.grid))
+    costmap = LayeredCostmap(tiny.grid, INFLATION, zone_layer=layer)
+    zone = tiny.spec.zones[1].id
+    layer.on_operator_block("spill", OperatorBlock(zone=zone), 0.0)
+    costmap.update_zones(0.0)
+    with_zone = costmap.master.copy()
+    assert (
+        costmap.update_scan(scan_from((2.0, 1.25, 0.0), {0: 1.0, 180: 1.0})) is not None
+    )  # hits at x 3 and 1
+    puddle = Puddle(Bounds(20, 60, 30, 70), 120)
+    before_inflation(costmap, puddle)
+    costmap.update()
+    assert costmap.cost_at(3.0, 1.25) == LETHAL_OBSTACLE and costmap.cost_at(1.0, 1.25) == LETHAL_OBSTACLE
+    frame = costmap.frame
+    _, col = frame.world_to_cell(3.0, 1.25)
+    east = Bounds(0, col - 5, frame.height, frame.width)  # the map east of x 2.75: x 3's mark and the puddle
+    version = costmap.version
+    assert costmap.clear(east) is not None and costmap.version == version + 1
+    assert costmap.cost_at(3.0, 1.25) < INSCRIBED_INFLATED_OBSTACLE, "cleared, and its inflation gone"
+    assert costmap.cost_at(1.0, 1.25) == LETHAL_OBSTACLE, "a mark outside the window stays"
+    assert costmap.cost_at(7.0, 1.5) == LETHAL_OBSTACLE, "the blocked zone in the window stays"
+    assert (puddle.costs == NO_INFORMATION).all()
+    cleared = costmap.master.copy()
+    costmap.rebuild()
+    assert np.array_equal(cleared, costmap.master), "re-inflated as the whole map would be"
+    assert costmap.clear(east) is None, "nothing left to clear there"
+    assert costmap.clear_except_region(3.0, 1.25, 1.0) is not None  # the mark at x 1 is outside that square
+    costmap.layers.remove(puddle)
+    costmap.rebuild()
+    assert np.array_equal(costmap.master, with_zone), "the map and the blocked zone survive every clear"
 
 
 def test_a_scan_marks_an_obstacle_and_a_later_scan_through_it_clears_it(tiny: Site) -> None:

@@ -118,12 +118,12 @@ def test_a_reset_clears_the_lidar_marks_outside_its_square_and_keeps_the_walls(t
     costmap.update_scan(scan_from(pose, {0: 1.0, 180: 2.5}))  # marks at 1.0 m ahead and 2.5 m behind
     assert costmap.cost_at(6.0, 1.25) == LETHAL_OBSTACLE
     assert costmap.cost_at(2.5, 1.25) == LETHAL_OBSTACLE
-    assert costmap.clear_obstacles_outside(5.0, 1.25, 3.0) is not None  # conservative_reset_dist 3
+    assert costmap.clear_except_region(5.0, 1.25, 3.0) is not None  # conservative_reset_dist 3
     assert costmap.cost_at(6.0, 1.25) == LETHAL_OBSTACLE, "inside the square: kept"
     assert costmap.cost_at(2.5, 1.25) < LETHAL_OBSTACLE, "outside: cleared"
-    assert costmap.clear_obstacles_outside(5.0, 1.25, 0.59) is not None  # aggressive: 4 circumscribed radii
+    assert costmap.clear_except_region(5.0, 1.25, 0.59) is not None  # aggressive: 4 circumscribed radii
     assert np.array_equal(costmap.master, walls), "only the static map is left"
-    assert costmap.clear_obstacles_outside(5.0, 1.25, 0.59) is None
+    assert costmap.clear_except_region(5.0, 1.25, 0.59) is None
     # The next costmap update takes the newest sweep in again, as costmap_2d's observation buffer does.
     assert costmap.update_scan(scan_from(pose, {0: 1.0})) is not None
     assert costmap.cost_at(6.0, 1.25) == LETHAL_OBSTACLE

@@ -18,7 +18,6 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import distance_transform_edt
 
-from wsnav.navigation.costmap.inflation import inflate
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
 from wsnav.navigation.planning.costmap_planner import GlobalPlanner, PlanningCostmap
 from wsnav.navigation.planning.global_planner import XY, Plan, plan_exit
@@ -117,9 +116,11 @@ class ZoneEscape:
         assert area is not None
         bounds = area.grow(max(reach, self._touch + EXIT_MARGIN_CELLS + 2), frame)
         source = bounds.grow(reach, frame)
-        merged = costmap.merge(source, [layer_ for layer_ in costmap.layers if layer_ is not zones])
+        inflation = costmap.inflation
+        below = [layer_ for layer_ in costmap.layers_below(inflation) if layer_ is not zones]
+        merged = costmap.merge(source, below)
         zones.update_costs_without(merged, source, key)
-        without = inflate(merged, frame.resolution, costmap.inflation.params, bounds.within(source))
+        without = inflation.inflate(merged, bounds.within(source))
         costs = costmap.master[bounds.rows, bounds.cols].copy()
         relax = (costs >= INSCRIBED_INFLATED_OBSTACLE) & (without < INSCRIBED_INFLATED_OBSTACLE)
         costs[relax] = np.maximum(without[relax], np.uint8(ESCAPE_COST))

@@ -1,12 +1,12 @@
-"""The robot's layered costmap, with costmap_2d's semantics: static -> obstacle -> zone -> robots, then inflation.
+"""The robot's layered costmap, with costmap_2d's semantics: a list of layers, static -> obstacle -> zone ->
+robots -> inflation, each called the same way.
 
-The layers (wsnav.navigation.costmap.layers) are merged in order, each by its own rule (costmap_2d's: the static
-layer overwrites, the others by updateWithMax, where a layer's NO_INFORMATION never hides a known cost), then
-inflated with costmap_2d's formula (wsnav.navigation.costmap.inflation). Every
-update touches only the bounds that changed: the cells whose merged cost a layer changed are merged again, and
-the inflation layer's reach around them re-inflated from the merged cells within reach of them (a lethal
-cell farther than the radius cannot change a cell's cost), so the result is cell for cell what a whole-map
-recomputation gives (`rebuild`), at a fraction of the cost on big maps.
+The layers (wsnav.navigation.costmap.layers) are called in their order: `update_bounds` gathers the windows to
+recompute (each layer adds what it changed; the inflation layer keeps the cells whose merged cost really changed
+and grows them by its reach), then `update_costs` writes each window of master, each layer by its rule
+(wsnav.navigation.costmap.merge). Every update touches only those windows, so the result is cell for cell what
+a whole-map recomputation gives (`rebuild`), at a fraction of the cost on big maps. `clear` asks every layer to
+forget what it holds in a window, for the recoveries.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ CHANGE_LOG = 64
 
 
 class LayeredCostmap:
-    """Static, obstacle (lidar), zone (WSN) and, in a fleet, robots layers merged in order, then inflated."""
+    """Static, obstacle (lidar), zone (WSN) and, in a fleet, robots layers, then inflation: one list of layers."""
 
     def __init__(
         self,
@@ -57,25 +57,21 @@ class LayeredCostmap:
         self.frame = GridFrame.of_grid(grid)
         if zone_layer is not None and zone_layer.frame != self.frame:
             raise ValueError("the zone layer was built for another grid frame")
+        if robots_layer is not None and robots_layer.frame != self.frame:
+            raise ValueError("the robots layer was built for another grid frame")
         self.static = StaticLayer(grid)
         self.obstacles = (
             ObstacleLayer(self.frame, obstacle_range_m, raytrace_range_m) if obstacle_layer else None
         )
         self.zones = ZoneCostLayer(zone_layer) if zone_layer is not None else None
-        self.layers: list[Layer] = [self.static]
-        """The layers merged into master, in order (inflation comes after them)."""
-        if self.obstacles is not None:
-            self.layers.append(self.obstacles)
-        if self.zones is not None:
-            self.layers.append(self.zones)
         self.robots = robots_layer
-        if robots_layer is not None:
-            if robots_layer.frame != self.frame:
-                raise ValueError("the robots layer was built for another grid frame")
-            self.layers.append(robots_layer)
-        self.inflation = InflationLayer(inflation, grid.resolution)
-        self.merged: NDArray[np.uint8] = self.static.costs.copy()
-        """The layers merged, before inflation."""
+        self.inflation = InflationLayer(inflation, self.frame, self)
+        self.layers: list[Layer] = [
+            layer
+            for layer in (self.static, self.obstacles, self.zones, self.robots, self.inflation)
+            if layer is not None
+        ]
+        """The layers, in the order they are called; the named ones above are handles into it."""
         self.master: NDArray[np.uint8] = self.static.costs.copy()
         self.version = 0
         self._log: deque[tuple[int, Bounds]] = deque(maxlen=CHANGE_LOG)
@@ -92,16 +88,11 @@ class LayeredCostmap:
     # -- updates --------------------------------------------------------------------------------------------
 
     def rebuild(self) -> None:
-        """Recompute every layer and the inflation over the whole map (start-up, and the reference for tests)."""
-        whole = self.whole
-        if self.zones is not None:
-            self.zones.repaint(whole)
+        """Recompute every layer and master over the whole map (start-up, and the reference for tests)."""
         for layer in self.layers:
-            layer.take_bounds()
-        self.merged = self.merge(whole)
-        self.master = np.empty_like(self.merged)
-        self.inflation.update_costs(self.master, whole, self.merged)
-        self._changed(whole)
+            layer.rebuild()
+        self.master = self.merge(self.whole)
+        self._changed(self.whole)
 
     def update_zones(self, now: float) -> Bounds | None:
         """Apply what changed in the zone layer (after ageing it to `now`); None if no cost changed."""
@@ -118,43 +109,55 @@ class LayeredCostmap:
             return None
         return self.update()
 
-    def clear_obstacles_outside(self, x: float, y: float, size_m: float) -> Bounds | None:
-        """Forget the lidar's marks outside a square of side `size_m` centred on (x, y) (move_base's
-        clear_costmap_recovery on the obstacle layer); None if nothing changed."""
-        if self.obstacles is None:
-            return None
-        row0, col0 = self.frame.world_to_cell(x - size_m / 2.0, y - size_m / 2.0)
-        n = math.ceil(size_m / self.frame.resolution)
-        if not self.obstacles.clear_outside(Bounds(row0, col0, row0 + n, col0 + n)):
+    def clear(self, window: Bounds, *, outside: bool = False) -> Bounds | None:
+        """Every layer forgets what it holds in the cell window (outside it, with `outside`), if it holds
+        anything a recovery may clear, and master follows (costmap_2d's clearArea over the layers); None if
+        nothing changed."""
+        cleared = [layer.clear(window, outside=outside) for layer in self.layers]
+        if not any(cleared):
             return None
         return self.update()
 
-    def update(self) -> Bounds | None:
-        """costmap_2d's updateMap: ask each layer what it changed, merge there, re-inflate around it.
+    def clear_except_region(self, x: float, y: float, size_m: float) -> Bounds | None:
+        """`clear` outside a square of side `size_m` centred on (x, y) (move_base's clear_costmap_recovery,
+        Nav2's clearExceptRegion); None if nothing changed."""
+        row0, col0 = self.frame.world_to_cell(x - size_m / 2.0, y - size_m / 2.0)
+        n = math.ceil(size_m / self.frame.resolution)
+        return self.clear(Bounds(row0, col0, row0 + n, col0 + n), outside=True)
 
-        Only the cells whose merged cost really changed are re-inflated: most scans re-mark walls the static layer
-        already holds and clear what they cleared before, and cost nothing.
+    def update(self) -> Bounds | None:
+        """costmap_2d's updateMap: ask each layer in turn for the windows to recompute, then write master there.
+
+        None (and no new version) when no window is left: a change the merge hides costs nothing downstream.
         """
-        changed = [
-            b for b in (self._merge_changes(w) for layer in self.layers for w in layer.take_bounds()) if b
-        ]
-        if not changed:
+        windows: list[Bounds] = []
+        for layer in self.layers:
+            windows = layer.update_bounds(windows)
+        windows = [w for w in (w.grow(0, self.frame) for w in windows) if not w.empty]
+        if not windows:
             return None
         out: Bounds | None = None
-        for w in changed:
-            touched = self.inflation.grow(w, self.frame)
-            self.inflation.update_costs(self.master, touched, self.merged)
-            out = touched.union(out)
+        for w in windows:
+            self.master[w.rows, w.cols] = self.merge(w)
+            out = w.union(out)
         assert out is not None
         self._changed(out)
         return out
 
     def merge(self, bounds: Bounds, layers: Sequence[Layer] | None = None) -> NDArray[np.uint8]:
-        """The layers (all by default) merged in order inside `bounds`, before inflation."""
+        """The layers (all by default) applied in order inside `bounds`, each by its rule, from free space."""
         out = np.full(bounds.shape, FREE_SPACE, dtype=np.uint8)
         for layer in self.layers if layers is None else layers:
             layer.update_costs(out, bounds)
         return out
+
+    def layers_below(self, layer: Layer) -> list[Layer]:
+        """The layers before `layer` in the list."""
+        return self.layers[: self.layers.index(layer)]
+
+    def merge_below(self, layer: Layer, bounds: Bounds) -> NDArray[np.uint8]:
+        """The layers before `layer` merged inside `bounds` (what the inflation layer inflates)."""
+        return self.merge(bounds, self.layers_below(layer))
 
     # -- queries --------------------------------------------------------------------------------------------
 
@@ -207,25 +210,6 @@ class LayeredCostmap:
         return out, local
 
     # -- internals ------------------------------------------------------------------------------------------
-
-    def _merge_changes(self, window: Bounds) -> Bounds | None:
-        """Merge the layers again in `window`; the bounds of the cells whose merged cost changed, or None."""
-        window = window.grow(0, self.frame)
-        if window.empty:
-            return None
-        new = self.merge(window)
-        diff = new != self.merged[window.rows, window.cols]
-        rows = np.flatnonzero(diff.any(axis=1))
-        if len(rows) == 0:
-            return None
-        self.merged[window.rows, window.cols] = new
-        cols = np.flatnonzero(diff.any(axis=0))
-        return Bounds(
-            window.row0 + int(rows[0]),
-            window.col0 + int(cols[0]),
-            window.row0 + int(rows[-1]) + 1,
-            window.col0 + int(cols[-1]) + 1,
-        )
 
     def _changed(self, b: Bounds) -> None:
         self.version += 1

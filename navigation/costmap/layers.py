@@ -1,11 +1,13 @@
-"""The costmap's layers, each with its own grid and its own rule for entering master (costmap_2d's `Layer`).
+"""The costmap's layers, each one class with costmap_2d's `Layer` calls, inflation included.
 
-A layer reports the windows it changed since it was last asked (costmap_2d's `updateBounds`) and combines its
-costs into a master window (`updateCosts`). The stack (wsnav.navigation.costmap.layered_costmap) merges static, obstacle and
-zone layers in that order, then hands the result to the inflation layer. The rules are costmap_2d's: the static
-layer overwrites (StaticLayer without `use_maximum`), the others merge by `update_with_max`, in which a layer's
-NO_INFORMATION never overrides what master knows. Adding a layer means writing one class
-with these two methods and putting it in the stack's list; nothing else changes.
+The stack (wsnav.navigation.costmap.layered_costmap) holds them in a list and calls each in its order:
+`update_bounds` (costmap_2d's updateBounds: given the windows the layers before it changed, the windows to
+recompute after it; a layer adds the windows it changed itself, the inflation layer grows them by its reach),
+`update_costs` (updateCosts: combine its costs into a master window, by one of the rules of
+wsnav.navigation.costmap.merge), `clear` (clearArea, for the recoveries: a layer forgets what it holds in a
+window, if it holds anything a recovery may clear) and `rebuild` (recompute its grid whole). The order is static,
+obstacle, zone, robots, inflation. Adding a layer means writing one class with these calls and putting it in
+the stack's list; nothing else changes.
 """
 
 from __future__ import annotations
@@ -21,30 +23,44 @@ from numpy.typing import NDArray
 
 from wsnav.navigation.backend import LaserScan, Pose
 from wsnav.navigation.costmap.inflation import InflationParams, inflate, inflation_reach, static_layer
+from wsnav.navigation.costmap.merge import (
+    update_with_max,
+    update_with_max_without_unknown_overwrite,
+    update_with_true_overwrite,
+)
 from wsnav.schemas.ros_map import OccupancyGrid
-from wsnav.zones.cost_values import LETHAL_OBSTACLE, NO_INFORMATION
+from wsnav.zones.cost_values import LETHAL_OBSTACLE, NO_INFORMATION, Costs
 from wsnav.zones.geometry import Bounds, GridFrame
 from wsnav.zones.zone_layer import BlockedArea, ZoneLayer
 
-Costs = NDArray[np.uint8]
-
-
-def update_with_max(master: Costs, costs: Costs) -> None:
-    """costmap_2d's CostmapLayer::updateWithMax on a window: the layer's cost where master's is NO_INFORMATION or
-    lower, and never the layer's NO_INFORMATION (so a stale zone read as unknown leaves walls lethal)."""
-    take = (costs != NO_INFORMATION) & ((master == NO_INFORMATION) | (master < costs))
-    np.copyto(master, costs, where=take)
-
 
 class Layer(Protocol):
-    """One layer of the stack: what it changed, and how its costs enter master."""
+    """One layer of the stack: what changed, how its costs enter master, what a recovery may clear of it."""
 
-    def take_bounds(self) -> list[Bounds]:
-        """The cell windows this layer changed since the last call (costmap_2d's updateBounds)."""
+    def update_bounds(self, bounds: list[Bounds]) -> list[Bounds]:
+        """The windows to recompute, given those the layers before this one changed (costmap_2d's updateBounds):
+        `bounds` plus the windows this layer changed since the last call, or `bounds` grown by its reach."""
         ...
 
     def update_costs(self, master: Costs, bounds: Bounds) -> None:
         """Combine this layer's costs into `master`, an array covering `bounds` (costmap_2d's updateCosts)."""
+        ...
+
+    def clear(self, window: Bounds, *, outside: bool = False) -> bool:
+        """Forget what this layer holds in `window` (outside it, with `outside`), costmap_2d's clearArea; True if
+        something went (its window is then pending). A layer holding nothing a recovery may clear returns False."""
+        ...
+
+    def rebuild(self) -> None:
+        """Recompute this layer's grid whole and forget its pending windows (LayeredCostmap.rebuild)."""
+        ...
+
+
+class Stack(Protocol):
+    """What a layer may ask of the stack holding it (costmap_2d's `layered_costmap_`)."""
+
+    def merge_below(self, layer: Layer, bounds: Bounds) -> Costs:
+        """The layers before `layer` merged in order inside `bounds`."""
         ...
 
 
@@ -55,11 +71,18 @@ class StaticLayer:
     def __init__(self, grid: OccupancyGrid) -> None:
         self.costs: Costs = static_layer(grid)
 
-    def take_bounds(self) -> list[Bounds]:
-        return []
+    def update_bounds(self, bounds: list[Bounds]) -> list[Bounds]:
+        return bounds
 
     def update_costs(self, master: Costs, bounds: Bounds) -> None:
-        master[...] = self.costs[bounds.rows, bounds.cols]
+        update_with_true_overwrite(master, self.costs[bounds.rows, bounds.cols])
+
+    def clear(self, window: Bounds, *, outside: bool = False) -> bool:
+        """The map is not the robot's to forget (costmap_2d's StaticLayer is not clearable)."""
+        return False
+
+    def rebuild(self) -> None:
+        """Nothing to recompute: the map never changes."""
 
 
 class ObstacleLayer:
@@ -96,14 +119,20 @@ class ObstacleLayer:
             raytrace_range_m,
         )
 
-    def take_bounds(self) -> list[Bounds]:
-        out, self._pending = self._pending, []
+    def update_bounds(self, bounds: list[Bounds]) -> list[Bounds]:
+        out, self._pending = [*bounds, *self._pending], []
         return out
 
     def update_costs(self, master: Costs, bounds: Bounds) -> None:
-        """`update_with_max` of LETHAL where marked and NO_INFORMATION elsewhere, which comes down to writing
-        LETHAL into the marked cells (nothing in master is above it but NO_INFORMATION, which it overrides)."""
-        np.copyto(master, np.uint8(LETHAL_OBSTACLE), where=self.marked[bounds.rows, bounds.cols])
+        """`update_with_max` of LETHAL where marked and NO_INFORMATION (no opinion) elsewhere."""
+        marks = np.where(
+            self.marked[bounds.rows, bounds.cols], np.uint8(LETHAL_OBSTACLE), np.uint8(NO_INFORMATION)
+        )
+        update_with_max(master, marks)
+
+    def rebuild(self) -> None:
+        """The marks are this layer's own record of the scans: kept; only the pending windows go."""
+        self._pending = []
 
     def add_scan(self, scan: LaserScan, known: Sequence[tuple[float, float, float]] = ()) -> bool:
         """Clear and mark along the scan's beams; True if a cell changed (its window is then pending).
@@ -149,17 +178,18 @@ class ObstacleLayer:
         self._pending.append(window)
         return True
 
-    def clear_outside(self, inside: Bounds) -> bool:
-        """Forget every mark outside the cell window `inside` (clear_costmap_recovery's clearMap on this layer);
-        True if a mark went (the window of those marks is then pending)."""
-        keep = inside.grow(0, self.frame)
-        before = self.marked.copy()
-        self.marked[...] = False
-        if not keep.empty:
-            self.marked[keep.rows, keep.cols] = before[keep.rows, keep.cols]
-        rows, cols = np.nonzero(before & ~self.marked)
+    def clear(self, window: Bounds, *, outside: bool = False) -> bool:
+        """Forget every mark in `window` (outside it, with `outside`: clear_costmap_recovery's clearMap on this
+        layer); True if a mark went (the window of those marks is then pending)."""
+        area = np.zeros(self.marked.shape, dtype=bool)
+        inside = window.grow(0, self.frame)
+        if not inside.empty:
+            area[inside.rows, inside.cols] = True
+        gone = self.marked & (~area if outside else area)
+        rows, cols = np.nonzero(gone)
         if len(rows) == 0:
             return False
+        self.marked[gone] = False
         self._last_scan = None
         self._pending.append(
             Bounds(int(rows.min()), int(cols.min()), int(rows.max()) + 1, int(cols.max()) + 1)
@@ -222,14 +252,9 @@ class ZoneCostLayer:
         self.costs: Costs = np.full((frame.height, frame.width), NO_INFORMATION, dtype=np.uint8)
         """NO_INFORMATION where no zone or operator block lies: the merge leaves master as it is there."""
 
-    def repaint(self, bounds: Bounds) -> None:
-        """Forget what the zone layer changed and paint it afresh in `bounds` (start-up, rebuild)."""
-        self.zone_layer.take_changes()
-        self.costs[bounds.rows, bounds.cols] = self.zone_layer.paint(bounds, outside=NO_INFORMATION)
-
-    def take_bounds(self) -> list[Bounds]:
-        """The zone layer's changed windows whose cells really changed cost."""
-        out = []
+    def update_bounds(self, bounds: list[Bounds]) -> list[Bounds]:
+        """`bounds` plus the zone layer's changed windows whose cells really changed cost."""
+        out = list(bounds)
         for w in self.zone_layer.take_changes():
             new = self.zone_layer.paint(w, outside=NO_INFORMATION)
             if not np.array_equal(new, self.costs[w.rows, w.cols]):
@@ -244,30 +269,79 @@ class ZoneCostLayer:
         """As `update_costs`, with some blocked areas left out (for letting a robot out of them)."""
         update_with_max(master, self.zone_layer.paint(bounds, exclude=exclude, outside=NO_INFORMATION))
 
+    def clear(self, window: Bounds, *, outside: bool = False) -> bool:
+        """Not clearable: the costs are the sensor network's and the operator's word, which a recovery must not
+        overrule (it would drive the robot into a zone reported blocked; the next repaint would bring them back)."""
+        return False
+
+    def rebuild(self) -> None:
+        """Forget what the zone layer changed and paint the whole map afresh."""
+        self.zone_layer.take_changes()
+        whole = Bounds(0, 0, *self.costs.shape)
+        self.costs[...] = self.zone_layer.paint(whole, outside=NO_INFORMATION)
+
 
 class InflationLayer:
-    """costmap_2d's inflation: master's lethal cells spread their cost over the robot's inflation radius.
+    """costmap_2d's inflation: the lethal cells of the layers before it spread their cost over the inflation radius.
 
-    It holds no grid of its own; `grow` says how far a change in the merged layers reaches (its updateBounds),
-    and `update_costs` recomputes master in a window from the merged layers around it.
+    The last layer of the list. Its grid is a copy of the layers before it merged (what it inflates): its
+    `update_bounds` merges them again in the windows they changed, keeps only the cells whose merged cost really
+    changed (most scans re-mark walls the static layer already holds, and cost nothing), and grows those by its
+    reach; `update_costs` writes the inflated costs of a window, from the lethal cells within reach of it, so a
+    bounded update gives cell for cell what inflating the whole map gives.
     """
 
-    def __init__(self, params: InflationParams, resolution: float) -> None:
+    def __init__(self, params: InflationParams, frame: GridFrame, stack: Stack) -> None:
         self.params = params
-        self.resolution = resolution
-        self.reach = inflation_reach(resolution, params)
+        self.frame = frame
+        self.reach = inflation_reach(frame.resolution, params)
         """Cells beyond which a lethal cell cannot change a cell's inflated cost."""
+        self.costs: Costs = np.full((frame.height, frame.width), NO_INFORMATION, dtype=np.uint8)
+        """The layers before this one merged: what it inflates."""
+        self._stack = stack
 
-    def take_bounds(self) -> list[Bounds]:
-        return []
+    def update_bounds(self, bounds: list[Bounds]) -> list[Bounds]:
+        out = []
+        for w in bounds:
+            changed = self._merge_changes(w)
+            if changed is not None:
+                out.append(changed.grow(self.reach, self.frame))
+        return out
 
-    def grow(self, bounds: Bounds, frame: GridFrame) -> Bounds:
-        return bounds.grow(self.reach, frame)
+    def update_costs(self, master: Costs, bounds: Bounds) -> None:
+        """`master`'s window, inflated from this layer's copy of the costs below it (it reaches beyond `bounds`):
+        the inflated costs already hold those below, so they overwrite master."""
+        update_with_true_overwrite(master, self.inflate(self.costs, (bounds.rows, bounds.cols)))
 
-    def update_costs(self, master: Costs, bounds: Bounds, merged: Costs) -> None:
-        """Set `master`'s cells in `bounds` to `merged` (the layers merged, whole map) with its inflation."""
-        master[bounds.rows, bounds.cols] = inflate(
-            merged, self.resolution, self.params, (bounds.rows, bounds.cols)
+    def clear(self, window: Bounds, *, outside: bool = False) -> bool:
+        """Holds nothing of its own to clear: it re-inflates what the layers before it cleared."""
+        return False
+
+    def rebuild(self) -> None:
+        self.costs = self._stack.merge_below(self, Bounds(0, 0, self.frame.height, self.frame.width))
+
+    def inflate(self, below: Costs, inner: tuple[slice, slice]) -> Costs:
+        """The cells `inner` of `below` (merged costs reaching `reach` cells beyond them, or the map's edge) with
+        their inflation: this layer's rule, for master and for views beside it (the escape view)."""
+        return inflate(below, self.frame.resolution, self.params, inner)
+
+    def _merge_changes(self, window: Bounds) -> Bounds | None:
+        """Merge the layers below again in `window`; the bounds of the cells whose merged cost changed, or None."""
+        window = window.grow(0, self.frame)
+        if window.empty:
+            return None
+        new = self._stack.merge_below(self, window)
+        diff = new != self.costs[window.rows, window.cols]
+        rows = np.flatnonzero(diff.any(axis=1))
+        if len(rows) == 0:
+            return None
+        self.costs[window.rows, window.cols] = new
+        cols = np.flatnonzero(diff.any(axis=0))
+        return Bounds(
+            window.row0 + int(rows[0]),
+            window.col0 + int(cols[0]),
+            window.row0 + int(rows[-1]) + 1,
+            window.col0 + int(cols[-1]) + 1,
         )
 
 
@@ -330,12 +404,21 @@ class RobotsLayer:
         """Whether a disk moved, appeared or went since the stack last asked."""
         return bool(self._pending)
 
-    def take_bounds(self) -> list[Bounds]:
-        out, self._pending = self._pending, []
+    def update_bounds(self, bounds: list[Bounds]) -> list[Bounds]:
+        out, self._pending = [*bounds, *self._pending], []
         return out
 
     def update_costs(self, master: Costs, bounds: Bounds) -> None:
-        np.maximum(master, self.costs[bounds.rows, bounds.cols], out=master)
+        """Raises known costs only: a disk never fills in the map's unknown space."""
+        update_with_max_without_unknown_overwrite(master, self.costs[bounds.rows, bounds.cols])
+
+    def clear(self, window: Bounds, *, outside: bool = False) -> bool:
+        """Not clearable: the other robots stand where their statuses say until those go stale (`expire`)."""
+        return False
+
+    def rebuild(self) -> None:
+        """The disks are painted as statuses come: only the pending windows go."""
+        self._pending = []
 
     def _disk_window(self, other: OtherRobot) -> Bounds:
         row, col = self.frame.world_to_cell(other.pose[0], other.pose[1])
