@@ -154,6 +154,8 @@ class Node:
         self.broker_backoff.reset()
         self.phase = _ONLINE
         self.connects += 1
+        if self.connects == 1:
+            _settle()
         self.info_due_ms = now_ms  # diagnostics at once: the next iteration sends them
         print("mqtt up", self.connects)
 
@@ -263,6 +265,20 @@ class Node:
                 print("loop error:", exc)
             self.feed()
             clock.sleep_ms(_LOOP_MS)
+
+
+def _settle() -> None:
+    """The first connect since boot: an update on trial is good (otaboot.confirm; nothing to do without one).
+    otaboot is loaded for this call only: its code is heap the loop needs."""
+    import sys
+
+    import otaboot
+
+    try:
+        otaboot.confirm()
+    except OSError as exc:  # the flash: the trial goes on, the next boot confirms or rolls back
+        print("ota:", exc)
+    del sys.modules["otaboot"]
 
 
 def sensor_from_config(cfg):

@@ -1,0 +1,122 @@
+"""The boot's side of an over-the-air update (OTA): what main.py decides before it imports the app.
+
+`ota.json` holds an update's state across resets (every write goes to `ota.jtmp` first, then a rename: a power
+cut leaves the old state or the new one, never half of one):
+- `fetch`: command.py wrote it (an `update` command); boot into update mode (updater.py: nothing else loaded);
+- `swap`: every new file is whole in `<name>.tmp` and hash-checked; the updater renames them in (idempotent);
+- `trial`: the new files are in, the old ones kept as `<name>.bak`; the app's first connect to the broker
+  confirms the update (`confirm`: the backups go). A trial that boots MAX_BOOTS times without connecting, or
+  whose `import app` fails, is rolled back (`rollback`).
+Every boot with a state counts one in it: an update mode that keeps resetting (no broker, no operator tool)
+is abandoned after MAX_BOOTS and the old app runs. Never replaced by an update (schemas OTA_BOOT_FILES): the
+rollback must work whatever the update brought. Loaded at boot and dropped before the app is imported.
+"""
+
+import json
+import os
+
+STATE = "ota.json"
+MAX_BOOTS = 3
+
+
+def load():
+    """The update's state (a dict), or None when there is none (or it cannot be read: then there is none)."""
+    try:
+        with open(STATE) as f:
+            st = json.load(f)
+        return st if type(st) is dict else None
+    except (OSError, ValueError):
+        return None
+
+
+def save(st) -> None:
+    """Write the state whole: a temporary file, then a rename over the old one."""
+    with open("ota.jtmp", "w") as f:
+        json.dump(st, f)
+    os.rename("ota.jtmp", STATE)
+
+
+def remove(name: str) -> None:
+    try:
+        os.remove(name)
+    except OSError:
+        pass
+
+
+def exists(name: str) -> bool:
+    try:
+        os.stat(name)
+        return True
+    except OSError:
+        return False
+
+
+def clear(st, suffix: str) -> None:
+    """Remove `<name><suffix>` of each of the update's files, then the state: the update is over."""
+    for name in st.get("files", ()):
+        remove(name + suffix)
+    remove(STATE)
+
+
+def rollback(st) -> None:
+    """Put each `.bak` back (a file that had none was new with the update and stays, unused); idempotent, so
+    a power cut during it is finished at the next boot."""
+    print("ota: rollback")
+    for name in st.get("files", ()):
+        if exists(name + ".bak"):
+            remove(name)
+            os.rename(name + ".bak", name)
+    clear(st, ".tmp")
+
+
+def boot(cfg) -> None:
+    """Called by main.py with the parsed config before `import app`: count this boot in a pending update's
+    state; in `fetch` or `swap` run the updater (which resets the board: never returns); a trial that has used
+    its boots is rolled back; past MAX_BOOTS in update mode the update is abandoned."""
+    st = load()
+    if st is None:
+        return
+    stage = st.get("stage")
+    boots = st.get("boots", 0) + 1
+    st["boots"] = boots
+    if boots > MAX_BOOTS:
+        if stage == "fetch":
+            print("ota: abandoned")
+            clear(st, ".tmp")
+        else:
+            rollback(st)
+        return
+    if stage not in ("fetch", "swap", "trial"):
+        remove(STATE)
+        return
+    save(st)
+    if stage != "trial":
+        import updater
+
+        updater.update(cfg, st)
+
+
+def confirm() -> None:
+    """The app's first connect to the broker since boot: an update on trial is good; its backups go."""
+    st = load()
+    if st is not None and st.get("stage") == "trial":
+        clear(st, ".bak")
+        print("ota: confirmed", st.get("version"))
+
+
+def failed(cfg, exc) -> None:
+    """`import app` or its setup raised (main.py): roll a trial back and reset; with nothing to roll back to,
+    safe mode (updater.safe: connected, watchdog fed, waiting for an update), never the REPL."""
+    import sys
+
+    print("app failed:", exc)
+    sys.modules.pop("app", None)
+    st = load()
+    if st is not None and st.get("stage") == "trial":
+        rollback(st)
+        import machine
+
+        machine.reset()
+    import updater
+
+    updater.safe(cfg, "safe: " + str(exc))
