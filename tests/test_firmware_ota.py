@@ -275,6 +275,7 @@ def test_a_power_cut_mid_swap_is_finished_at_the_next_boot(
     moved yet (old in place, new in .tmp), half moved (old in .bak, new in .tmp), moved (old in .bak, new in)."""
     update = make_update(tmp_path / "build", fw[NEW])
     names = [f.name for f in update.manifest.files]
+    (tmp_path / "b").mkdir()
     b = Board(fw, OLD, creds, broker, tmp_path / "b")
     new_build = fw[f"{NEW}-build"]
     for k, name in enumerate(names):
