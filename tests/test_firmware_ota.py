@@ -154,6 +154,13 @@ class Board:
             assert time.monotonic() < deadline, f"no {text!r} on the serial line:\n{self.serial()[-3000:]}"
             time.sleep(0.05)
 
+    def wait_confirmed(self, timeout: float = WAIT) -> None:
+        """Until the app's first connect marked the update good (`ota.json` renamed `ota.ok`: app.py)."""
+        deadline = time.monotonic() + timeout
+        while not (self.fs / "ota.ok").exists():
+            assert time.monotonic() < deadline, f"no ota.ok; serial line:\n{self.serial()[-3000:]}"
+            time.sleep(0.05)
+
     def power_cut(self) -> None:
         """SIGKILL mid-run: nothing flushed, nothing closed; the board supervisor powers it up again."""
         boot = self.unix._boot
@@ -161,9 +168,16 @@ class Board:
         boot.proc.kill()
 
     def leftovers(self) -> list[str]:
+        """What an update leaves on the board's flash: .tmp and .bak files, its state."""
         return sorted(
-            p.name for p in self.fs.iterdir() if p.suffix in (".tmp", ".bak") or p.name == "ota.json"
+            p.name
+            for p in self.fs.iterdir()
+            if p.suffix in (".tmp", ".bak") or p.name in ("ota.json", "ota.ok")
         )
+
+    def unfinished(self) -> list[str]:
+        """Leftovers but for a confirmed update's backups, which stay until the next boot removes them."""
+        return [n for n in self.leftovers() if not n.endswith(".bak") and n != "ota.ok"]
 
 
 @pytest.fixture
@@ -206,9 +220,15 @@ def test_an_update_runs_the_new_version_and_leaves_no_backup(fw, creds, broker, 
     assert code == 0, (out, err, board.serial()[-3000:])
     assert f"{NODE}: running {NEW}" in out and "(100%)" in out
     assert infos.wait(lambda i: i.fw == NEW).error is None
-    board.wait_serial("ota: confirmed")
-    assert board.leftovers() == []
+    board.wait_confirmed()
+    kept = sorted(
+        ["ota.ok", *(f"{p.name}.bak" for p in fw[f"{OLD}-build"].glob("*.mpy") if p.name != "otaboot.mpy")]
+    )
+    assert board.leftovers() == kept, board.leftovers()  # the old version, until the next boot
     assert (board.fs / "app.mpy").read_bytes() == (fw[f"{NEW}-build"] / "app.mpy").read_bytes()
+    board.power_cut()
+    board.wait_serial("ota: backups removed")
+    assert board.leftovers() == []
 
 
 def test_a_power_cut_mid_transfer_then_the_update_completes(fw, creds, broker, infos, board_of) -> None:
@@ -221,8 +241,8 @@ def test_a_power_cut_mid_transfer_then_the_update_completes(fw, creds, broker, i
     assert code == 0, (out, err, board.serial()[-3000:])
     assert "exit -9" in board.unix.resets
     infos.wait(lambda i: i.fw == NEW)
-    board.wait_serial("ota: confirmed")
-    assert board.leftovers() == []
+    board.wait_confirmed()
+    assert board.unfinished() == []
 
 
 def test_a_corrupted_file_is_refused_and_the_old_version_keeps_running(
@@ -290,8 +310,8 @@ def test_a_power_cut_mid_swap_is_finished_at_the_next_boot(
     b.unix.power_on()
     try:
         infos.wait(lambda i: i.fw == NEW)
-        b.wait_serial("ota: confirmed")
-        assert b.leftovers() == []
+        b.wait_confirmed()
+        assert b.unfinished() == []
         for name in names:
             assert (b.fs / name).read_bytes() == (new_build / name).read_bytes(), name
     finally:
@@ -306,4 +326,5 @@ def test_safe_mode_reports_the_error_and_takes_an_update(fw, creds, broker, info
     code, out, err = finish(ota_cli(fw, creds, broker, NEW))
     assert code == 0, (out, err, board.serial()[-3000:])
     infos.wait(lambda i: i.fw == NEW and i.error is None)
-    assert board.leftovers() == []
+    board.wait_confirmed()
+    assert board.unfinished() == []

@@ -154,8 +154,13 @@ class Node:
         self.broker_backoff.reset()
         self.phase = _ONLINE
         self.connects += 1
-        if self.connects == 1:
-            _settle()
+        if self.connects == 1:  # an update on trial is good: marked by a rename, otaboot.py does the rest
+            import os
+
+            try:
+                os.rename("ota.json", "ota.ok")
+            except OSError:
+                pass  # no update on trial (the usual case)
         self.info_due_ms = now_ms  # diagnostics at once: the next iteration sends them
         print("mqtt up", self.connects)
 
@@ -265,20 +270,6 @@ class Node:
                 print("loop error:", exc)
             self.feed()
             clock.sleep_ms(_LOOP_MS)
-
-
-def _settle() -> None:
-    """The first connect since boot: an update on trial is good (otaboot.confirm; nothing to do without one).
-    otaboot is loaded for this call only: its code is heap the loop needs."""
-    import sys
-
-    import otaboot
-
-    try:
-        otaboot.confirm()
-    except OSError as exc:  # the flash: the trial goes on, the next boot confirms or rolls back
-        print("ota:", exc)
-    del sys.modules["otaboot"]
 
 
 def sensor_from_config(cfg):

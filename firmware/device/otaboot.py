@@ -5,8 +5,8 @@ cut leaves the old state or the new one, never half of one):
 - `fetch`: command.py wrote it (an `update` command); boot into update mode (updater.py: nothing else loaded);
 - `swap`: every new file is whole in `<name>.tmp` and hash-checked; the updater renames them in (idempotent);
 - `trial`: the new files are in, the old ones kept as `<name>.bak`; the app's first connect to the broker
-  confirms the update (`confirm`: the backups go). A trial that boots MAX_BOOTS times without connecting, or
-  whose `import app` fails, is rolled back (`rollback`).
+  confirms the update (app._settle renames the state `ota.ok`; the next boot removes the backups). A trial
+  that boots MAX_BOOTS times without connecting, or whose `import app` fails, is rolled back (`rollback`).
 Every boot with a state counts one in it: an update mode that keeps resetting (no broker, no operator tool)
 is abandoned after MAX_BOOTS and the old app runs. Never replaced by an update (schemas OTA_BOOT_FILES): the
 rollback must work whatever the update brought. Loaded at boot and dropped before the app is imported.
@@ -19,10 +19,10 @@ STATE = "ota.json"
 MAX_BOOTS = 3
 
 
-def load():
+def load(name: str = STATE):
     """The update's state (a dict), or None when there is none (or it cannot be read: then there is none)."""
     try:
-        with open(STATE) as f:
+        with open(name) as f:
             st = json.load(f)
         return st if type(st) is dict else None
     except (OSError, ValueError):
@@ -51,11 +51,11 @@ def exists(name: str) -> bool:
         return False
 
 
-def clear(st, suffix: str) -> None:
+def clear(st, suffix: str, state: str = STATE) -> None:
     """Remove `<name><suffix>` of each of the update's files, then the state: the update is over."""
     for name in st.get("files", ()):
         remove(name + suffix)
-    remove(STATE)
+    remove(state)
 
 
 def rollback(st) -> None:
@@ -70,9 +70,14 @@ def rollback(st) -> None:
 
 
 def boot(cfg) -> None:
-    """Called by main.py with the parsed config before `import app`: count this boot in a pending update's
+    """Called by main.py with the parsed config before `import app`: the backups of a confirmed update go (the
+    app confirmed it by renaming the state `ota.ok`: app._settle); then count this boot in a pending update's
     state; in `fetch` or `swap` run the updater (which resets the board: never returns); a trial that has used
     its boots is rolled back; past MAX_BOOTS in update mode the update is abandoned."""
+    st = load("ota.ok")
+    if st is not None:
+        clear(st, ".bak", "ota.ok")
+        print("ota: backups removed")
     st = load()
     if st is None:
         return
@@ -94,14 +99,6 @@ def boot(cfg) -> None:
         import updater
 
         updater.update(cfg, st)
-
-
-def confirm() -> None:
-    """The app's first connect to the broker since boot: an update on trial is good; its backups go."""
-    st = load()
-    if st is not None and st.get("stage") == "trial":
-        clear(st, ".bak")
-        print("ota: confirmed", st.get("version"))
 
 
 def failed(cfg, exc) -> None:
