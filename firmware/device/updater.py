@@ -23,7 +23,6 @@ import time
 import machine
 import mqtt
 import otaboot
-from binascii import hexlify
 from hashlib import sha256
 from micropython import const
 
@@ -174,7 +173,7 @@ class Fetcher(Link):
             self.done += len(data)
             if offset >= n:
                 break
-        if hexlify(h.digest()).decode() != digest:
+        if "".join("%02x" % b for b in h.digest()) != digest:  # not binascii: a Python module on some ports
             raise OtaAbort("sha256 of file %d" % index)
         return got
 
