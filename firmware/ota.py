@@ -108,6 +108,9 @@ class NodeProgress:
     shown: int = -1
     """The last progress step (tenths) printed."""
     chunks: int = 0
+    first_at: float | None = None
+    last_at: float | None = None
+    """time.monotonic() of its first request and of the chunk that completed the update's last byte."""
 
 
 @dataclass
@@ -166,8 +169,13 @@ class OtaServer:
         )
         prog.started = True
         prog.error = None
+        now = time.monotonic()
+        if prog.first_at is None:
+            prog.first_at = now
         prog.chunks += 1
         prog.served = self._starts[req.file] + req.offset + len(part)
+        if prog.served == self.update.total:
+            prog.last_at = now
         step = prog.served * 10 // self.update.total
         if step != prog.shown:
             prog.shown = step

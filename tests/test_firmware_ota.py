@@ -10,7 +10,6 @@ Versions are told apart by FIRMWARE_VERSION (what `info` reports); what the test
 from __future__ import annotations
 
 import json
-import re
 import shutil
 import subprocess
 import sys
@@ -27,7 +26,7 @@ from tests.conftest import REPO
 from wsnav.firmware.build import build
 from wsnav.firmware.deploy import firmware_files
 from wsnav.firmware.ota import OtaServer, Update, make_update
-from wsnav.firmware.testing import DEVICE, SiteBroker, build_for_host, write_credentials
+from wsnav.firmware.testing import SiteBroker, build_for_host, versioned_sources, write_credentials
 from wsnav.firmware.unix_board import UnixBoard
 from wsnav.runtime.mqtt_bus import MqttBus
 from wsnav.schemas import topics
@@ -42,27 +41,14 @@ OLD, NEW, BROKEN = "1.0.0-old", "1.0.0-new", "1.0.0-bad"
 WAIT = 120.0
 
 
-def sources(root: Path, version: str, broken: bool = False) -> Path:
-    """firmware/device with its FIRMWARE_VERSION set to `version`; `broken`: an app.py that raises on import."""
-    src = root / f"src-{version}"
-    src.mkdir()
-    for py in DEVICE.glob("*.py"):
-        text = py.read_text()
-        if py.name == "diagnostics.py":
-            text = re.sub(r'^FIRMWARE_VERSION = ".*"$', f'FIRMWARE_VERSION = "{version}"', text, flags=re.M)
-        if py.name == "app.py" and broken:
-            text += '\nraise RuntimeError("broken app")\n'
-        (src / py.name).write_text(text)
-    return src
-
-
 @pytest.fixture(scope="module")
 def fw(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """Source folders by version, their builds (`<version>-build`), and the host stubs (`stubs`)."""
     root = tmp_path_factory.mktemp("ota-fw")
     out: dict[str, Path] = {"stubs": build_for_host(root / "host")[1]}
     for version in (OLD, NEW, BROKEN):
-        out[version] = sources(root, version, broken=version == BROKEN)
+        broken = {"app.py": '\nraise RuntimeError("broken app")\n'} if version == BROKEN else None
+        out[version] = versioned_sources(root / f"src-{version}", version, broken)
         build(root / f"{version}-build", out[version])
         out[f"{version}-build"] = root / f"{version}-build"
     return out
@@ -101,7 +87,7 @@ class Infos:
         assert subscribed.wait(30)
 
     def _on_message(self, _c: object, _u: object, msg: mqtt.MQTTMessage) -> None:
-        info = parse_payload(NodeInfo, msg.payload)
+        info = parse_payload(NodeInfo, bytes(msg.payload))
         assert info.to_payload() == msg.payload
         with self._lock:
             self.seen.append(info)
