@@ -35,7 +35,7 @@ from wsnav.firmware.testing import SiteBroker, build_for_host, versioned_sources
 from wsnav.firmware.unix_board import UnixBoard
 from wsnav.runtime.mqtt_bus import MqttBus
 from wsnav.schemas import topics
-from wsnav.schemas.credentials import Credentials, NodeConfig
+from wsnav.schemas.credentials import Credentials, NodeConfig, load_credentials
 from wsnav.schemas.messages import ZoneState
 from wsnav.schemas.site import load_site
 
@@ -56,7 +56,7 @@ class ZoneLoad:
         for node in load_site(SITE).spec.nodes:
             if node.id == NODE:
                 continue
-            c = Credentials.model_validate_json((creds / f"{node.id}.json").read_text())
+            c = load_credentials(creds / f"{node.id}.json")
             client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=f"{node.id}-load")
             client.username_pw_set(c.username, c.password)
             client.connect(broker.host, broker.port)
