@@ -74,8 +74,11 @@ def make_update(build_dir: Path, source: Path = DEVICE) -> Update:
     """Build `source` into `build_dir` (firmware.build) and make the update of its modules."""
     import hashlib
 
-    build(build_dir, source)
     version = firmware_version(source)
+    missing = [n for n in ("main.py", "boot.py", "app.py") if not (source / n).is_file()]
+    if missing:
+        raise OtaError(f"{source}: not the firmware's sources (no {', '.join(missing)})")
+    build(build_dir, source)
     paths = sorted(p for p in build_dir.glob("*.mpy") if p.name not in OTA_BOOT_FILES)
     datas = [p.read_bytes() for p in paths]
     try:
