@@ -37,7 +37,11 @@ pytestmark = pytest.mark.slow
 
 SITE_DIR = REPO / "sites" / "school"
 SITE, NODE = "school", "n1"
-OLD, NEW, BROKEN = "1.0.0-old", "1.0.0-new", "1.0.0-bad"
+OLD, NEW, BROKEN, LOOPING = "1.0.0-old", "1.0.0-new", "1.0.0-bad", "1.0.0-loop"
+APPENDED = {
+    BROKEN: {"app.py": '\nraise RuntimeError("broken app")\n'},
+    LOOPING: {"app.py": "\nimport machine\n\nmachine.reset()\n"},  # a reset before it ever connects
+}
 WAIT = 120.0
 
 
@@ -46,9 +50,8 @@ def fw(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """Source folders by version, their builds (`<version>-build`), and the host stubs (`stubs`)."""
     root = tmp_path_factory.mktemp("ota-fw")
     out: dict[str, Path] = {"stubs": build_for_host(root / "host")[1]}
-    for version in (OLD, NEW, BROKEN):
-        broken = {"app.py": '\nraise RuntimeError("broken app")\n'} if version == BROKEN else None
-        out[version] = versioned_sources(root / f"src-{version}", version, broken)
+    for version in (OLD, NEW, BROKEN, LOOPING):
+        out[version] = versioned_sources(root / f"src-{version}", version, APPENDED.get(version))
         build(root / f"{version}-build", out[version])
         out[f"{version}-build"] = root / f"{version}-build"
     return out
@@ -272,6 +275,20 @@ def test_a_new_app_that_fails_to_import_is_rolled_back(fw, creds, broker, infos,
     assert board.leftovers() == []
     for name in ("app.mpy", "diagnostics.mpy"):
         assert (board.fs / name).read_bytes() == (fw[f"{OLD}-build"] / name).read_bytes()
+
+
+def test_a_new_app_that_resets_before_it_connects_is_rolled_back_after_three_boots(
+    fw, creds, broker, infos, board_of
+) -> None:
+    board = board_of(OLD)
+    infos.wait(lambda i: i.fw == OLD)
+    code, out, err = finish(ota_cli(fw, creds, broker, LOOPING))
+    assert code == 1, (out, err)
+    assert f"{NODE}: came back on {OLD}, not {LOOPING}" in err
+    assert "ota: rollback" in board.serial()
+    assert board.unix.resets.count("reset") >= 5  # into update mode, into the trial, the trial boots (3)
+    assert board.leftovers() == []
+    assert (board.fs / "app.mpy").read_bytes() == (fw[f"{OLD}-build"] / "app.mpy").read_bytes()
 
 
 def test_a_power_cut_mid_swap_is_finished_at_the_next_boot(

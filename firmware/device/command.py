@@ -32,9 +32,10 @@ def apply(node, body, now_ms: int) -> None:
             digest = d["manifest"]
             if type(digest) is not str or len(digest) != 64:
                 raise ValueError
-            import otaboot
-
-            otaboot.save({"stage": "fetch", "manifest": digest, "boots": 0})
+            # Written directly (otaboot's save would load a module on the loop's heap): a write cut short by
+            # power is unreadable JSON, which the next boot takes for no update.
+            with open("ota.json", "w") as f:
+                f.write('{"stage":"fetch","manifest":"%s","boots":0}' % digest)
             print("update", digest[:8])
             restart(node)  # into update mode (otaboot.boot at the next boot)
         elif cmd != "send_info":

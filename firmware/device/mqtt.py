@@ -74,10 +74,6 @@ _PACKET = memoryview(bytearray(256))
 """Where `publish` assembles each packet: the zone state (~110 B with its topic) and the diagnostics (~190 B)
 fit. Allocated once, when the module loads into a still unfragmented heap; the board has one client."""
 
-max_body = 128
-"""The longest message on the subscribed topic handed over whole: a command; update mode (updater.py) raises it
-to take its 522-byte chunks in one piece."""
-
 lookup = socket.getaddrinfo
 """A broker name's DNS lookup; test drivers put a fake DNS server here. (Not on the client: an 18th attribute
 would grow its dict, a few hundred bytes of the 38 KiB heap.)"""
@@ -193,13 +189,12 @@ class MQTTClient:
             ours = n <= 128 and sub is not None and not first & 1 and t == sub[0]
             pid = self._recv(2, deadline) if first & 6 else b""  # QoS 1 (or 2): a packet id
             length -= 2 + n + len(pid)
-            big = max_body
-            body = self._recv(length, deadline) if ours and 128 < length <= big else self._skip(length, deadline)
+            body = self._skip(length, deadline)
             if (first & 6) == 2:
                 self._send(bytes((_PUBACK, 2)) + pid)
-            # A command is whole up to 128 bytes (NodeCommand's take at most 120), an update's chunk up to
-            # `max_body`; a longer one is handed over as b"", which the node counts as malformed.
-            return (kind if ours else 0), (body if length <= big else b"")
+            # A command is whole up to 128 bytes (NodeCommand's take at most 120; update mode's client reads its
+            # chunks whole: updater.py); a longer one is handed over as b"", which the node counts as malformed.
+            return (kind if ours else 0), (body if len(body) == length else b"")
         if length <= 4:
             return kind, self._recv(length, deadline) if length else b""
         self._skip(length, deadline)

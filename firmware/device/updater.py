@@ -54,6 +54,13 @@ class _Who:
         self.status_topic = base + "status"
 
 
+class _Client(mqtt.MQTTClient):
+    """The app's MQTT client, but a message up to a chunk's size is read whole (the app's reads 128 bytes)."""
+
+    def _skip(self, n: int, deadline) -> bytes:
+        return self._recv(n, deadline) if n <= _HEADER + _CHUNK else super()._skip(n, deadline)
+
+
 class Link:
     """Wi-Fi and one MQTT connection subscribed to `topic`, the watchdog fed in every wait."""
 
@@ -61,7 +68,7 @@ class Link:
         self.wdt = machine.WDT()
         self.cfg = cfg
         self.base = "wsn/" + cfg["site"] + "/nodes/" + cfg["node"] + "/"
-        self.client = mqtt.MQTTClient(
+        self.client = _Client(
             cfg["node"],
             cfg["broker_host"],
             cfg["broker_port"],
@@ -131,7 +138,6 @@ class Fetcher(Link):
 
     def __init__(self, cfg) -> None:
         super().__init__(cfg, "ota/chunk")
-        mqtt.max_body = _HEADER + _CHUNK  # the chunks, whole; the app's client keeps 128
         self.request = self.base + "ota/request"
         self.done = 0
 
