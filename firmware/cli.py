@@ -1,19 +1,17 @@
-"""`wsnav firmware build|deploy|flash|ota`: from the sources in firmware/device to a node online, and updated over
-the air."""
+"""`wsnav firmware build|deploy|flash`: from the sources in firmware/device to a node online (`wsnav firmware ota`,
+which logs in as the operator, is wsnav/ota_command.py)."""
 
 from __future__ import annotations
 
 import argparse
-import math
 import shlex
 import subprocess
-import sys
 import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from wsnav.firmware.board import MpremoteBoard
-from wsnav.firmware.build import DEVICE, SIZE_TARGET, BuildError, build, compile_commands
+from wsnav.firmware.build import SIZE_TARGET, BuildError, build, compile_commands
 from wsnav.firmware.deploy import (
     FLASH_BAUD,
     FLASH_MODES,
@@ -72,26 +70,6 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     )
     f.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
     f.set_defaults(func=flash_command)
-
-    from wsnav.console.cli import operator_arguments
-
-    o = fw_sub.add_parser(
-        "ota",
-        help="update running nodes' app over MQTT: build, command, serve the chunks, wait for the new version",
-    )
-    operator_arguments(o)
-    o.add_argument("--nodes", required=True, metavar="N1,N2", help="the nodes to update, comma-separated")
-    o.add_argument(
-        "--source", type=Path, default=DEVICE, help="the firmware sources to build (default firmware/device)"
-    )
-    o.add_argument(
-        "--timeout",
-        type=float,
-        default=600.0,
-        metavar="S",
-        help="give up on nodes not done by then (default 600)",
-    )
-    o.set_defaults(func=ota_command)
 
 
 def _print(cmd: list[str]) -> None:
@@ -178,43 +156,3 @@ def flash_command(args: argparse.Namespace) -> int:
         return 0
     _run(cmds)
     return 0
-
-
-def ota_command(args: argparse.Namespace) -> int:
-    """Build, send each node its `update`, serve the chunks with progress; exit 1 unless every node confirmed."""
-    from wsnav.console.operator_commands import CommandError, node_command
-    from wsnav.console.operator_link import connect
-    from wsnav.firmware.ota import OtaError, OtaServer, make_update
-
-    nodes = [n.strip() for n in args.nodes.split(",") if n.strip()]
-    if not nodes or len(set(nodes)) != len(nodes):
-        raise CliError(f"--nodes {args.nodes!r}: give node ids, each once, separated by commas")
-    if not (math.isfinite(args.timeout) and args.timeout > 0):
-        raise CliError(f"--timeout {args.timeout:g}: expected a positive number of seconds")
-    with tempfile.TemporaryDirectory(prefix="wsnav-ota-") as tmp:
-        try:
-            update = make_update(Path(tmp), args.source)
-        except (BuildError, OtaError) as exc:
-            raise CliError(str(exc)) from None
-    m = update.manifest
-    print(f"update {m.version}: {len(m.files)} files, {update.total} B (manifest {update.digest[:12]})")
-    link = connect(args, "ota")
-    try:
-        try:
-            pubs = [node_command(link.site, n, "update", manifest=update.digest) for n in nodes]
-        except CommandError as exc:
-            raise CliError(str(exc)) from None
-        server = OtaServer(link.bus, link.site.name, update, nodes)
-        server.subscribe()
-        failures = []
-        for node, pub in zip(nodes, pubs, strict=True):
-            if not link.bus.publish_confirmed(pub.topic, pub.payload):
-                server.progress[node].error = f"{node}: the broker did not confirm the update command"
-        failures = server.run(args.timeout)
-    finally:
-        link.bus.close()
-    for line in failures:
-        print(line, file=sys.stderr)
-    done = len(nodes) - len(failures)
-    print(f"{done} of {len(nodes)} nodes running {m.version}")
-    return 1 if failures else 0

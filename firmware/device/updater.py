@@ -216,9 +216,12 @@ class Fetcher(Link):
         otaboot.save(st)
 
 
-def swap(st) -> None:
-    """Each `<name>.tmp` in, its old file kept as `<name>.bak`; safe to run again from any point."""
+def swap(st, feed=None) -> None:
+    """Each `<name>.tmp` in, its old file kept as `<name>.bak`; safe to run again from any point. `feed`: the
+    watchdog's, once a file (two renames on the flash)."""
     for name in st["files"]:
+        if feed is not None:
+            feed()
         tmp = name + ".tmp"
         if otaboot.exists(tmp):
             if otaboot.exists(name):
@@ -241,7 +244,7 @@ def update(cfg, st) -> None:
             link = Fetcher(cfg)
             link.up()
             link.fetch(st)
-        swap(st)
+        swap(st, link.wdt.feed if link is not None else None)
     except OtaAbort as exc:
         otaboot.clear(st, ".tmp")
         if link is not None:
