@@ -13,25 +13,22 @@ import json
 import shutil
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-import paho.mqtt.client as mqtt
 import pytest
-from paho.mqtt.enums import CallbackAPIVersion
 
 from tests.conftest import REPO
+from tests.test_firmware_node import Subscriber, info_of
 from wsnav.firmware.build import build
 from wsnav.firmware.deploy import firmware_files
 from wsnav.firmware.ota import OtaServer, Update, make_update
 from wsnav.firmware.testing import SiteBroker, build_for_host, versioned_sources, write_credentials
 from wsnav.firmware.unix_board import UnixBoard
 from wsnav.runtime.mqtt_bus import MqttBus
-from wsnav.schemas import topics
 from wsnav.schemas.credentials import Credentials, NodeConfig
-from wsnav.schemas.messages import NodeInfo, parse_payload
+from wsnav.schemas.messages import NodeInfo
 
 pytestmark = pytest.mark.slow
 
@@ -73,41 +70,19 @@ def broker(creds: Path, tmp_path: Path) -> Iterator[SiteBroker]:
 
 
 class Infos:
-    """The operator's view of the node's `nodes/<node>/info` (each payload checked against NodeInfo's bytes)."""
+    """The node's `nodes/<node>/info` as the operator's subscriber (test_firmware_node's) sees it, each payload
+    checked against NodeInfo's bytes."""
 
     def __init__(self, broker: SiteBroker, creds: Path) -> None:
-        op = Credentials.model_validate_json((creds / "operator.json").read_text())
-        self.seen: list[NodeInfo] = []
-        self._lock = threading.Lock()
-        self.client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=f"otatest-{time.monotonic_ns()}")
-        self.client.username_pw_set(op.username, op.password)
-        self.client.on_message = self._on_message
-        subscribed = threading.Event()
-        self.client.on_subscribe = lambda *_a: subscribed.set()
-        self.client.connect(broker.host, broker.port)
-        self.client.loop_start()
-        self.client.subscribe(topics.node_info(SITE, NODE), qos=0)
-        assert subscribed.wait(30)
-
-    def _on_message(self, _c: object, _u: object, msg: mqtt.MQTTMessage) -> None:
-        info = parse_payload(NodeInfo, bytes(msg.payload))
-        assert info.to_payload() == msg.payload
-        with self._lock:
-            self.seen.append(info)
+        self.subscriber = Subscriber(broker, creds)
 
     def wait(self, pred: Callable[[NodeInfo], bool], timeout: float = WAIT) -> NodeInfo:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            with self._lock:
-                found = [i for i in self.seen if pred(i)]
-            if found:
-                return found[-1]
-            time.sleep(0.1)
-        raise AssertionError(f"no such info within {timeout} s; saw {self.seen}")
+        info = info_of(self.subscriber.wait(lambda m: (i := info_of(m)) is not None and pred(i), timeout))
+        assert info is not None
+        return info
 
     def close(self) -> None:
-        self.client.loop_stop()
-        self.client.disconnect()
+        self.subscriber.close()
 
 
 @pytest.fixture
