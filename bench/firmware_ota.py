@@ -129,7 +129,7 @@ def heap_rows(tmp: Path, creds: Path, update: Update, baseline: str) -> list[tup
             wasm_setup(node, base, sonar)["free"],
         ),
         ("update mode after setup (updater, MQTT client, Wi-Fi)", up["setup_free"]),
-        ("update mode at the transfer's peak (manifest parsed, one chunk, sha256, open .tmp)", up["free"]),
+        ("update mode during the transfer (the manifest's files, a chunk, sha256, open .tmp)", up["free"]),
     ]
 
 
@@ -220,7 +220,7 @@ def main() -> None:
         + "\n\nHeap, on MicroPython's WebAssembly port (32-bit: the ESP8266's object sizes; bench/wasm_port, "
         "setup_heap.mjs): the node in normal operation does not load the updater; update mode loads only the "
         "updater, the MQTT client and Wi-Fi (otaboot.py stays loaded under them), and its peak holds the parsed "
-        "manifest, one chunk, the sha256 and the open `.tmp` file. The board's boot (`_boot.py`, about 1.2 KB, "
+        "manifest's file list, a chunk in the client's buffer, the sha256 and the open `.tmp` file. The board's boot (`_boot.py`, about 1.2 KB, "
         "BENCHMARKS.md's firmware heap section) is not taken off.\n\n"
         + "\n".join(heap_table)
         + f"\n\nReproduce: `{COMMAND}` (`--runs N`, `--baseline REF`; needs Node.js and npm for the heap rows)."

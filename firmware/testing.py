@@ -149,10 +149,10 @@ def micropython_cmd(module: str, *args: str) -> list[str]:
 class NodeProcess:
     """A firmware driver running on the unix port, its stdout collected in a file the test can wait on."""
 
-    def __init__(self, cmd: list[str], env: dict[str, str], log: Path) -> None:
+    def __init__(self, cmd: list[str], env: dict[str, str], log: Path, cwd: Path | None = None) -> None:
         self.log = log
         self._out = open(log, "wb")  # noqa: SIM115
-        self.proc = subprocess.Popen(cmd, env=env, stdout=self._out, stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen(cmd, env=env, stdout=self._out, stderr=subprocess.STDOUT, cwd=cwd)
 
     def output(self) -> str:
         return self.log.read_text(errors="replace")

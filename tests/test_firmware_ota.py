@@ -13,6 +13,7 @@ import json
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -24,7 +25,16 @@ from tests.test_firmware_node import Subscriber, info_of
 from wsnav.firmware.build import build
 from wsnav.firmware.deploy import firmware_files
 from wsnav.firmware.ota import OtaServer, Update, make_update
-from wsnav.firmware.testing import SiteBroker, build_for_host, versioned_sources, write_credentials
+from wsnav.firmware.testing import (
+    HEAP,
+    NodeProcess,
+    SiteBroker,
+    build_for_host,
+    micropython_env,
+    micropython_exe,
+    versioned_sources,
+    write_credentials,
+)
 from wsnav.firmware.unix_board import UnixBoard
 from wsnav.runtime.mqtt_bus import MqttBus
 from wsnav.schemas.credentials import Credentials, NodeConfig
@@ -177,6 +187,27 @@ def finish(proc: subprocess.Popen[str]) -> tuple[int, str, str]:
     return proc.returncode, out, err
 
 
+def serve(broker: SiteBroker, creds: Path, update: Update, command: bool = True) -> list[str]:
+    """firmware.ota.OtaServer in this process, as the operator: `update` served to NODE until it ends; with
+    `command`, the `update` command sent first. Returns the failures."""
+    from wsnav.console.operator_commands import node_command
+    from wsnav.schemas.site import load_site
+
+    op = Credentials.model_validate_json((creds / "operator.json").read_text())
+    bus = MqttBus(
+        broker.host, broker.port, client_id="ota-test", username=op.username, password=op.password
+    ).connect(30)
+    try:
+        server = OtaServer(bus, SITE, update, [NODE], say=lambda _line: None)
+        server.subscribe()
+        if command:
+            pub = node_command(load_site(SITE_DIR), NODE, "update", manifest=update.digest)
+            assert bus.publish_confirmed(pub.topic, pub.payload)
+        return server.run(WAIT)
+    finally:
+        bus.close()
+
+
 def test_an_update_runs_the_new_version_and_leaves_no_backup(fw, creds, broker, infos, board_of) -> None:
     board = board_of(OLD)
     infos.wait(lambda i: i.fw == OLD)
@@ -218,21 +249,7 @@ def test_a_corrupted_file_is_refused_and_the_old_version_keeps_running(
     payloads = list(good.payloads)
     payloads[1] = payloads[1][:-1] + bytes([payloads[1][-1] ^ 1])  # one bit flipped in transit
     bad = Update(good.manifest, payloads)
-    op = Credentials.model_validate_json((creds / "operator.json").read_text())
-    bus = MqttBus(
-        broker.host, broker.port, client_id="ota-test", username=op.username, password=op.password
-    ).connect(30)
-    try:
-        from wsnav.console.operator_commands import node_command
-        from wsnav.schemas.site import load_site
-
-        server = OtaServer(bus, SITE, bad, [NODE], say=lambda _line: None)
-        server.subscribe()
-        pub = node_command(load_site(SITE_DIR), NODE, "update", manifest=bad.digest)
-        assert bus.publish_confirmed(pub.topic, pub.payload)
-        failures = server.run(WAIT)
-    finally:
-        bus.close()
+    failures = serve(broker, creds, bad)
     assert failures == [f"{NODE}: update failed: ota: sha256 of file 1"]
     board.wait_serial("mqtt up")  # the old app, after the abandoned update
     assert infos.wait(lambda i: i.fw == OLD and i.uptime_s < 30 and i.error is None, WAIT)
@@ -306,3 +323,33 @@ def test_safe_mode_reports_the_error_and_takes_an_update(fw, creds, broker, info
     infos.wait(lambda i: i.fw == NEW and i.error is None)
     board.wait_confirmed()
     assert board.unfinished() == []
+
+
+def test_update_mode_and_the_trial_boot_fit_the_boards_38_kib_heap(
+    fw, creds, broker, infos, tmp_path
+) -> None:
+    """main.py itself on `micropython -X heapsize=38k` (the board's heap; 64-bit objects, so a bound), from an
+    `update` command's ota.json: update mode fetches and swaps, then the trial boot runs the new app."""
+    update = make_update(tmp_path / "build", fw[NEW])
+    b = Board(fw, OLD, creds, broker, tmp_path)
+    (b.fs / "ota.json").write_text(json.dumps({"stage": "fetch", "manifest": update.digest, "boots": 0}))
+    failures: list[list[str]] = []
+    server = threading.Thread(target=lambda: failures.append(serve(broker, creds, update, command=False)))
+    server.start()
+    time.sleep(1)  # the server subscribed before the node asks
+    boot = "import machine, sys\nmachine.reset = lambda: sys.exit(75)\nimport main"  # as the ROM's: the process ends
+    env = micropython_env(b.fs, fw["stubs"], tmp_path / "pins")
+    cmd = [micropython_exe(), "-X", f"heapsize={HEAP}", "-c", boot]
+    with (tmp_path / "update.log").open("wb") as log:
+        first = subprocess.run(cmd, cwd=b.fs, env=env, stdout=log, stderr=subprocess.STDOUT, timeout=WAIT)
+    out = (tmp_path / "update.log").read_text()
+    assert first.returncode == 75 and "ota: swapped" in out and "MemoryError" not in out, out
+    node = NodeProcess(cmd, env, tmp_path / "trial.log", cwd=b.fs)
+    try:
+        server.join(WAIT)
+        assert failures == [[]], node.output()
+        assert infos.wait(lambda i: i.fw == NEW).error is None
+        b.wait_confirmed()
+    finally:
+        node.stop()
+    assert b.unfinished() == []

@@ -80,8 +80,8 @@ print("heap used", _used, "bare", _bare)
 `;
 // Update mode (firmware/device/updater.py), as main.py enters it: config parsed and its parser dropped, otaboot
 // loaded (it calls the updater), the updater's link built and Wi-Fi's module loaded ("setup"); then what the
-// transfer holds at its peak: the manifest parsed, one chunk (522 bytes) and the view of its data, the sha256 and
-// the open .tmp file.
+// transfer holds at its peak: the manifest's files (parsed from the flash, as updater.py does), a view of the
+// chunk buffer's data, the sha256 and the open .tmp file.
 const update = `
 import sys
 import nodeconfig
@@ -98,9 +98,11 @@ gc.collect()
 _setup = gc.mem_alloc()
 import hashlib
 import json
-manifest = json.loads(open("/manifest.json").read())
-body = bytes(522)
-data = memoryview(body)[10:]
+with open("/manifest.json") as f:
+    manifest = json.load(f)
+files = [(x["name"], x["size"], x["sha256"]) for x in manifest["files"]]
+del manifest
+data = link.client.buf[10:]
 h = hashlib.sha256()
 h.update(data)
 out = open("/x.tmp", "wb")

@@ -17,6 +17,9 @@ import os
 
 STATE = "ota.json"
 MAX_BOOTS = 3
+APP_ONLY = "app payloads debounce node_logic backoff sensing diagnostics digital_sensor ultrasonic command"
+"""The app's modules that safe mode does without (it keeps mqtt and wifi; diagnostics is loaded again for its
+one `info`). One string: a tuple of ten would be ten objects on the heap of every boot."""
 
 
 def load(name: str = STATE):
@@ -103,17 +106,22 @@ def boot(cfg) -> None:
 
 def failed(cfg, exc) -> None:
     """`import app` or its setup raised (main.py): roll a trial back and reset; with nothing to roll back to,
-    safe mode (updater.safe: connected, watchdog fed, waiting for an update), never the REPL."""
+    safe mode (safemode.safe: connected, watchdog fed, waiting for an update), never the REPL. Every module the
+    app loaded and safe mode does not use (APP_ONLY) is dropped first: safe mode needs the heap."""
     import sys
 
     print("app failed:", exc)
-    sys.modules.pop("app", None)
+    for name in APP_ONLY.split():
+        sys.modules.pop(name, None)
+    import gc
+
+    gc.collect()
     st = load()
     if st is not None and st.get("stage") == "trial":
         rollback(st)
         import machine
 
         machine.reset()
-    import updater
+    import safemode
 
-    updater.safe(cfg, "safe: " + str(exc))
+    safemode.safe(cfg, "safe: " + str(exc))

@@ -2,14 +2,14 @@
 
 Update mode (`update`, an `ota.json` in stage `fetch` or `swap`): join Wi-Fi, connect subscribed to the node's
 `ota/chunk` topic, and pull the update: ask (`ota/request`, schemas.messages.OtaRequest) for the manifest (file
-0), check its sha256 against the `update` command's, then each file chunk by chunk into `<name>.tmp`, hashed as
+0, written to `ota.man` and parsed from there), check its sha256 against the `update` command's, then each file chunk by chunk into `<name>.tmp`, hashed as
 it comes. Nothing is replaced until every file is whole and matches; then `swap` renames each old file to
 `<name>.bak` and the new one in (idempotent: a power cut is finished at the next boot), sets the stage to `trial`
 and resets. A bad manifest or file abandons the update (the old files never moved) and says why in the node's
 `info`; a lost link resets the board, whose next boot retries (otaboot counts them).
 
-Safe mode (`safe`, when `import app` fails with nothing to roll back to): connected, watchdog fed, the error in
-`info`, waiting for an `update` (or `restart`) command, and a reset after SAFE_MS to try the app again.
+Safe mode (safemode.py, when `import app` fails with nothing to roll back to) uses its `Link`; it is a module of
+its own so that update mode does not carry its code.
 
 Every wait feeds the watchdog; every socket step is bounded by the MQTT client's.
 """
@@ -38,27 +38,41 @@ _TRIES = const(5)
 taken for lost (a reset, a retry at the next boot)."""
 _JOIN_MS = const(30000)
 _CONNECT_MS = const(60000)
-SAFE_MS = 600000
 
 
 class OtaAbort(Exception):
     """The update itself is bad (manifest, size, hash): no retry will fix it."""
 
 
-class _Who:
-    """What diagnostics.info reads of a NodeLogic, for a node whose app is not loaded."""
-
-    def __init__(self, cfg, base: str) -> None:
-        self.node = cfg["node"]
-        self.heartbeat_ms = cfg["heartbeat_ms"]
-        self.status_topic = base + "status"
-
-
 class _Client(mqtt.MQTTClient):
-    """The app's MQTT client, but a message up to a chunk's size is read whole (the app's reads 128 bytes)."""
+    """The app's MQTT client, but a message up to a chunk's size is read into one buffer allocated with the
+    client (later, a fragmented heap may have no 522 bytes in one piece) and handed over as a view of it, valid
+    until the next read; the app's client hands over 128 bytes at most."""
 
-    def _skip(self, n: int, deadline) -> bytes:
-        return self._recv(n, deadline) if n <= _HEADER + _CHUNK else super()._skip(n, deadline)
+    def __init__(self, *args) -> None:
+        super().__init__(*args)
+        self.buf = memoryview(bytearray(_HEADER + _CHUNK))
+
+    def _skip(self, n: int, deadline):  # pyright: ignore[reportIncompatibleMethodOverride] (a view, read as bytes)
+        if n <= 128 or n > _HEADER + _CHUNK:
+            return super()._skip(n, deadline)
+        buf = self.buf
+        got = 0
+        while got < n:
+            if time.ticks_diff(deadline, time.ticks_ms()) <= 0:
+                raise mqtt.MQTTError("timed out waiting for the broker")
+            try:
+                k = self._fed(500).readinto(buf[got:n])
+            except OSError as exc:
+                if exc.errno == 110 or exc.errno == 11:  # a step's silence (mqtt._recv's ETIMEDOUT, EAGAIN)
+                    continue
+                raise
+            if k is None:
+                continue
+            if not k:
+                raise mqtt.MQTTError("connection closed by broker")
+            got += k
+        return buf[:n]
 
 
 class Link:
@@ -110,29 +124,6 @@ class Link:
                 print("ota: broker", exc)
                 self.sleep(1000)
 
-    def info(self, error: str) -> None:
-        """`nodes/<node>/info` saying `error` (schemas.messages.NodeInfo, by diagnostics.info when it loads)."""
-        cfg = self.cfg
-        up = time.ticks_diff(time.ticks_ms(), self.started) // 1000
-        try:
-            import diagnostics
-
-            topic, payload, _r, _q = diagnostics.info(
-                _Who(cfg, self.base), up, 1, machine.reset_cause(), None, None, error, 0
-            )
-        except Exception:  # the app's own diagnostics are broken too: the fields every NodeInfo has
-            topic = self.base + "info"
-            payload = '{"v":1,"node":"%s","fw":"unknown","reset":"unknown","uptime_s":%d,"reconnects":0}' % (
-                cfg["node"],
-                up,
-            )
-        try:
-            self.client.publish(topic, payload.encode(), True, 1)
-        except OSError:
-            pass
-        print("info:", error)
-
-
 class Fetcher(Link):
     """The update mode's transfer: chunks asked for one at a time, each answer checked against the question."""
 
@@ -158,60 +149,61 @@ class Fetcher(Link):
                         return size, memoryview(body)[_HEADER:]
         raise OSError("no chunk")
 
-    def get(self, index: int, size, digest: str, out):
-        """The whole of file `index` (its `size`, or None for the manifest) written to `out` (or returned, for
-        the manifest), checked against sha256 `digest`."""
+    def get(self, index: int, size, digest: str, out) -> None:
+        """The whole of file `index` (its `size`, or None for the manifest) written to `out`, checked against
+        sha256 `digest`."""
         h = sha256()
-        got = b""
         offset = 0
         while True:
             n, data = self.chunk(index, offset)
             if n > (_MAX_MANIFEST if size is None else _MAX_FILE) or (size is not None and n != size):
                 raise OtaAbort("size of file %d" % index)
-            if offset + len(data) > n or (not data and offset < n):
+            if offset + len(data) > n or (len(data) == 0 and offset < n):
                 raise OtaAbort("bad chunk")
             h.update(data)
-            if out is None:
-                got += data
-            else:
-                out.write(data)
+            out.write(data)
             offset += len(data)
             self.done += len(data)
             if offset >= n:
                 break
         if "".join("%02x" % b for b in h.digest()) != digest:  # not binascii: a Python module on some ports
             raise OtaAbort("sha256 of file %d" % index)
-        return got
 
     def fetch(self, st) -> None:
         """The manifest, then each file into `<name>.tmp`; stage `swap` saved once all are whole and checked."""
-        manifest = json.loads(self.get(0, None, st["manifest"], None))
-        files = manifest["files"]
+        with open("ota.man", "wb") as out:  # to the flash, and parsed from there: never whole in the heap
+            self.get(0, None, st["manifest"], out)
+        gc.collect()
+        with open("ota.man") as f:
+            manifest = json.load(f)
+        otaboot.remove("ota.man")
+        st["version"] = manifest["version"]
+        files = [(f["name"], f["size"], f["sha256"]) for f in manifest["files"]]  # lighter than the dicts
+        del manifest
+        gc.collect()
         names = []
         if not 0 < len(files) <= _MAX_FILES:
             raise OtaAbort("manifest")
-        for f in files:
-            name = f["name"]
+        for name, size, _sha in files:
             if (
                 type(name) is not str
                 or not name.endswith(".mpy")
                 or "/" in name
                 or name.startswith(".")
                 or name == "otaboot.mpy"
-                or type(f["size"]) is not int
+                or type(size) is not int
             ):
                 raise OtaAbort("manifest")
             names.append(name)
         st["files"] = names
-        st["version"] = manifest["version"]
         otaboot.save(st)  # the names, so that an abandoned fetch removes its .tmp files
         for name in names:
             otaboot.remove(name + ".bak")  # a stale one, of an update that never swapped
-        for i, f in enumerate(files):
-            with open(f["name"] + ".tmp", "wb") as out:
-                self.get(i + 1, f["size"], f["sha256"], out)
+        for i, (name, size, sha) in enumerate(files):
+            with open(name + ".tmp", "wb") as out:
+                self.get(i + 1, size, sha, out)
             gc.collect()
-            print("ota: got", f["name"], self.done)
+            print("ota: got", name, self.done)
         st["stage"] = "swap"
         otaboot.save(st)
 
@@ -248,43 +240,9 @@ def update(cfg, st) -> None:
     except OtaAbort as exc:
         otaboot.clear(st, ".tmp")
         if link is not None:
-            link.info("ota: " + str(exc))
+            import safemode
+
+            safemode.info(link, "ota: " + str(exc))
     except Exception as exc:  # the link, the flash: the next boot tries again (otaboot counts them)
         print("ota: retry,", exc)
-    machine.reset()
-
-
-def safe(cfg, why: str) -> None:
-    """Safe mode (otaboot.failed): say `why` in `info`, then wait up to SAFE_MS for a command: `update` starts
-    one, `restart` resets. Never returns."""
-    if not cfg:  # the app's setup had cleared it
-        import nodeconfig
-
-        cfg = nodeconfig.load("config.json")
-    gc.collect()
-    link = Link(cfg, "command")
-    try:
-        link.up()
-        link.info(why)
-        client = link.client
-        while time.ticks_diff(time.ticks_ms(), link.started) < SAFE_MS:
-            body = client.poll()
-            if body is None:
-                client.maintain()
-                link.sleep(50)
-                continue
-            try:
-                d = json.loads(body)
-                cmd = d["command"]
-                digest = d.get("manifest")
-                if cmd == "update" and type(digest) is str and len(digest) == 64:
-                    otaboot.save({"stage": "fetch", "manifest": digest, "boots": 0})
-                    break
-                if cmd == "restart":
-                    break
-            except Exception:  # no single message stops safe mode
-                print("bad command")
-    except Exception as exc:
-        print("safe:", exc)
-        link.sleep(1000)
     machine.reset()
