@@ -3,9 +3,10 @@
 `ota.json` holds an update's state across resets (every write goes to `ota.jtmp` first, then a rename: a power
 cut leaves the old state or the new one, never half of one):
 - `fetch`: command.py wrote it (an `update` command); boot into update mode (updater.py: nothing else loaded);
-- `swap`: every new file is whole in `<name>.tmp` and hash-checked; the updater renames them in (idempotent);
+- `swap`: every new file is whole in `<name>.tmp` and hash-checked; `swap` renames them in (idempotent; here,
+  not in the updater, which may be one of the files a power cut left half moved);
 - `trial`: the new files are in, the old ones kept as `<name>.bak`; the app's first connect to the broker
-  confirms the update (app._settle renames the state `ota.ok`; the next boot removes the backups). A trial
+  confirms the update (app.py renames the state `ota.ok`; the next boot removes the backups). A trial
   that boots MAX_BOOTS times without connecting, or whose `import app` fails, is rolled back (`rollback`).
 Every boot with a state counts one in it: an update mode that keeps resetting (no broker, no operator tool)
 is abandoned after MAX_BOOTS and the old app runs. Never replaced by an update (schemas OTA_BOOT_FILES): the
@@ -72,6 +73,26 @@ def rollback(st) -> None:
     clear(st, ".tmp")
 
 
+def swap(st, feed=None) -> None:
+    """Each `<name>.tmp` in, its old file kept as `<name>.bak`; safe to run again from any point. `feed`: the
+    watchdog's, once a file (two renames on the flash)."""
+    for name in st["files"]:
+        if feed is not None:
+            feed()
+        tmp = name + ".tmp"
+        if exists(tmp):
+            if exists(name):
+                if exists(name + ".bak"):
+                    os.remove(name)
+                else:
+                    os.rename(name, name + ".bak")
+            os.rename(tmp, name)
+    st["stage"] = "trial"
+    st["boots"] = 0
+    save(st)
+    print("ota: swapped", st.get("version"))
+
+
 def boot(cfg) -> None:
     """Called by main.py with the parsed config before `import app`: the backups of a confirmed update go (the
     app confirmed it by renaming the state `ota.ok`: app._settle); then count this boot in a pending update's
@@ -98,7 +119,12 @@ def boot(cfg) -> None:
         remove(STATE)
         return
     save(st)
-    if stage != "trial":
+    if stage == "swap":  # here, not in the updater: a swap cut short may have moved updater.mpy out
+        swap(st)
+        import machine
+
+        machine.reset()
+    elif stage == "fetch":
         import updater
 
         updater.update(cfg, st)

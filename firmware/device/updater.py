@@ -1,11 +1,11 @@
-"""Update mode and safe mode: loaded instead of the app (otaboot.py), so all of the heap is theirs.
+"""Update mode: loaded instead of the app (otaboot.py), so all of the heap is its own.
 
-Update mode (`update`, an `ota.json` in stage `fetch` or `swap`): join Wi-Fi, connect subscribed to the node's
+Update mode (`update`, an `ota.json` in stage `fetch`): join Wi-Fi, connect subscribed to the node's
 `ota/chunk` topic, and pull the update: ask (`ota/request`, schemas.messages.OtaRequest) for the manifest (file
 0, written to `ota.man` and parsed from there), check its sha256 against the `update` command's, then each file chunk by chunk into `<name>.tmp`, hashed as
-it comes. Nothing is replaced until every file is whole and matches; then `swap` renames each old file to
-`<name>.bak` and the new one in (idempotent: a power cut is finished at the next boot), sets the stage to `trial`
-and resets. A bad manifest or file abandons the update (the old files never moved) and says why in the node's
+it comes. Nothing is replaced until every file is whole and matches; then otaboot.swap renames each old file
+to `<name>.bak` and the new one in (idempotent: a power cut is finished at the next boot, by otaboot, since this
+file may be the one half moved), sets the stage to `trial` and resets. A bad manifest or file abandons the update (the old files never moved) and says why in the node's
 `info`; a lost link resets the board, whose next boot retries (otaboot counts them).
 
 Safe mode (safemode.py, when `import app` fails with nothing to roll back to) uses its `Link`; it is a module of
@@ -208,35 +208,14 @@ class Fetcher(Link):
         otaboot.save(st)
 
 
-def swap(st, feed=None) -> None:
-    """Each `<name>.tmp` in, its old file kept as `<name>.bak`; safe to run again from any point. `feed`: the
-    watchdog's, once a file (two renames on the flash)."""
-    for name in st["files"]:
-        if feed is not None:
-            feed()
-        tmp = name + ".tmp"
-        if otaboot.exists(tmp):
-            if otaboot.exists(name):
-                if otaboot.exists(name + ".bak"):
-                    os.remove(name)
-                else:
-                    os.rename(name, name + ".bak")
-            os.rename(tmp, name)
-    st["stage"] = "trial"
-    st["boots"] = 0
-    otaboot.save(st)
-    print("ota: swapped", st.get("version"))
-
-
 def update(cfg, st) -> None:
-    """Update mode (otaboot.boot): fetch if not done, swap, reset into the trial boot. Never returns."""
+    """Update mode (otaboot.boot): fetch, swap (otaboot.swap), reset into the trial boot. Never returns."""
     link = None
     try:
-        if st.get("stage") == "fetch":
-            link = Fetcher(cfg)
-            link.up()
-            link.fetch(st)
-        swap(st, link.wdt.feed if link is not None else None)
+        link = Fetcher(cfg)
+        link.up()
+        link.fetch(st)
+        otaboot.swap(st, link.wdt.feed)
     except OtaAbort as exc:
         otaboot.clear(st, ".tmp")
         if link is not None:
