@@ -1,11 +1,12 @@
 """The site's topic access rules, derived once from the site file and enforced by amqtt and Mosquitto alike.
 
-- a node publishes only `zones/<its zone>/state/<itself>`, `nodes/<itself>/status` and `nodes/<itself>/info`
-  (its diagnostics), may read back the first two (e.g. to resume its `seq` after a reboot), and reads its own
-  `nodes/<itself>/command`, which only the operator writes (a node cannot command another);
+- a node publishes only `zones/<its zone>/state/<itself>`, `nodes/<itself>/status`, `nodes/<itself>/info`
+  (its diagnostics) and `nodes/<itself>/ota/request` (update mode asks for chunks), may read back the first two
+  (e.g. to resume its `seq` after a reboot), and reads its own `nodes/<itself>/command` and
+  `nodes/<itself>/ota/chunk`, which only the operator writes (a node cannot command or update another);
 - a robot reads zones, nodes, operator topics, robots' statuses, its goal and the simulated world, and publishes
   only its status (one topic: it can hold one retained message, never fill the store);
-- the operator publishes `operator/...`, node commands (`nodes/+/command`), robot goals, robot statuses (to clear a retained one) and the simulated world (`sim/...`, used by the zone
+- the operator publishes `operator/...`, node commands (`nodes/+/command`) and update chunks (`nodes/+/ota/chunk`), robot goals, robot statuses (to clear a retained one) and the simulated world (`sim/...`, used by the zone
   simulator), and reads everything of the site; it also publishes and reads Home Assistant's discovery configs
   (`homeassistant/#`, `wsnav broker ha-discovery`);
 - the dashboard (Home Assistant) reads everything of the site and the discovery configs, and publishes only
@@ -54,8 +55,8 @@ def site_rules(spec: SiteFile) -> AclRules:
     subscribe: dict[str, list[str]] = {}
     for node in spec.nodes:
         own = [topics.zone_state(site, node.zone, node.id), topics.node_status(site, node.id)]
-        publish[node.id] = [*own, topics.node_info(site, node.id)]
-        subscribe[node.id] = [*own, topics.node_command(site, node.id)]
+        publish[node.id] = [*own, topics.node_info(site, node.id), topics.node_ota_request(site, node.id)]
+        subscribe[node.id] = [*own, topics.node_command(site, node.id), topics.node_ota_chunk(site, node.id)]
     for robot in spec.robots:
         publish[robot.id] = [topics.robot_status(site, robot.id)]
         subscribe[robot.id] = [
@@ -69,6 +70,7 @@ def site_rules(spec: SiteFile) -> AclRules:
     publish[OPERATOR] = [
         f"{root}/operator/#",
         topics.all_node_commands(site),
+        topics.all_node_ota_chunks(site),
         f"{root}/robots/+/goal",
         topics.all_robot_statuses(site),  # to clear a retained status (`wsnav clear-status`)
         f"{root}/sim/#",

@@ -18,7 +18,8 @@ if TYPE_CHECKING:
     from wsnav.runtime.cli_support import Parser
 
 
-def _common(p: argparse.ArgumentParser) -> None:
+def operator_arguments(p: argparse.ArgumentParser) -> None:
+    """What every command that acts as the site's operator takes (also `wsnav firmware ota`)."""
     p.add_argument("--site", type=Path, required=True, help="site directory or site.yaml")
     add_broker_arguments(p)
     p.add_argument(
@@ -31,7 +32,7 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     console = sub.add_parser(
         "console", help="the operator's live web page: map, nodes, robots, blocks; steering"
     )
-    _common(console)
+    operator_arguments(console)
     console.add_argument(
         "--bind",
         type=host_port,
@@ -42,17 +43,17 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     console.set_defaults(func=_run("serve", "console_command"))
 
     status = sub.add_parser("status", help="one table of the site's nodes, zones, robots and operator blocks")
-    _common(status)
+    operator_arguments(status)
     status.add_argument("--json", action="store_true", help="the same as JSON (what GET /api/state returns)")
     status.set_defaults(func=_run("terminal", "status_command"))
 
     watch = sub.add_parser("watch", help="the status table, redrawn live")
-    _common(watch)
+    operator_arguments(watch)
     watch.add_argument("--every", type=float, default=1.0, metavar="S", help="redraw period, default 1")
     watch.set_defaults(func=_run("terminal", "watch_command"))
 
     block = sub.add_parser("block", help="block a zone or a polygon for a while (an operator block)")
-    _common(block)
+    operator_arguments(block)
     block.add_argument("zone", nargs="?", metavar="ZONE")
     block.add_argument("--polygon", nargs="+", metavar="X,Y", help="at least 3 corners in metres (map frame)")
     block.add_argument(
@@ -64,19 +65,19 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     block._negative_number_matcher = re.compile(r"^-\.?\d")
 
     unblock = sub.add_parser("unblock", help="lift an operator block")
-    _common(unblock)
+    operator_arguments(unblock)
     unblock.add_argument("block_id", metavar="ID")
     unblock.set_defaults(func=_run("terminal", "unblock_command"))
 
     goal = sub.add_parser("goal", help="send a robot to a named point or a pose")
-    _common(goal)
+    operator_arguments(goal)
     goal.add_argument("robot", metavar="ROBOT")
     goal.add_argument("point", metavar="POINT", help="a named point of the site, or x,y[,yaw]")
     goal.set_defaults(func=_run("terminal", "goal_command"))
     goal._negative_number_matcher = re.compile(r"^-\.?\d")
 
     cancel = sub.add_parser("cancel", help="cancel a robot's goal: it stops")
-    _common(cancel)
+    operator_arguments(cancel)
     cancel.add_argument("robot", metavar="ROBOT")
     cancel.set_defaults(func=_run("terminal", "cancel_command"))
 
@@ -84,7 +85,7 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         "clear-status",
         help="make the broker forget a robot's retained status (a robot gone, or a forged status)",
     )
-    _common(clear)
+    operator_arguments(clear)
     clear.add_argument("robot", metavar="ROBOT")
     clear.set_defaults(func=_run("terminal", "clear_status_command"))
 
@@ -92,7 +93,7 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         "node-command",
         help="command a zone node over the network: restart it, have it send its info, set its heartbeat (RAM)",
     )
-    _common(node)
+    operator_arguments(node)
     node.add_argument("node", metavar="NODE")
     node.add_argument("action", choices=["restart", "send-info", "heartbeat"])
     node.add_argument(

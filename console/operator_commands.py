@@ -141,17 +141,23 @@ def clear_status(site: Site, robot: str) -> Publication:
 
 
 def node_command(
-    site: Site, node: str, command: NodeCommandName, heartbeat_s: float | None = None
+    site: Site,
+    node: str,
+    command: NodeCommandName,
+    heartbeat_s: float | None = None,
+    manifest: str | None = None,
 ) -> Publication:
     """A command to one node of the site (not retained: a node ignores retained ones), with a fresh random id
-    so the node applies it once even if QoS 1 delivers it twice."""
+    so the node applies it once even if QoS 1 delivers it twice. `manifest`: an update's (`wsnav firmware ota`)."""
     if node not in {n.id for n in site.spec.nodes}:
         raise CommandError(
             f"unknown node {node!r} (site {site.name} has {_names(n.id for n in site.spec.nodes)})"
         )
     if command == "set_heartbeat" and (heartbeat_s is None or not 0 < heartbeat_s <= MAX_HEARTBEAT_S):
         raise CommandError(f"a heartbeat is more than 0 s and at most {MAX_HEARTBEAT_S} s, not {heartbeat_s}")
-    msg = NodeCommand(id=secrets.randbelow(MAX_COMMAND_ID) + 1, command=command, heartbeat_s=heartbeat_s)
+    msg = NodeCommand(
+        id=secrets.randbelow(MAX_COMMAND_ID) + 1, command=command, heartbeat_s=heartbeat_s, manifest=manifest
+    )
     return Publication(topics.node_command(site.name, node), msg.to_payload(), False)
 
 

@@ -1,4 +1,5 @@
-"""`wsnav firmware build|deploy|flash`: from the sources in firmware/device to a node online."""
+"""`wsnav firmware build|deploy|flash`: from the sources in firmware/device to a node online (`wsnav firmware ota`,
+which logs in as the operator, is wsnav/ota_command.py)."""
 
 from __future__ import annotations
 

@@ -117,6 +117,20 @@ def build_for_host(out: Path) -> tuple[Path, Path]:
     return device, stubs
 
 
+def versioned_sources(out: Path, version: str, append: dict[str, str] | None = None) -> Path:
+    """A copy of firmware/device in `out` whose FIRMWARE_VERSION is `version` (what `info` reports, so an update's
+    arrival shows), with text appended to modules named in `append` (e.g. an app.py that raises)."""
+    import re
+
+    out.mkdir(parents=True)
+    for py in DEVICE.glob("*.py"):
+        text = py.read_text()
+        if py.name == "diagnostics.py":
+            text = re.sub(r'^FIRMWARE_VERSION = ".*"$', f'FIRMWARE_VERSION = "{version}"', text, flags=re.M)
+        (out / py.name).write_text(text + (append or {}).get(py.name, ""))
+    return out
+
+
 def parse_stats(output: str) -> dict[str, int]:
     """The "stat KEY VALUE KEY VALUE ..." lines a test driver prints (longrun, budget), as one dict."""
     stats: dict[str, int] = {}
@@ -135,10 +149,10 @@ def micropython_cmd(module: str, *args: str) -> list[str]:
 class NodeProcess:
     """A firmware driver running on the unix port, its stdout collected in a file the test can wait on."""
 
-    def __init__(self, cmd: list[str], env: dict[str, str], log: Path) -> None:
+    def __init__(self, cmd: list[str], env: dict[str, str], log: Path, cwd: Path | None = None) -> None:
         self.log = log
         self._out = open(log, "wb")  # noqa: SIM115
-        self.proc = subprocess.Popen(cmd, env=env, stdout=self._out, stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen(cmd, env=env, stdout=self._out, stderr=subprocess.STDOUT, cwd=cwd)
 
     def output(self) -> str:
         return self.log.read_text(errors="replace")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import struct
 from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -123,7 +124,8 @@ class NodeInfo(_Message):
     """Commands ignored since boot: malformed, unknown, or out of range (a node that takes commands says 0)."""
 
 
-NodeCommandName = Literal["restart", "send_info", "set_heartbeat"]
+NodeCommandName = Literal["restart", "send_info", "set_heartbeat", "update"]
+Sha256Hex = Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]
 MAX_COMMAND_ID = 2**30 - 1
 """Command ids stay below 2**30: a small int (no heap) on the ESP8266, as ZoneState's seq on the node."""
 
@@ -133,19 +135,93 @@ class NodeCommand(_Message):
     retained one, which would otherwise greet it at every connect).
 
     `restart`: the node publishes `offline`, disconnects and resets; `send_info`: it publishes its `info` at
-    once; `set_heartbeat`: its heartbeat period becomes `heartbeat_s` until it restarts (reported in `info`).
-    `id` is the sender's, random per command: the node applies a command once even if QoS 1 delivers it again."""
+    once; `set_heartbeat`: its heartbeat period becomes `heartbeat_s` until it restarts (reported in `info`);
+    `update`: it reboots into update mode and fetches the OtaManifest whose sha256 is `manifest`, then its files
+    (over-the-air update, docs/firmware-esp8266.md). `id` is the sender's, random per command: the node applies a
+    command once even if QoS 1 delivers it again. The whole payload stays under 128 bytes, what the node's MQTT
+    client hands over (an `update` takes 120 at most)."""
 
     id: Annotated[int, Field(ge=1, le=MAX_COMMAND_ID)]
     command: NodeCommandName
     heartbeat_s: Annotated[float, Field(gt=0, le=MAX_HEARTBEAT_S)] | None = None
     """Only with `set_heartbeat`, bounded as the site file's heartbeat."""
+    manifest: Sha256Hex | None = None
+    """Only with `update`: the sha256 (hex) of the manifest's payload, which the node checks before trusting it."""
 
     @model_validator(mode="after")
     def _heartbeat_with_set_heartbeat(self) -> NodeCommand:
         if (self.heartbeat_s is None) == (self.command == "set_heartbeat"):
             raise ValueError("heartbeat_s goes with set_heartbeat, and only with it")
+        if (self.manifest is None) == (self.command == "update"):
+            raise ValueError("manifest goes with update, and only with it")
         return self
+
+
+OTA_CHUNK_BYTES = 512
+"""File bytes per OTA chunk: a chunk (header and data) is one read and one write of the node's flash."""
+OTA_MAX_FILES = 24
+OTA_MAX_FILE_BYTES = 32768
+OTA_MAX_MANIFEST_BYTES = 3072
+"""What the node accepts: a manifest it can parse in update mode, files it can hold (the app is ~13 KB)."""
+OTA_FILE_NAME = r"^[a-z][a-z0-9_]{0,23}\.mpy$"
+"""Bytecode modules of the app in the board's root folder: no path, no `..`, never main.py or boot.py."""
+OTA_BOOT_FILES = ("otaboot.mpy",)
+"""Built modules an update never replaces: main.py's boot decisions (trial boots, rollback) and safe mode rely on
+them; they change only with a deploy over USB (firmware/deploy.py)."""
+OTA_CHUNK_HEADER = struct.Struct(">HII")
+"""A chunk's binary header (`nodes/<node>/ota/chunk`): file index (0: the manifest, i: its i-th file), offset,
+the file's whole size; then the bytes."""
+
+
+class OtaFile(BaseModel):
+    """One file of an update: its name on the board, its size and its sha256 (hex)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: Annotated[str, Field(pattern=OTA_FILE_NAME)]
+    size: Annotated[int, Field(ge=0, le=OTA_MAX_FILE_BYTES)]
+    sha256: Sha256Hex
+
+
+class OtaManifest(_Message):
+    """File 0 of an update (`wsnav firmware ota`): the version and its files. The node fetches it first, checks
+    its sha256 against the `update` command (which only the operator may send), then each file against it."""
+
+    version: Annotated[str, Field(pattern=r"^[0-9A-Za-z._+-]{1,16}$")]
+    """What `info`'s `fw` will say once the update runs (the new diagnostics.py's FIRMWARE_VERSION)."""
+    files: Annotated[list[OtaFile], Field(min_length=1, max_length=OTA_MAX_FILES)]
+
+    @model_validator(mode="after")
+    def _names_once_and_not_boot(self) -> OtaManifest:
+        names = [f.name for f in self.files]
+        if len(set(names)) != len(names):
+            raise ValueError("a file is named twice")
+        if set(names) & set(OTA_BOOT_FILES):
+            raise ValueError(f"{', '.join(OTA_BOOT_FILES)} change only with a deploy over USB")
+        return self
+
+
+class OtaRequest(_Message):
+    """`nodes/<node>/ota/request`: a node in update mode asks for the chunk of file `file` (0: the manifest) at
+    `offset`; the operator's tool answers on `nodes/<node>/ota/chunk`. Pulled by the node, so the transfer goes at
+    the pace of the slowest of node, broker and tool."""
+
+    file: Annotated[int, Field(ge=0, le=OTA_MAX_FILES)]
+    offset: Annotated[int, Field(ge=0, le=OTA_MAX_FILE_BYTES)]
+
+
+def ota_chunk(file: int, offset: int, size: int, data: bytes) -> bytes:
+    """A chunk's payload: OTA_CHUNK_HEADER then `data`."""
+    return OTA_CHUNK_HEADER.pack(file, offset, size) + data
+
+
+def parse_ota_chunk(payload: bytes) -> tuple[int, int, int, bytes]:
+    """(file, offset, size, data) of a chunk payload; PayloadError if it is too short or too long."""
+    n = OTA_CHUNK_HEADER.size
+    if not n <= len(payload) <= n + OTA_CHUNK_BYTES:
+        raise PayloadError(f"an OTA chunk is {n} to {n + OTA_CHUNK_BYTES} bytes, not {len(payload)}")
+    file, offset, size = OTA_CHUNK_HEADER.unpack_from(payload)
+    return file, offset, size, payload[n:]
 
 
 class RobotStatus(_Message):
@@ -235,6 +311,8 @@ MESSAGE_MODELS: dict[str, type[_Message]] = {
     "node_status": NodeStatus,
     "node_info": NodeInfo,
     "node_command": NodeCommand,
+    "ota_manifest": OtaManifest,
+    "ota_request": OtaRequest,
     "robot_status": RobotStatus,
     "robot_goal": RobotGoal,
     "operator_block": OperatorBlock,

@@ -19,6 +19,8 @@ TopicKind = Literal[
     "node_status",
     "node_info",
     "node_command",
+    "node_ota_request",
+    "node_ota_chunk",
     "robot_status",
     "robot_goal",
     "operator_block",
@@ -52,6 +54,23 @@ def node_command(site: str, node: str) -> str:
     """The operator's commands to one node (schemas.messages.NodeCommand): QoS 1, never retained."""
     _check(site, node)
     return f"{ROOT}/{site}/nodes/{node}/command"
+
+
+def node_ota_request(site: str, node: str) -> str:
+    """A node in update mode asks for the next chunk (schemas.messages.OtaRequest): only that node writes it."""
+    _check(site, node)
+    return f"{ROOT}/{site}/nodes/{node}/ota/request"
+
+
+def node_ota_chunk(site: str, node: str) -> str:
+    """The operator's answer to an OtaRequest (schemas.messages.ota_chunk, binary): only the operator writes it."""
+    _check(site, node)
+    return f"{ROOT}/{site}/nodes/{node}/ota/chunk"
+
+
+def all_node_ota_chunks(site: str) -> str:
+    _check(site)
+    return f"{ROOT}/{site}/nodes/+/ota/chunk"
 
 
 def robot_status(site: str, robot: str) -> str:
@@ -132,6 +151,10 @@ def parse(topic: str) -> Topic | None:
             return Topic("node_info", site, node=node)
         case ["nodes", node, "command"]:
             return Topic("node_command", site, node=node)
+        case ["nodes", node, "ota", "request"]:
+            return Topic("node_ota_request", site, node=node)
+        case ["nodes", node, "ota", "chunk"]:
+            return Topic("node_ota_chunk", site, node=node)
         case ["robots", robot, "status"]:
             return Topic("robot_status", site, robot=robot)
         case ["robots", robot, "goal"]:

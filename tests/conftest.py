@@ -43,6 +43,7 @@ SLOW_MODULES = {
     "test_experiments_cluster.py",
     "test_firmware_update.py",
     "test_firmware_node.py",
+    "test_firmware_ota.py",
     "test_ros2_bridge.py",
 }
 """Every test here runs a process stack: docker, a browser, ROS, DDS peers, MicroPython boards, Dask processes."""

@@ -161,6 +161,49 @@ def test_a_node_reads_its_own_commands_and_no_other_nodes(endpoint: Endpoint) ->
         assert other not in node.topics()
 
 
+def test_only_the_operator_sends_update_chunks_and_only_the_node_asks_for_them(endpoint: Endpoint) -> None:
+    """OTA (`wsnav firmware ota`): a forged chunk from another node's or a robot's password never reaches the node
+    being updated; nor does a request in its name; the operator's chunk and the node's own request do."""
+    chunk1, chunk2 = topics.node_ota_chunk(SITE, "n1"), topics.node_ota_chunk(SITE, "n2")
+    req1, req2 = topics.node_ota_request(SITE, "n1"), topics.node_ota_request(SITE, "n2")
+    with (
+        client(endpoint, "operator", "watcher") as watcher,
+        client(endpoint, "n1") as n1,
+        client(endpoint, "n2") as n2,
+        client(endpoint, "robot1") as robot,
+    ):
+        assert watcher.subscribe(f"wsn/{SITE}/#") == [1]
+        assert n1.subscribe(chunk1) == [1]
+        for sender in (n2, robot):
+            sender.publish(chunk1, b"\x00\x01forged")
+        n2.publish(req1, b'{"v":1,"file":0,"offset":0}')
+        n1.publish(chunk2, b"\x00\x01forged")
+        n1.publish(req1, b"sentinel")
+        n2.publish(req2, b"sentinel")
+        robot.publish(topics.robot_status(SITE, "robot1"), b"sentinel")
+        watcher.wait_for(req1, b"sentinel")
+        watcher.wait_for(req2, b"sentinel")
+        watcher.wait_for(topics.robot_status(SITE, "robot1"), b"sentinel")
+        assert not {chunk1, chunk2} & set(watcher.topics())
+        assert [m.payload for m in watcher.received if m.topic == req1] == [b"sentinel"]
+        watcher.publish(chunk1, b"from-the-operator")
+        n1.wait_for(chunk1, b"from-the-operator")
+        assert [m.payload for m in n1.received if m.topic == chunk1] == [b"from-the-operator"]
+
+
+def test_a_node_reads_its_own_update_chunks_and_no_other_nodes(endpoint: Endpoint) -> None:
+    own, other = topics.node_ota_chunk(SITE, "n1"), topics.node_ota_chunk(SITE, "n2")
+    with client(endpoint, "operator") as op, client(endpoint, "n1") as node:
+        assert node.subscribe(own) == [1]
+        granted = node.subscribe(other)
+        if endpoint.kind == "amqtt":  # Mosquitto grants any filter and drops each message on delivery
+            assert granted == [128]
+        op.publish(other, b"for-n2")
+        op.publish(own, b"sentinel")
+        node.wait_for(own, b"sentinel")
+        assert other not in node.topics()
+
+
 def test_robot_cannot_publish_zone_states(endpoint: Endpoint) -> None:
     forbidden = [
         topics.zone_state(SITE, "z1", "n1"),

@@ -172,3 +172,17 @@ def test_deploy_takes_a_config_without_wifi_only_when_told_to_keep_the_boards_ne
     one_line_error(wsnav("deploy", "--port", "p", "--config", cfg, "--dry-run"), "--keep-wifi")
     kept = wsnav("deploy", "--port", "p", "--config", cfg, "--keep-wifi", "--dry-run")
     assert kept.returncode == 0, kept.stderr
+
+
+def test_ota_refuses_bad_arguments_in_one_line(tmp_path: Path) -> None:
+    site = Path(__file__).resolve().parent.parent / "sites" / "school"
+    common = ("--site", site, "--broker", "127.0.0.1:1", "--credentials", tmp_path / "operator.json")
+    one_line_error(wsnav("ota", *common, "--nodes", ","), "give node ids")
+    one_line_error(wsnav("ota", *common, "--nodes", "n1,n1"), "each once")
+    one_line_error(wsnav("ota", *common, "--nodes", "n1", "--timeout", "0"), "--timeout 0")
+    source = tmp_path / "src"
+    source.mkdir()
+    (source / "diagnostics.py").write_text("INFO_PERIOD_MS = 1\n")
+    one_line_error(wsnav("ota", *common, "--nodes", "n1", "--source", source), "no FIRMWARE_VERSION line")
+    (source / "diagnostics.py").write_text('FIRMWARE_VERSION = "1.0"\n')
+    one_line_error(wsnav("ota", *common, "--nodes", "n1", "--source", source), "not the firmware's sources")

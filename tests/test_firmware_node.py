@@ -548,7 +548,8 @@ def test_operator_commands_reach_the_node_and_are_applied(
     broker: SiteBroker, creds: Path, subscriber: Subscriber, start_node, tmp_path: Path
 ) -> None:
     """send_info: an info at once; set_heartbeat 2: heartbeats every ~2 s and the period in the info; a
-    redelivered id, a malformed and an unknown command change nothing but the count; restart: offline, the
+    redelivered id, a malformed and an unknown command, and updates without a proper manifest change nothing but
+    the count; restart: offline, the
     process resets (75) and, started again as a board reboots, the node comes back online."""
     cfg = node_config(creds, broker, tmp_path / "config.json", heartbeat_s=60)
     node = start_node(cfg)
@@ -569,13 +570,19 @@ def test_operator_commands_reach_the_node_and_are_applied(
         after = subscriber.snapshot().index(beat) + 1
     gaps = [b - a for a, b in itertools.pairwise(beats[1:])]
     assert all(1.0 < g < 3.5 for g in gaps), gaps
-    for bad in (b"{nope", b'{"v":1,"id":13,"command":"format_flash"}', command("set_heartbeat", 12, 5)):
+    bad_updates = (b'{"v":1,"id":17,"command":"update"}', b'{"v":1,"id":18,"command":"update","manifest":5}')
+    for bad in (
+        b"{nope",
+        b'{"v":1,"id":13,"command":"format_flash"}',
+        command("set_heartbeat", 12, 5),
+        *bad_updates,
+    ):
         send_command(broker, creds, NODE, bad)  # the last one: id 12 again, a redelivery, ignored silently
     send_command(broker, creds, NODE, b'{"v":1,"id":14,"command":"set_heartbeat","heartbeat_s":7200}')
     mark = len(subscriber.snapshot())
     send_command(broker, creds, NODE, command("send_info", 15))
     counted = info_of(subscriber.wait(is_info(), after=mark))
-    assert counted is not None and counted.bad_commands == 3 and counted.heartbeat_ms == 2000, counted
+    assert counted is not None and counted.bad_commands == 5 and counted.heartbeat_ms == 2000, counted
     mark = len(subscriber.snapshot())
     send_command(broker, creds, NODE, command("restart", 16))
     node.proc.wait(WAIT)

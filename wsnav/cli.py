@@ -7,7 +7,7 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 
-from wsnav import experiment_cli, fleet_cli, plan_command, site_commands
+from wsnav import experiment_cli, fleet_cli, ota_command, plan_command, site_commands
 from wsnav.broker import cli as broker_cli
 from wsnav.console import cli as console_cli
 from wsnav.firmware import cli as firmware_cli
@@ -27,6 +27,7 @@ REGISTRARS: list[Registrar] = [
     robot_agent_cli.register,
     broker_cli.register,
     firmware_cli.register,
+    ota_command.register,  # under `wsnav firmware`, registered above
     zone_sim_cli.register,
     experiment_cli.register,
     fleet_cli.register,

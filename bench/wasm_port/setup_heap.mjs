@@ -2,20 +2,21 @@
 // as the unix port the tests use), whose objects have the ESP8266's sizes (4-byte pointers, 16-byte GC blocks),
 // where the 64-bit unix port's are larger.
 //
-//     node setup_heap.mjs BUILD_DIR CONFIG_JSON
+//     node setup_heap.mjs BUILD_DIR CONFIG_JSON [MANIFEST_JSON]
 //
 // machine, network, socket and select are JavaScript modules: like the board's, which are in ROM, they take
 // (almost) nothing from the heap; each object the firmware keeps from them (a Pin, a WLAN) is one small proxy
 // object, as on the board. Then main.py's sequence: parse the config, drop the parser, import app (which
 // imports the rest one module at a time), and app.setup builds the node as app.main does. Prints one line,
 // "heap used U free F total T bare B largest L" (bytes, after gc.collect(); bare: used before anything is
-// imported; largest: the largest free block, which bounds the biggest message the node can still build), or
+// imported; largest: the largest free block, which bounds the biggest message the node can still build; with a
+// manifest, update mode's instead, and "setup_free S" before the transfer), or
 // "error ..." when the node does not set up. The port's heap would grow by itself past 38 KiB; a total other than the first one is reported as
 // an error, so a number is always what a 38 KiB heap holds.
 import { loadMicroPython } from "@micropython/micropython-webassembly-pyscript/micropython.mjs";
 import fs from "node:fs";
 
-const [buildDir, configPath] = process.argv.slice(2);
+const [buildDir, configPath, manifestPath] = process.argv.slice(2);
 let out = "";
 const mp = await loadMicroPython({
   heapsize: 38 * 1024,
@@ -64,8 +65,7 @@ micropython.mem_info()
 `);
 const total = Number(/GC: total: (\d+)/.exec(out)[1]);
 out = "";
-try {
-  mp.runPython(`
+const node = `
 import sys
 import nodeconfig
 CFG = nodeconfig.load("/config.json")
@@ -78,7 +78,44 @@ gc.collect()
 _used = gc.mem_alloc()
 micropython.mem_info()
 print("heap used", _used, "bare", _bare)
-`);
+`;
+// Update mode (firmware/device/updater.py), as main.py enters it: config parsed and its parser dropped, otaboot
+// loaded (it calls the updater), the updater's link built and Wi-Fi's module loaded ("setup"); then what the
+// transfer holds at its peak: the manifest's files (parsed from the flash, as updater.py does), a view of the
+// chunk buffer's data, the sha256 and the open .tmp file.
+const update = `
+import sys
+import nodeconfig
+CFG = nodeconfig.load("/config.json")
+del nodeconfig
+del sys.modules["nodeconfig"]
+gc.collect()
+import otaboot
+import updater
+link = updater.Fetcher(CFG)
+import wifi
+w = wifi.Wifi(CFG["wifi_ssid"], CFG["wifi_password"])
+gc.collect()
+_setup = gc.mem_alloc()
+import hashlib
+import json
+with open("/manifest.json") as f:
+    manifest = json.load(f)
+files = [(x["name"], x["size"], x["sha256"]) for x in manifest["files"]]
+del manifest
+data = link.client.buf[10:]
+h = hashlib.sha256()
+h.update(data)
+out = open("/x.tmp", "wb")
+out.write(data)
+gc.collect()
+_used = gc.mem_alloc()
+micropython.mem_info()
+print("heap used", _used, "bare", _bare, "setup", _setup)
+`;
+if (manifestPath) mp.FS.writeFile("/manifest.json", fs.readFileSync(manifestPath));
+try {
+  mp.runPython(manifestPath ? update : node);
 } catch (err) {
   console.log("error " + String(err.message || err).trim().split("\n").pop());
   process.exit(0);
@@ -86,8 +123,10 @@ print("heap used", _used, "bare", _bare)
 const now = Number(/GC: total: (\d+)/.exec(out)[1]);
 const used = /heap used (\d+) bare (\d+)/.exec(out);
 const largest = 16 * Number(/max free sz: (\d+)/.exec(out)[1]); // in 16-byte GC blocks
+const setup = / setup (\d+)/.exec(out);
 if (now !== total) {
   console.log(`error the heap grew past ${total} bytes (to ${now}): the node does not fit`);
 } else {
-  console.log(`heap used ${used[1]} free ${total - Number(used[1])} total ${total} bare ${used[2]} largest ${largest}`);
+  const more = setup ? ` setup_free ${total - Number(setup[1])}` : "";
+  console.log(`heap used ${used[1]} free ${total - Number(used[1])} total ${total} bare ${used[2]} largest ${largest}${more}`);
 }

@@ -154,6 +154,13 @@ class Node:
         self.broker_backoff.reset()
         self.phase = _ONLINE
         self.connects += 1
+        if self.connects == 1:  # an update on trial is good: marked by a rename, otaboot.py does the rest
+            import os
+
+            try:
+                os.rename("ota.json", "ota.ok")
+            except OSError:
+                pass  # no update on trial (the usual case)
         self.info_due_ms = now_ms  # diagnostics at once: the next iteration sends them
         print("mqtt up", self.connects)
 

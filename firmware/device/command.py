@@ -11,7 +11,8 @@ import json
 
 def apply(node, body, now_ms: int) -> None:
     """Apply one NodeCommand payload: `restart`, `send_info`, `set_heartbeat` (RAM only; each applied command
-    is confirmed by an info at once). Anything else, or a heartbeat outside (0, 3600] s, is counted in the
+    is confirmed by an info at once), `update` (the update's state written, then a restart into update mode:
+    otaboot.py, updater.py). Anything else, or a heartbeat outside (0, 3600] s, is counted in the
     info's `bad_commands` and ignored; a command with the last applied id is a QoS 1 redelivery, ignored."""
     try:
         d = json.loads(body)
@@ -27,6 +28,16 @@ def apply(node, body, now_ms: int) -> None:
             node.logic.heartbeat_ms = int(s * 1000 + 0.5)
         elif cmd == "restart":
             restart(node)
+        elif cmd == "update":
+            digest = d["manifest"]
+            if type(digest) is not str or len(digest) != 64:
+                raise ValueError
+            # Written directly (otaboot's save would load a module on the loop's heap): a write cut short by
+            # power is unreadable JSON, which the next boot takes for no update.
+            with open("ota.json", "w") as f:
+                f.write('{"stage":"fetch","manifest":"%s","boots":0}' % digest)
+            print("update", digest[:8])
+            restart(node)  # into update mode (otaboot.boot at the next boot)
         elif cmd != "send_info":
             raise ValueError
         node.command_id = d["id"]

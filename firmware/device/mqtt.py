@@ -192,9 +192,9 @@ class MQTTClient:
             body = self._skip(length, deadline)
             if (first & 6) == 2:
                 self._send(bytes((_PUBACK, 2)) + pid)
-            # A command is whole up to 128 bytes (NodeCommand's take under 70); a longer one is handed over as
-            # b"", which the node counts as malformed.
-            return (kind if ours else 0), (body if length <= 128 else b"")
+            # A command is whole up to 128 bytes (NodeCommand's take at most 120; update mode's client reads its
+            # chunks whole: updater.py); a longer one is handed over as b"", which the node counts as malformed.
+            return (kind if ours else 0), (body if len(body) == length else b"")
         if length <= 4:
             return kind, self._recv(length, deadline) if length else b""
         self._skip(length, deadline)

@@ -1,0 +1,217 @@
+"""`wsnav firmware ota`: over-the-air app updates, the operator's side (the node's: device/updater.py).
+
+The update is the build's `.mpy` modules (never main.py, boot.py or otaboot.mpy: schemas OTA_BOOT_FILES) and a
+manifest naming them with their sizes and sha256 (schemas.messages.OtaManifest). Each node gets an `update`
+command carrying the manifest's sha256, reboots into update mode and pulls the manifest and the files chunk by
+chunk (`nodes/<node>/ota/request` -> `nodes/<node>/ota/chunk`): `OtaServer` answers every request, whichever
+node and whenever it comes (a node that lost power mid-transfer starts again), and follows each node until its
+`info` says the new version (done) or says why not (failed).
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pydantic import ValidationError
+
+from wsnav.firmware.build import DEVICE, build
+from wsnav.runtime.bus import Message
+from wsnav.runtime.mqtt_bus import MqttBus
+from wsnav.schemas import topics
+from wsnav.schemas.messages import (
+    OTA_BOOT_FILES,
+    OTA_CHUNK_BYTES,
+    NodeInfo,
+    OtaFile,
+    OtaManifest,
+    OtaRequest,
+    PayloadError,
+    ota_chunk,
+    parse_payload,
+)
+
+_VERSION = re.compile(r'^FIRMWARE_VERSION = "([^"]+)"$', re.MULTILINE)
+
+
+class OtaError(Exception):
+    """The update cannot be made (build, version, sizes): one line for the user."""
+
+
+@dataclass(frozen=True)
+class Update:
+    """What the nodes fetch: index 0 is the manifest's payload, index i its i-th file."""
+
+    manifest: OtaManifest
+    payloads: list[bytes]
+
+    @property
+    def digest(self) -> str:
+        import hashlib
+
+        return hashlib.sha256(self.payloads[0]).hexdigest()
+
+    @property
+    def total(self) -> int:
+        return sum(len(p) for p in self.payloads)
+
+
+def firmware_version(source: Path = DEVICE) -> str:
+    """diagnostics.py's FIRMWARE_VERSION: what a node's `info` says once the update runs."""
+    try:
+        match = _VERSION.search((source / "diagnostics.py").read_text())
+    except OSError as exc:
+        raise OtaError(f"{source / 'diagnostics.py'}: {exc.strerror}") from None
+    if match is None:
+        raise OtaError(f"{source / 'diagnostics.py'}: no FIRMWARE_VERSION line")
+    return match.group(1)
+
+
+def make_update(build_dir: Path, source: Path = DEVICE) -> Update:
+    """Build `source` into `build_dir` (firmware.build) and make the update of its modules."""
+    import hashlib
+
+    version = firmware_version(source)
+    missing = [n for n in ("main.py", "boot.py", "app.py") if not (source / n).is_file()]
+    if missing:
+        raise OtaError(f"{source}: not the firmware's sources (no {', '.join(missing)})")
+    build(build_dir, source)
+    paths = sorted(p for p in build_dir.glob("*.mpy") if p.name not in OTA_BOOT_FILES)
+    datas = [p.read_bytes() for p in paths]
+    try:
+        manifest = OtaManifest(
+            version=version,
+            files=[
+                OtaFile(name=p.name, size=len(d), sha256=hashlib.sha256(d).hexdigest())
+                for p, d in zip(paths, datas, strict=True)
+            ],
+        )
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        raise OtaError(
+            f"cannot make the update: {'.'.join(map(str, first['loc']))}: {first['msg']}"
+        ) from None
+    return Update(manifest, [manifest.to_payload(), *datas])
+
+
+@dataclass
+class NodeProgress:
+    """One node's transfer as the server sees it."""
+
+    node: str
+    started: bool = False
+    """It asked for a chunk: an `info` from now on tells how the update went."""
+    done: bool = False
+    error: str | None = None
+    served: int = 0
+    """The furthest byte of the update it has asked for (the manifest and every file, in order)."""
+    shown: int = -1
+    """The last progress step (tenths) printed."""
+    chunks: int = 0
+    first_at: float | None = None
+    last_at: float | None = None
+    """time.monotonic() of its first request and of the chunk that completed the update's last byte."""
+
+
+@dataclass
+class OtaServer:
+    """Serves one update to `nodes` over an operator's connection and follows each to its end."""
+
+    bus: MqttBus
+    site: str
+    update: Update
+    nodes: list[str]
+    say: Callable[[str], None] = print
+    progress: dict[str, NodeProgress] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.progress = {n: NodeProgress(n) for n in self.nodes}
+        offsets = [0]
+        for p in self.update.payloads:
+            offsets.append(offsets[-1] + len(p))
+        self._starts = offsets
+
+    def subscribe(self) -> None:
+        for n in self.nodes:
+            self.bus.subscribe(topics.node_ota_request(self.site, n), qos=0)
+            self.bus.subscribe(topics.node_info(self.site, n), qos=0)
+
+    def pending(self) -> list[NodeProgress]:
+        return [p for p in self.progress.values() if not p.done and p.error is None]
+
+    def handle(self, msg: Message) -> None:
+        """One message from a node: a request is answered, an info may end its update."""
+        parsed = topics.parse(msg.topic)
+        if parsed is None or parsed.node not in self.progress:
+            return
+        prog = self.progress[parsed.node]
+        if parsed.kind == "node_ota_request":
+            self._serve(prog, msg.payload)
+        elif parsed.kind == "node_info" and not msg.retain and prog.started and not prog.done:
+            self._info(prog, msg.payload)
+
+    def _serve(self, prog: NodeProgress, payload: bytes) -> None:
+        try:
+            req = parse_payload(OtaRequest, payload)
+        except PayloadError as exc:
+            self.say(f"{prog.node}: bad request ignored: {exc}")
+            return
+        payloads = self.update.payloads
+        if req.file >= len(payloads):
+            self.say(f"{prog.node}: asked for file {req.file}, the update has {len(payloads) - 1}")
+            return
+        data = payloads[req.file]
+        part = data[req.offset : req.offset + OTA_CHUNK_BYTES]
+        self.bus.publish(
+            topics.node_ota_chunk(self.site, prog.node),
+            ota_chunk(req.file, req.offset, len(data), part),
+            qos=1,
+        )
+        prog.started = True
+        prog.error = None
+        now = time.monotonic()
+        if prog.first_at is None:
+            prog.first_at = now
+        prog.chunks += 1
+        prog.served = self._starts[req.file] + req.offset + len(part)
+        if prog.served == self.update.total:
+            prog.last_at = now
+        step = prog.served * 10 // self.update.total
+        if step != prog.shown:
+            prog.shown = step
+            pct = prog.served * 100 // self.update.total
+            self.say(f"{prog.node}: {prog.served}/{self.update.total} B ({pct}%)")
+
+    def _info(self, prog: NodeProgress, payload: bytes) -> None:
+        try:
+            info = parse_payload(NodeInfo, payload)
+        except PayloadError:
+            return
+        version = self.update.manifest.version
+        if info.error is not None and info.error.startswith(("ota:", "safe:")):
+            prog.error = f"{prog.node}: update failed: {info.error}"
+        elif info.fw == version:
+            prog.done = True
+            self.say(f"{prog.node}: running {version}")
+        else:
+            prog.error = f"{prog.node}: came back on {info.fw}, not {version} (the update was abandoned or rolled back)"
+        if prog.error is not None:
+            self.say(prog.error)
+
+    def run(self, timeout_s: float) -> list[str]:
+        """Serve until every node is done or failed, or `timeout_s`; the failures, one line each."""
+        deadline = time.monotonic() + timeout_s
+        while self.pending() and time.monotonic() < deadline:
+            if self.bus.wait(min(0.5, max(0.0, deadline - time.monotonic()))):
+                for msg in self.bus.poll():
+                    self.handle(msg)
+        failures = [p.error for p in self.progress.values() if p.error is not None]
+        for p in self.pending():
+            where = (
+                f"stopped at {p.served}/{self.update.total} B" if p.started else "never asked for the update"
+            )
+            failures.append(f"{p.node}: not confirmed within {timeout_s:g} s ({where})")
+        return failures

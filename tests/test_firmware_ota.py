@@ -1,0 +1,355 @@
+"""Over-the-air app updates end to end: `wsnav firmware ota` (firmware/ota.py) against the project's broker
+(`wsnav broker run`, with the operator's and the node's real credentials and ACL) and a node on the MicroPython
+unix port (firmware/unix_board.py: the board's filesystem is a folder, boot.py and main.py run at each reset,
+machine.reset() and a starved watchdog restart the process, a killed process is a power cut).
+
+Versions are told apart by FIRMWARE_VERSION (what `info` reports); what the tests assert is which version runs
+(the node's info as the broker delivers it, and the files on the board), never how long anything took.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import REPO
+from tests.test_firmware_node import Subscriber, info_of
+from wsnav.firmware.build import build
+from wsnav.firmware.deploy import firmware_files
+from wsnav.firmware.ota import OtaServer, Update, make_update
+from wsnav.firmware.testing import (
+    HEAP,
+    NodeProcess,
+    SiteBroker,
+    build_for_host,
+    micropython_env,
+    micropython_exe,
+    versioned_sources,
+    write_credentials,
+)
+from wsnav.firmware.unix_board import UnixBoard
+from wsnav.runtime.mqtt_bus import MqttBus
+from wsnav.schemas.credentials import Credentials, NodeConfig
+from wsnav.schemas.messages import NodeInfo
+
+pytestmark = pytest.mark.slow
+
+SITE_DIR = REPO / "sites" / "school"
+SITE, NODE = "school", "n1"
+OLD, NEW, BROKEN, LOOPING = "1.0.0-old", "1.0.0-new", "1.0.0-bad", "1.0.0-loop"
+APPENDED = {
+    BROKEN: {"app.py": '\nraise RuntimeError("broken app")\n'},
+    LOOPING: {"app.py": "\nimport machine\n\nmachine.reset()\n"},  # a reset before it ever connects
+}
+WAIT = 120.0
+
+
+@pytest.fixture(scope="module")
+def fw(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Source folders by version, their builds (`<version>-build`), and the host stubs (`stubs`)."""
+    root = tmp_path_factory.mktemp("ota-fw")
+    out: dict[str, Path] = {"stubs": build_for_host(root / "host")[1]}
+    for version in (OLD, NEW, BROKEN, LOOPING):
+        out[version] = versioned_sources(root / f"src-{version}", version, APPENDED.get(version))
+        build(root / f"{version}-build", out[version])
+        out[f"{version}-build"] = root / f"{version}-build"
+    return out
+
+
+@pytest.fixture(scope="module")
+def creds(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("creds")
+    write_credentials(SITE_DIR, out)
+    return out
+
+
+@pytest.fixture
+def broker(creds: Path, tmp_path: Path) -> Iterator[SiteBroker]:
+    b = SiteBroker(SITE_DIR, creds, tmp_path / "broker-data")
+    b.start()
+    yield b
+    b.kill()
+
+
+class Infos:
+    """The node's `nodes/<node>/info` as the operator's subscriber (test_firmware_node's) sees it, each payload
+    checked against NodeInfo's bytes."""
+
+    def __init__(self, broker: SiteBroker, creds: Path) -> None:
+        self.subscriber = Subscriber(broker, creds)
+
+    def wait(self, pred: Callable[[NodeInfo], bool], timeout: float = WAIT) -> NodeInfo:
+        info = info_of(self.subscriber.wait(lambda m: (i := info_of(m)) is not None and pred(i), timeout))
+        assert info is not None
+        return info
+
+    def close(self) -> None:
+        self.subscriber.close()
+
+
+@pytest.fixture
+def infos(broker: SiteBroker, creds: Path) -> Iterator[Infos]:
+    i = Infos(broker, creds)
+    yield i
+    i.close()
+
+
+class Board:
+    """The node on the unix port, its filesystem `fs` holding `version`'s build and its real config."""
+
+    def __init__(self, fw: dict[str, Path], version: str, creds: Path, broker: SiteBroker, tmp: Path) -> None:
+        data = json.loads((creds / f"{NODE}.json").read_text())
+        data["broker"] = {"host": broker.host, "port": broker.port}
+        data["sensor"]["warmup_s"] = 0
+        config = tmp / "config.json"
+        config.write_text(NodeConfig.model_validate(data).model_dump_json())
+        self.fs = tmp / "fs"
+        self.fs.mkdir()
+        for name, path in firmware_files(fw[f"{version}-build"], config).items():
+            shutil.copyfile(path, self.fs / name)
+        (tmp / "pins").mkdir()
+        self.log = tmp / "serial.log"
+        self.unix = UnixBoard(self.fs, fw["stubs"], self.log, tmp / "pins")
+
+    def serial(self) -> str:
+        return self.log.read_text(errors="replace") if self.log.exists() else ""
+
+    def wait_serial(self, text: str, timeout: float = WAIT) -> None:
+        deadline = time.monotonic() + timeout
+        while text not in self.serial():
+            assert time.monotonic() < deadline, f"no {text!r} on the serial line:\n{self.serial()[-3000:]}"
+            time.sleep(0.05)
+
+    def wait_confirmed(self, timeout: float = WAIT) -> None:
+        """Until the app's first connect marked the update good (`ota.json` renamed `ota.ok`: app.py)."""
+        deadline = time.monotonic() + timeout
+        while not (self.fs / "ota.ok").exists():
+            assert time.monotonic() < deadline, f"no ota.ok; serial line:\n{self.serial()[-3000:]}"
+            time.sleep(0.05)
+
+    def power_cut(self) -> None:
+        """SIGKILL mid-run: nothing flushed, nothing closed; the board supervisor powers it up again."""
+        boot = self.unix._boot
+        assert boot is not None
+        boot.proc.kill()
+
+    def leftovers(self) -> list[str]:
+        """What an update leaves on the board's flash: .tmp and .bak files, its state."""
+        return sorted(
+            p.name
+            for p in self.fs.iterdir()
+            if p.suffix in (".tmp", ".bak") or p.name in ("ota.json", "ota.ok")
+        )
+
+    def unfinished(self) -> list[str]:
+        """Leftovers but for a confirmed update's backups, which stay until the next boot removes them."""
+        return [n for n in self.leftovers() if not n.endswith(".bak") and n != "ota.ok"]
+
+
+@pytest.fixture
+def board_of(
+    fw: dict[str, Path], creds: Path, broker: SiteBroker, tmp_path: Path
+) -> Iterator[Callable[[str], Board]]:
+    made: list[Board] = []
+
+    def make(version: str) -> Board:
+        b = Board(fw, version, creds, broker, tmp_path)
+        b.unix.power_on()
+        made.append(b)
+        return b
+
+    yield make
+    for b in made:
+        b.unix.close()
+
+
+def ota_cli(fw: dict[str, Path], creds: Path, broker: SiteBroker, version: str, timeout_s: float = WAIT):
+    """`wsnav firmware ota` as an operator runs it, in the background; returns the process."""
+    cmd = [
+        *(sys.executable, "-m", "wsnav.cli", "firmware", "ota"),
+        *("--site", str(SITE_DIR), "--broker", f"{broker.host}:{broker.port}"),
+        *("--credentials", str(creds / "operator.json"), "--nodes", NODE),
+        *("--source", str(fw[version]), "--timeout", str(timeout_s)),
+    ]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def finish(proc: subprocess.Popen[str]) -> tuple[int, str, str]:
+    out, err = proc.communicate(timeout=WAIT * 3)
+    return proc.returncode, out, err
+
+
+def serve(broker: SiteBroker, creds: Path, update: Update, command: bool = True) -> list[str]:
+    """firmware.ota.OtaServer in this process, as the operator: `update` served to NODE until it ends; with
+    `command`, the `update` command sent first. Returns the failures."""
+    from wsnav.console.operator_commands import node_command
+    from wsnav.schemas.site import load_site
+
+    op = Credentials.model_validate_json((creds / "operator.json").read_text())
+    bus = MqttBus(
+        broker.host, broker.port, client_id="ota-test", username=op.username, password=op.password
+    ).connect(30)
+    try:
+        server = OtaServer(bus, SITE, update, [NODE], say=lambda _line: None)
+        server.subscribe()
+        if command:
+            pub = node_command(load_site(SITE_DIR), NODE, "update", manifest=update.digest)
+            assert bus.publish_confirmed(pub.topic, pub.payload)
+        return server.run(WAIT)
+    finally:
+        bus.close()
+
+
+def test_an_update_runs_the_new_version_and_leaves_no_backup(fw, creds, broker, infos, board_of) -> None:
+    board = board_of(OLD)
+    infos.wait(lambda i: i.fw == OLD)
+    code, out, err = finish(ota_cli(fw, creds, broker, NEW))
+    assert code == 0, (out, err, board.serial()[-3000:])
+    assert f"{NODE}: running {NEW}" in out and "(100%)" in out
+    assert infos.wait(lambda i: i.fw == NEW).error is None
+    board.wait_confirmed()
+    kept = sorted(
+        ["ota.ok", *(f"{p.name}.bak" for p in fw[f"{OLD}-build"].glob("*.mpy") if p.name != "otaboot.mpy")]
+    )
+    assert board.leftovers() == kept, board.leftovers()  # the old version, until the next boot
+    assert (board.fs / "app.mpy").read_bytes() == (fw[f"{NEW}-build"] / "app.mpy").read_bytes()
+    board.power_cut()
+    board.wait_serial("ota: backups removed")
+    assert board.leftovers() == []
+
+
+def test_a_power_cut_mid_transfer_then_the_update_completes(fw, creds, broker, infos, board_of) -> None:
+    board = board_of(OLD)
+    infos.wait(lambda i: i.fw == OLD)
+    proc = ota_cli(fw, creds, broker, NEW)
+    board.wait_serial("ota: got")  # some files whole in .tmp, the rest not yet
+    board.power_cut()
+    code, out, err = finish(proc)
+    assert code == 0, (out, err, board.serial()[-3000:])
+    assert "exit -9" in board.unix.resets
+    infos.wait(lambda i: i.fw == NEW)
+    board.wait_confirmed()
+    assert board.unfinished() == []
+
+
+def test_a_corrupted_file_is_refused_and_the_old_version_keeps_running(
+    fw, creds, broker, infos, board_of, tmp_path: Path
+) -> None:
+    board = board_of(OLD)
+    infos.wait(lambda i: i.fw == OLD)
+    good = make_update(tmp_path / "build", fw[NEW])
+    payloads = list(good.payloads)
+    payloads[1] = payloads[1][:-1] + bytes([payloads[1][-1] ^ 1])  # one bit flipped in transit
+    bad = Update(good.manifest, payloads)
+    failures = serve(broker, creds, bad)
+    assert failures == [f"{NODE}: update failed: ota: sha256 of file 1"]
+    board.wait_serial("mqtt up")  # the old app, after the abandoned update
+    assert infos.wait(lambda i: i.fw == OLD and i.uptime_s < 30 and i.error is None, WAIT)
+    assert board.leftovers() == []
+    assert (board.fs / "app.mpy").read_bytes() == (fw[f"{OLD}-build"] / "app.mpy").read_bytes()
+
+
+def test_a_new_app_that_fails_to_import_is_rolled_back(fw, creds, broker, infos, board_of) -> None:
+    board = board_of(OLD)
+    infos.wait(lambda i: i.fw == OLD)
+    code, out, err = finish(ota_cli(fw, creds, broker, BROKEN))
+    assert code == 1, (out, err)
+    assert f"{NODE}: came back on {OLD}, not {BROKEN}" in err
+    assert "ota: rollback" in board.serial()
+    assert board.leftovers() == []
+    for name in ("app.mpy", "diagnostics.mpy"):
+        assert (board.fs / name).read_bytes() == (fw[f"{OLD}-build"] / name).read_bytes()
+
+
+def test_a_new_app_that_resets_before_it_connects_is_rolled_back_after_three_boots(
+    fw, creds, broker, infos, board_of
+) -> None:
+    board = board_of(OLD)
+    infos.wait(lambda i: i.fw == OLD)
+    code, out, err = finish(ota_cli(fw, creds, broker, LOOPING))
+    assert code == 1, (out, err)
+    assert f"{NODE}: came back on {OLD}, not {LOOPING}" in err
+    assert "ota: rollback" in board.serial()
+    assert board.unix.resets.count("reset") >= 5  # into update mode, into the trial, the trial boots (3)
+    assert board.leftovers() == []
+    assert (board.fs / "app.mpy").read_bytes() == (fw[f"{OLD}-build"] / "app.mpy").read_bytes()
+
+
+def test_a_power_cut_mid_swap_is_finished_at_the_next_boot(
+    fw, creds, broker, infos, board_of, tmp_path
+) -> None:
+    """The three states a file can be in during the swap, built on the board's filesystem before it boots: not
+    moved yet (old in place, new in .tmp), half moved (old in .bak, new in .tmp), moved (old in .bak, new in)."""
+    update = make_update(tmp_path / "build", fw[NEW])
+    names = [f.name for f in update.manifest.files]
+    (tmp_path / "b").mkdir()
+    b = Board(fw, OLD, creds, broker, tmp_path / "b")
+    new_build = fw[f"{NEW}-build"]
+    for k, name in enumerate(names):
+        if k % 3 >= 1:
+            (b.fs / name).rename(b.fs / f"{name}.bak")
+        if k % 3 == 2:
+            shutil.copyfile(new_build / name, b.fs / name)
+        else:
+            shutil.copyfile(new_build / name, b.fs / f"{name}.tmp")
+    state = {"stage": "swap", "manifest": update.digest, "boots": 1, "files": names, "version": NEW}
+    (b.fs / "ota.json").write_text(json.dumps(state))
+    b.unix.power_on()
+    try:
+        infos.wait(lambda i: i.fw == NEW)
+        b.wait_confirmed()
+        assert b.unfinished() == []
+        for name in names:
+            assert (b.fs / name).read_bytes() == (new_build / name).read_bytes(), name
+    finally:
+        b.unix.close()
+
+
+def test_safe_mode_reports_the_error_and_takes_an_update(fw, creds, broker, infos, board_of) -> None:
+    board = board_of(BROKEN)
+    safe = infos.wait(lambda i: (i.error or "").startswith("safe:"))
+    assert safe.error == "safe: broken app"
+    assert board.unix.wdt_fed_within(2.0)  # the watchdog is fed: not sitting at the REPL
+    code, out, err = finish(ota_cli(fw, creds, broker, NEW))
+    assert code == 0, (out, err, board.serial()[-3000:])
+    infos.wait(lambda i: i.fw == NEW and i.error is None)
+    board.wait_confirmed()
+    assert board.unfinished() == []
+
+
+def test_update_mode_and_the_trial_boot_fit_the_boards_38_kib_heap(
+    fw, creds, broker, infos, tmp_path
+) -> None:
+    """main.py itself on `micropython -X heapsize=38k` (the board's heap; 64-bit objects, so a bound), from an
+    `update` command's ota.json: update mode fetches and swaps, then the trial boot runs the new app."""
+    update = make_update(tmp_path / "build", fw[NEW])
+    b = Board(fw, OLD, creds, broker, tmp_path)
+    (b.fs / "ota.json").write_text(json.dumps({"stage": "fetch", "manifest": update.digest, "boots": 0}))
+    failures: list[list[str]] = []
+    server = threading.Thread(target=lambda: failures.append(serve(broker, creds, update, command=False)))
+    server.start()
+    time.sleep(1)  # the server subscribed before the node asks
+    boot = "import machine, sys\nmachine.reset = lambda: sys.exit(75)\nimport main"  # as the ROM's: the process ends
+    env = micropython_env(b.fs, fw["stubs"], tmp_path / "pins")
+    cmd = [micropython_exe(), "-X", f"heapsize={HEAP}", "-c", boot]
+    with (tmp_path / "update.log").open("wb") as log:
+        first = subprocess.run(cmd, cwd=b.fs, env=env, stdout=log, stderr=subprocess.STDOUT, timeout=WAIT)
+    out = (tmp_path / "update.log").read_text()
+    assert first.returncode == 75 and "ota: swapped" in out and "MemoryError" not in out, out
+    node = NodeProcess(cmd, env, tmp_path / "trial.log", cwd=b.fs)
+    try:
+        server.join(WAIT)
+        assert failures == [[]], node.output()
+        assert infos.wait(lambda i: i.fw == NEW).error is None
+        b.wait_confirmed()
+    finally:
+        node.stop()
+    assert b.unfinished() == []

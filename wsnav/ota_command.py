@@ -1,0 +1,86 @@
+"""`wsnav firmware ota`: the app of running nodes updated over MQTT, as the site's operator.
+
+Here, not in firmware/cli.py: it logs in as the operator (`wsnav node-command`'s connection and command,
+console/operator_link.py and console/operator_commands.py), and the firmware component does not import the console
+(tests/test_component_imports.py). The transfer itself is firmware/ota.py.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import tempfile
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from wsnav.firmware.build import DEVICE, BuildError
+from wsnav.runtime.cli_support import CliError
+
+if TYPE_CHECKING:
+    from wsnav.runtime.cli_support import Parser
+
+
+def register(sub: argparse._SubParsersAction[Parser]) -> None:
+    """`ota` under `wsnav firmware` (which firmware/cli.py registers first)."""
+    from wsnav.console.cli import operator_arguments
+
+    firmware = sub.choices["firmware"]
+    fw_sub = next(a for a in firmware._actions if isinstance(a, argparse._SubParsersAction))
+    o = fw_sub.add_parser(
+        "ota",
+        help="update running nodes' app over MQTT: build, command, serve the chunks, wait for the new version",
+    )
+    operator_arguments(o)
+    o.add_argument("--nodes", required=True, metavar="N1,N2", help="the nodes to update, comma-separated")
+    o.add_argument(
+        "--source", type=Path, default=DEVICE, help="the firmware sources to build (default firmware/device)"
+    )
+    o.add_argument(
+        "--timeout",
+        type=float,
+        default=600.0,
+        metavar="S",
+        help="give up on nodes not done by then (default 600)",
+    )
+    o.set_defaults(func=ota_command)
+
+
+def ota_command(args: argparse.Namespace) -> int:
+    """Build, send each node its `update`, serve the chunks with progress; exit 1 unless every node confirmed."""
+    from wsnav.console.operator_commands import CommandError, node_command
+    from wsnav.console.operator_link import connect
+    from wsnav.firmware.ota import OtaError, OtaServer, make_update
+
+    nodes = [n.strip() for n in args.nodes.split(",") if n.strip()]
+    if not nodes or len(set(nodes)) != len(nodes):
+        raise CliError(f"--nodes {args.nodes!r}: give node ids, each once, separated by commas")
+    if not (math.isfinite(args.timeout) and args.timeout > 0):
+        raise CliError(f"--timeout {args.timeout:g}: expected a positive number of seconds")
+    with tempfile.TemporaryDirectory(prefix="wsnav-ota-") as tmp:
+        try:
+            update = make_update(Path(tmp), args.source)
+        except (BuildError, OtaError) as exc:
+            raise CliError(str(exc)) from None
+    m = update.manifest
+    print(f"update {m.version}: {len(m.files)} files, {update.total} B (manifest {update.digest[:12]})")
+    link = connect(args, "ota")
+    try:
+        try:
+            pubs = [node_command(link.site, n, "update", manifest=update.digest) for n in nodes]
+        except CommandError as exc:
+            raise CliError(str(exc)) from None
+        server = OtaServer(link.bus, link.site.name, update, nodes)
+        server.subscribe()
+        failures: list[str] = []
+        for node, pub in zip(nodes, pubs, strict=True):
+            if not link.bus.publish_confirmed(pub.topic, pub.payload):
+                server.progress[node].error = f"{node}: the broker did not confirm the update command"
+        failures = server.run(args.timeout)
+    finally:
+        link.bus.close()
+    for line in failures:
+        print(line, file=sys.stderr)
+    done = len(nodes) - len(failures)
+    print(f"{done} of {len(nodes)} nodes running {m.version}")
+    return 1 if failures else 0
