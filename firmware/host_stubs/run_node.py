@@ -29,7 +29,7 @@ gc.collect()
 print("heap free", gc.mem_free())
 import fake_dns  # noqa: E402  after the heap is measured: the board has no such thing
 
-fake_dns.install()  # and machine.reset
+fake_dns.setup()  # and machine.reset
 if not node.client.host[-1:].isdigit():  # a name: the client feeds from a machine.Timer while it looks it up
     import soft_timers  # after the heap is measured: the board has machine.Timer in ROM
 
