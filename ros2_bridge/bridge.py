@@ -17,6 +17,7 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from wsnav.ros2_bridge.discovery import Discovery, cyclone_config, discovery_from_env
 from wsnav.ros_bridge.zone_feed import ZoneFeed
 from wsnav.ros_bridge.zone_source import LinkWatch, load_bridge_site, refuse_bad_login, start_broker_link
 from wsnav.runtime.bus import Bus
@@ -47,6 +48,7 @@ class Ros2Options:
     namespace: str
     frame_id: str
     domain: int
+    discovery: Discovery
 
 
 def ros2_options(args: argparse.Namespace) -> Ros2Options:
@@ -72,7 +74,7 @@ def ros2_options(args: argparse.Namespace) -> Ros2Options:
             raise CliError(f"ROS_DOMAIN_ID={env!r}: not a domain id (0-{MAX_DOMAIN_ID})")
     if not 0 <= domain <= MAX_DOMAIN_ID:
         raise CliError(f"--domain {domain}: a ROS 2 domain id is 0-{MAX_DOMAIN_ID}")
-    return Ros2Options(namespace, frame, domain)
+    return Ros2Options(namespace, frame, domain, discovery_from_env())
 
 
 def require_cyclonedds() -> None:
@@ -95,16 +97,20 @@ def bridge_command(args: argparse.Namespace) -> int:
     site = loaded.site
     frame = GridFrame.of_grid(site.grid)
     names = Ros2Names(options.namespace)
-    writer = ZoneGridWriter(options.domain, names, options.frame_id, frame, site.grid.origin[2], loaded.codec)
+    config = cyclone_config(options.discovery, os.environ.get("CYCLONEDDS_URI", ""), os.getpid())
+    writer = ZoneGridWriter(
+        options.domain, names, options.frame_id, frame, site.grid.origin[2], loaded.codec, config
+    )
     feed = ZoneFeed(site.spec, frame)
     clock = WallClock()
     feed.take([], clock.now())
     writer.write_filter_info()
     writer.write_grid(feed)
     log.info(
-        "zone bridge for site %s on ROS 2 domain %d: %s (%dx%d cells, frame %s), %s",
+        "zone bridge for site %s on ROS 2 domain %d (%s): %s (%dx%d cells, frame %s), %s",
         site.name,
         options.domain,
+        options.discovery.describe(),
         names.grid,
         frame.width,
         frame.height,

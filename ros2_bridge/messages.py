@@ -9,10 +9,13 @@ Humble's .msg files (builtin_interfaces, std_msgs, geometry_msgs, nav_msgs, nav2
 # No `from __future__ import annotations` here: cyclonedds reads the field types from the live annotations.
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, ClassVar
 
+import cyclonedds.idl._typesupport.DDS.XTypes as xt  # pyright: ignore[reportMissingTypeStubs]
 from cyclonedds.core import Policy, Qos
 from cyclonedds.idl import IdlStruct
+from cyclonedds.idl._support import Endianness
+from cyclonedds.idl._xt_builder import TypeHash, XTBuilder
 from cyclonedds.idl.types import float32, float64, int8, int32, sequence, uint8, uint32
 from cyclonedds.util import duration
 
@@ -115,3 +118,40 @@ def latched_qos() -> Qos:
         Policy.WriterDataLifecycle(autodispose=False),
         Policy.DataRepresentation(use_cdrv0_representation=True),
     )
+
+
+class _Cyclone010TypeObjects(XTBuilder):
+    """XTypes type objects as Cyclone DDS 0.10's IDL compiler writes them: int8 as TK_CHAR8, uint8 as TK_BYTE.
+
+    Cyclone DDS 11 writes TK_INT8 / TK_UINT8 (XTypes 1.3), which Cyclone 0.10 (what ROS 2 Humble and Jazzy
+    ship) cannot validate: a 0.10 participant that looks the bridge's types up dies with SIGSEGV in its
+    TypeLookup reply handling (eclipse-cyclonedds/cyclonedds#1554). Cyclone 11's Python binding cannot leave the
+    type information out (a topic needs it), so the bridge announces the types exactly as 0.10 does: the same
+    type identifiers, which a 0.10 reader with type information matches at once. The CDR on the wire is the same.
+    """
+
+    # its own cache of type hashes: the library's holds the TK_INT8 ones
+    _type_hash_db: ClassVar[dict[Any, TypeHash]] = {}  # pyright: ignore[reportIncompatibleVariableOverride]
+
+    @classmethod
+    def _xt_type_identifier(cls, name: str, entity: Any, minimal: bool) -> Any:
+        if entity == int8:
+            return xt.TypeIdentifier(discriminator=xt.TK_CHAR8, value=None)
+        if entity == uint8:
+            return xt.TypeIdentifier(discriminator=xt.TK_BYTE, value=None)
+        return super()._xt_type_identifier(name, entity, minimal)
+
+
+def announce_as_cyclone_0_10(datatype: type[IdlStruct]) -> None:
+    """Give a topic type the type information Cyclone 0.10 would announce for it (before any Topic uses it)."""
+    idl: Any = datatype.__idl__
+    info, mapping = _Cyclone010TypeObjects.process_type(datatype)
+    idl._xt_data = (info, mapping)
+    idl._xt_bytedata = (
+        info.serialize(endianness=Endianness.Little, use_version_2=True)[4:],
+        mapping.serialize(endianness=Endianness.Little, use_version_2=True)[4:],
+    )
+
+
+for _topic_type in (OccupancyGrid, CostmapFilterInfo):
+    announce_as_cyclone_0_10(_topic_type)

@@ -12,7 +12,7 @@ import time
 from dataclasses import dataclass
 
 from cyclonedds.core import DDSException
-from cyclonedds.domain import DomainParticipant
+from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.pub import DataWriter
 from cyclonedds.topic import Topic
 
@@ -70,13 +70,17 @@ class ZoneGridWriter:
         frame: GridFrame,
         origin_yaw: float,
         codec: ZoneGridCodec,
+        config: str = "",
     ) -> None:
+        """`config`: the Cyclone DDS configuration (ros2_bridge.discovery.cyclone_config); "" is Cyclone's own
+        (CYCLONEDDS_URI)."""
         self.names = names
         self.frame_id = frame_id
         self.frame = frame
         self.origin_yaw = origin_yaw
         self.codec = codec
         try:
+            self.domain = Domain(domain, config) if config else None  # kept: the participant lives in it
             self.participant = DomainParticipant(domain)
             qos = latched_qos()
             self._grid = DataWriter(

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from cyclonedds.core import Policy, Qos, WaitSet
-from cyclonedds.domain import DomainParticipant
+from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.idl import IdlStruct
 from cyclonedds.idl.types import float32, float64, int8, int32, sequence, uint8, uint32
 from cyclonedds.sub import DataReader
@@ -146,6 +146,12 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=120.0)
     parser.add_argument("topics", nargs="+")
     args = parser.parse_args()
+    # rmw_cyclonedds's readers carry no XTypes type information and are matched by type name; this one ignores
+    # the type information of Cyclone writers (vendor 1.16) to be matched the same way: Cyclone 11 would find its
+    # int8 (TK_INT8) not assignable to the TK_CHAR8 that Cyclone 0.10, and so the bridge, announce.
+    domain = Domain(
+        args.domain, "<Compatibility><IgnoreTypeInformation>1.16</IgnoreTypeInformation></Compatibility>"
+    )
     participant = DomainParticipant(args.domain)
     qos = Qos(
         Policy.Reliability.Reliable(duration(seconds=1)),
@@ -178,6 +184,7 @@ def main() -> None:
                     "cdr": base64.b64encode(sample.data).decode(),
                 }
                 print(json.dumps(line), flush=True)
+    del domain
     sys.exit(0)
 
 

@@ -1,0 +1,270 @@
+"""`wsnav ros2 bridge` beside the DDS stacks ROS 2 ships, each peer its own native process (tests/dds_peers/):
+
+- Cyclone DDS 0.10.2 (Debian's libddsc, what Humble's and Jazzy's rmw_cyclonedds run on): a reader WITH XTypes
+  type information (idlc's default), a reader WITHOUT it (idlc -t), and a bare participant with no endpoints.
+  Before the fix every one of them died with SIGSEGV when the bridge's type objects reached them (Cyclone 11
+  writes int8/uint8 as TK_INT8/TK_UINT8, which 0.10 cannot validate: eclipse-cyclonedds/cyclonedds#1554).
+- Fast DDS 2.9.1 (Debian's libfastrtps, Humble's default rmw): a reader built as rmw_fastrtps_cpp builds one (its
+  own TopicDataType with no type object or type information, PREALLOCATED_WITH_REALLOC history, reliable,
+  transient_local).
+
+Each reader must get the grid the ROS 1 bridge would serve, then the new grid after a zone changes over MQTT; a
+reader started after both gets exactly the latest grid; no peer may die. The readers report each grid's size,
+frame and an FNV-1a hash of its cells. Not here: no rclcpp/rclpy, no ros2 CLI and no Nav2 (none is installed).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import tempfile
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from tests.conftest import REPO, require_tool
+from tests.ros_fixtures import WsnavChild, slow_heartbeat_school, wait_until
+from tests.test_ros2_bridge import bridge_args, domain_id, expected_grid
+from wsnav.broker.amqtt.embedded import BrokerThread
+from wsnav.ros_bridge.zone_feed import ZoneFeed
+from wsnav.ros_bridge.zone_grid import ZoneGridCodec
+from wsnav.runtime.bus import Message
+from wsnav.runtime.mqtt_bus import connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.messages import ZoneState
+from wsnav.schemas.site import Site, load_site
+from wsnav.zones.geometry import GridFrame
+
+pytestmark = pytest.mark.slow
+
+SOURCES = REPO / "tests" / "dds_peers"
+GRID = "rt/wsn/zone_grid"
+HEADERS = {
+    "cyclonedds-dev": Path("/usr/include/dds/dds.h"),
+    "libfastrtps-dev": Path("/usr/include/fastdds/dds/domain/DomainParticipant.hpp"),
+}
+ROS_ENV = ("ROS_LOCALHOST_ONLY", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_STATIC_PEERS", "CYCLONEDDS_URI")
+
+
+def require_header(package: str) -> None:
+    """A Debian -dev package's header: skip without it, fail under WSNAV_REQUIRE_TOOLS=1 (CI)."""
+    if not HEADERS[package].exists():
+        if os.environ.get("WSNAV_REQUIRE_TOOLS") == "1":
+            pytest.fail(f"{HEADERS[package]} missing: apt-get install {package} (WSNAV_REQUIRE_TOOLS=1)")
+        pytest.skip(f"{package} not installed")
+
+
+def build(out: Path) -> None:
+    """The peers from tests/dds_peers: idlc's C for the grid type with and without type information, gcc, g++."""
+    idlc, gcc, gxx = require_tool("idlc"), require_tool("gcc"), require_tool("g++")
+    for variant, flags in (("typeinfo", []), ("no_typeinfo", ["-t"])):
+        gen = out / variant
+        gen.mkdir()
+        subprocess.run([idlc, *flags, "-o", str(gen), str(SOURCES / "ros2_grid.idl")], check=True)
+        subprocess.run(
+            [gcc, "-O1", "-o", str(out / f"cyclone_peer_{variant}"), f"-I{gen}",
+             str(SOURCES / "cyclone_peer.c"), str(gen / "ros2_grid.c"), "-lddsc"],
+            check=True,
+        )  # fmt: skip
+    subprocess.run(
+        [gxx, "-O0", "-o", str(out / "fastdds_peer"), str(SOURCES / "fastdds_peer.cpp"), "-lfastrtps", "-lfastcdr"],
+        check=True,
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="session")
+def peer_binaries() -> Path:
+    """The compiled peers, cached in the temp dir by the sources' hash (the Fast DDS one takes seconds of g++)."""
+    require_header("cyclonedds-dev")
+    require_header("libfastrtps-dev")
+    digest = hashlib.sha256(b"".join(p.read_bytes() for p in sorted(SOURCES.iterdir()))).hexdigest()[:16]
+    out = Path(tempfile.gettempdir()) / f"wsnav-dds-peers-{digest}"
+    if not (out / "fastdds_peer").exists():
+        work = Path(tempfile.mkdtemp(prefix="wsnav-dds-peers-build-"))
+        try:
+            build(work)
+            with contextlib.suppress(OSError):  # another run built it meanwhile
+                work.rename(out)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    return out
+
+
+class NativePeer:
+    """A peer binary as a child process; its JSON lines (one per grid) as they arrive."""
+
+    def __init__(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> None:
+        self.name = name
+        self.grids: list[dict[str, Any]] = []
+        self.proc = subprocess.Popen(
+            argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, start_new_session=True
+        )
+        self._ready = threading.Event()
+        self._pump = threading.Thread(target=self._read, daemon=True)
+        self._pump.start()
+        if not self._ready.wait(30):
+            self.stop()
+            pytest.fail(f"the {name} peer did not start: {self.stderr()}")
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            item = json.loads(line)
+            if item.get("ready"):
+                self._ready.set()
+            else:
+                self.grids.append(item)
+
+    def stderr(self) -> str:
+        if self.proc.poll() is None or self.proc.stderr is None:
+            return ""
+        return self.proc.stderr.read()[-2000:]
+
+    def stop(self) -> int:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+        try:
+            code = self.proc.wait(10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            code = self.proc.wait(10)
+        self._pump.join(5)
+        return code
+
+
+def fnv1a(data: NDArray[np.int8]) -> int:
+    """The peers' hash of a grid's cells (FNV-1a, 32 bit, over the int8 cells as bytes)."""
+    h = 2166136261
+    for b in data.astype(np.uint8).tobytes():
+        h = ((h ^ b) * 16777619) & 0xFFFFFFFF
+    return h
+
+
+def start_peers(binaries: Path, domain: int, env: dict[str, str] | None = None) -> list[NativePeer]:
+    """The three Cyclone 0.10 peers and the Fast DDS reader; readers keep 10 grids (so extra ones would show)."""
+    d = str(domain)
+    return [
+        NativePeer("Cyclone 0.10 reader with type information",
+                   [str(binaries / "cyclone_peer_typeinfo"), "reader", d, GRID, "10"], env),
+        NativePeer("Cyclone 0.10 reader without type information",
+                   [str(binaries / "cyclone_peer_no_typeinfo"), "reader", d, GRID, "10"], env),
+        NativePeer("Cyclone 0.10 bare participant", [str(binaries / "cyclone_peer_typeinfo"), "bare", d], env),
+        NativePeer("Fast DDS 2.9 reader as rmw_fastrtps", [str(binaries / "fastdds_peer"), d, GRID, "10"], env),
+    ]  # fmt: skip
+
+
+def readers(peers: list[NativePeer]) -> list[NativePeer]:
+    return [p for p in peers if "bare" not in p.name]
+
+
+def clean_env() -> dict[str, str]:
+    """This process's environment without ROS 2's discovery variables or a Cyclone config of the caller's."""
+    return {k: v for k, v in os.environ.items() if k not in ROS_ENV}
+
+
+def assert_alive(peers: list[NativePeer]) -> None:
+    dead = [f"{p.name}: exit {p.proc.returncode} {p.stderr()}" for p in peers if p.proc.poll() is not None]
+    assert not dead, "peers died beside the bridge:\n" + "\n".join(dead)
+
+
+@pytest.fixture
+def school_broker(tmp_path: Path) -> Iterator[tuple[Site, BrokerThread]]:
+    site_dir = slow_heartbeat_school(tmp_path)
+    with BrokerThread(site_dir) as broker:
+        yield load_site(site_dir), broker
+
+
+def test_cyclone_0_10_and_fast_dds_2_9_peers_live_beside_the_bridge_and_get_every_grid(
+    school_broker: tuple[Site, BrokerThread], peer_binaries: Path
+) -> None:
+    site, broker = school_broker
+    domain = domain_id() + 2
+    frame = GridFrame.of_grid(site.grid)
+    codec = ZoneGridCodec()
+    reference = ZoneFeed(site.spec, frame)
+    reference.take([], 0.0)
+    first = fnv1a(expected_grid(codec, reference))
+    peers = start_peers(peer_binaries, domain, clean_env())  # early joiners: there before the bridge
+    bridge = WsnavChild(
+        bridge_args(site, f"{broker.host}:{broker.port}", broker.credentials_dir / "robot1.json", domain),
+        clean_env(),
+    )
+    try:
+        bridge.wait_for("MQTT broker connected", 60)
+
+        def all_got(h: int, among: list[NativePeer]) -> bool:
+            assert_alive(peers)
+            return all(p.grids and p.grids[-1]["fnv1a"] == h for p in among)
+
+        wait_until(lambda: all_got(first, readers(peers)), 30, "the first grid at every reader")
+        for p in readers(peers):
+            g = p.grids[-1]
+            assert (g["width"], g["height"], g["length"], g["frame_id"]) == (
+                frame.width, frame.height, frame.width * frame.height, "map"
+            ), p.name  # fmt: skip
+
+        zone = site.spec.zones[2]
+        node = next(n for n in site.spec.nodes if n.zone == zone.id)
+        link = connect_with_credentials(broker.host, broker.port, broker.credentials(node.id))
+        try:
+            topic = topics.zone_state(site.name, zone.id, node.id)
+            payload = ZoneState(zone=zone.id, node=node.id, state="blocked", seq=5).to_payload()
+            link.publish(topic, payload, qos=1, retain=True)
+            reference.take([Message(topic, payload, True, 1.0)], 1.0)
+            blocked = fnv1a(expected_grid(codec, reference))
+            assert blocked != first
+            wait_until(
+                lambda: all_got(blocked, readers(peers)), 30, "the blocked zone's grid at every reader"
+            )
+        finally:
+            link.close()
+
+        late = [p for p in start_peers(peer_binaries, domain, clean_env()) if "bare" not in p.name]
+        peers += late
+        wait_until(lambda: all_got(blocked, late), 30, "the latest grid at every late reader")
+        for p in late:
+            assert [g["fnv1a"] for g in p.grids] == [blocked], f"{p.name}: the latest grid only"
+        assert_alive(peers)
+        assert bridge.proc.poll() is None, "\n".join(bridge.lines)
+    finally:
+        codes = {p.name: p.stop() for p in peers}
+        bridge.stop()
+    assert set(codes.values()) == {0}, f"exit codes after SIGTERM (-11 is SIGSEGV): {codes}"
+
+
+def test_the_bridge_announces_the_grid_type_as_cyclone_0_10_s_idlc_does(peer_binaries: Path) -> None:
+    """Same type identifiers as Debian's idlc (0.10.2) gives Humble's OccupancyGrid: a 0.10 reader with type
+    information matches the bridge without looking anything up, and nothing the bridge announces is a type
+    kind 0.10 cannot read (TK_INT8/TK_UINT8)."""
+    import re
+
+    import cyclonedds.idl._typesupport.DDS.XTypes as xt  # pyright: ignore[reportMissingTypeStubs]
+    from cyclonedds.idl._support import Endianness
+
+    from wsnav.ros2_bridge.messages import OccupancyGrid
+
+    source = (peer_binaries / "typeinfo" / "ros2_grid.c").read_text()
+    block = re.search(
+        r"#define TYPE_INFO_CDR_nav_msgs_msg_dds__OccupancyGrid_ \(unsigned char \[\]\)\{(.*?)\}",
+        source,
+        re.S,
+    )
+    assert block is not None
+    ours = OccupancyGrid.__idl__.get_type_info()
+    header = ours.serialize(endianness=Endianness.Little, use_version_2=True)[:4]
+    theirs = xt.TypeInformation.deserialize(
+        header + bytes(int(x, 16) for x in re.findall(r"0x([0-9a-f]{2})", block.group(1)))
+    )
+    assert ours.minimal.typeid_with_size == theirs.minimal.typeid_with_size
+    assert ours.complete.typeid_with_size == theirs.complete.typeid_with_size
+    deps: list[Any] = [ours.complete.dependent_typeids, theirs.complete.dependent_typeids]
+    assert sorted(map(repr, deps[0])) == sorted(map(repr, deps[1]))
