@@ -78,9 +78,9 @@ def cyclone_config(discovery: Discovery, user_uri: str, pid: int) -> str:
     disc = ""
     peers: list[str] = []
     if discovery.localhost_only:
-        # Humble's rmw_cyclonedds: the loopback interface, multicast on it; Jazzy's (ROS_LOCALHOST_ONLY=1 is its
+        # Humble's rmw_cyclonedds: the loopback interface only; Jazzy's (ROS_LOCALHOST_ONLY=1 is its
         # LOCALHOST range): unicast to this host's participant ports. Both, so robots of either distro meet it.
-        general = '<Interfaces><NetworkInterface address="127.0.0.1" multicast="true"/></Interfaces>'
+        general = '<Interfaces><NetworkInterface address="127.0.0.1"/></Interfaces>'
         disc = _AUTO_INDEX
         peers = ["localhost"]
     elif discovery.range == "LOCALHOST":

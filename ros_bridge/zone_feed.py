@@ -38,10 +38,13 @@ class ZoneFeed:
         self.frame = frame
         self.layer = ZoneLayer(spec, frame, spec.policy)
         self.intake = ZoneIntake(spec, self.layer)
-        self.costs: NDArray[np.uint8] = np.full((frame.height, frame.width), NO_INFORMATION, dtype=np.uint8)
+        self.costs: NDArray[np.uint8] = self.layer.paint(
+            Bounds(0, 0, frame.height, frame.width), outside=NO_INFORMATION
+        )
         """The zone layer's cost of every cell of the map, as last sent: NO_INFORMATION (-1 on the grid) outside
         every zone and block, as the agent's own zone layer offers it, so costmap_2d's updateWithMax leaves the
-        map there as it is (a 0 would make the map's unknown space free in move_base's master)."""
+        map there as it is (a 0 would make the map's unknown space free in move_base's master). Painted whole at
+        the start: the layer starts every zone clear, and a zone that stays clear is never a change."""
         self.escaping: frozenset[BlockedArea] = frozenset()
         """Blocked areas sent at ESCAPE_COST instead of lethal: the robot stands in them (`set_escape`)."""
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import fields
 from pathlib import Path
+from xml.etree import ElementTree
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from tests.cli_fixtures import error_line
 from tests.conftest import SCHOOL
 from tests.test_ros2_bridge import typestore
 from wsnav.ros2_bridge.bridge import ros2_options
+from wsnav.ros2_bridge.discovery import Discovery, cyclone_config, discovery_from_env
 
 
 def argv(*extra: str, site: Path = SCHOOL) -> list[str]:
@@ -69,6 +71,67 @@ def test_names_are_normalized_as_ros2_reads_them(monkeypatch: pytest.MonkeyPatch
     monkeypatch.setenv("ROS_DOMAIN_ID", "42")
     assert options("/a/b_c") == ("/a/b_c", 42)
     assert options("/a", domain=3) == ("/a", 3)
+
+
+@pytest.mark.parametrize(
+    ("variable", "value"),
+    [
+        ("ROS_LOCALHOST_ONLY", "yes"),
+        ("ROS_AUTOMATIC_DISCOVERY_RANGE", "localhost"),
+        ("ROS_STATIC_PEERS", "a b;c"),
+        ("ROS_STATIC_PEERS", 'x"/><Peer address="evil'),
+    ],
+)
+def test_bad_ros2_discovery_variables_are_one_line(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, variable: str, value: str
+) -> None:
+    for name in ("ROS_LOCALHOST_ONLY", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_STATIC_PEERS"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv(variable, value)
+    assert variable in error_line(capsys, argv())
+
+
+def test_discovery_follows_rcl_and_rmw_cyclonedds() -> None:
+    """rcl's reading of the variables and rmw_cyclonedds's fragment for each range (Jazzy's check_create_domain;
+    Humble's loopback interface for ROS_LOCALHOST_ONLY), the user's CYCLONEDDS_URI last so that it wins."""
+    assert discovery_from_env({}) == Discovery("SUBNET")
+    only = discovery_from_env(
+        {"ROS_LOCALHOST_ONLY": "1", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET", "ROS_STATIC_PEERS": "a"}
+    )
+    assert only == Discovery("LOCALHOST", (), localhost_only=True), "localhost-only overrides range and peers"
+    assert discovery_from_env({"ROS_LOCALHOST_ONLY": "0", "ROS_STATIC_PEERS": "a; 10.0.0.2;"}) == Discovery(
+        "SUBNET", ("a", "10.0.0.2")
+    )
+    assert discovery_from_env({"ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF", "ROS_STATIC_PEERS": "a"}) == Discovery(
+        "OFF"
+    )
+
+    def parsed(config: str) -> ElementTree.Element:
+        ours, _, user = config.partition(",")
+        assert user == "file:///etc/robot.xml"
+        return ElementTree.fromstring(ours)
+
+    uri = "file:///etc/robot.xml"
+    loopback = parsed(cyclone_config(only, uri, 7))
+    assert [i.get("address") for i in loopback.iter("NetworkInterface")] == ["127.0.0.1"]
+    assert [p.get("address") for p in loopback.iter("Peer")] == ["localhost"]
+    local = parsed(cyclone_config(Discovery("LOCALHOST", ("10.0.0.2",)), uri, 7))
+    assert local.findtext("Domain/General/AllowMulticast") == "false"
+    assert local.findtext("Domain/Discovery/ParticipantIndex") == "auto"
+    assert local.findtext("Domain/Discovery/MaxAutoParticipantIndex") == "32"
+    assert [p.get("address") for p in local.iter("Peer")] == ["localhost", "10.0.0.2"]
+    off = parsed(cyclone_config(Discovery("OFF"), uri, 7))
+    assert (off.findtext("Domain/Discovery/ParticipantIndex"), off.findtext("Domain/Discovery/Tag")) == (
+        "none",
+        "ros_discovery_off_7",
+    )
+    subnet = parsed(cyclone_config(Discovery("SUBNET"), uri, 7))
+    assert subnet.findtext("Domain/General/AllowMulticast") is None and not list(subnet.iter("Peer"))
+    system = parsed(cyclone_config(Discovery("SYSTEM_DEFAULT", ("a",)), uri, 7))
+    assert system.find("Domain/Discovery") is None and system.find("Domain/General") is None
+    for tree in (loopback, local, off, subnet, system):
+        assert tree.findtext("Domain/Compatibility/IgnoreTypeInformation") == "1.16"
+    assert "," not in cyclone_config(Discovery("SUBNET"), "", 7), "no user file: ours alone"
 
 
 CDR_TYPES = {

@@ -268,3 +268,61 @@ def test_the_bridge_announces_the_grid_type_as_cyclone_0_10_s_idlc_does(peer_bin
     assert ours.complete.typeid_with_size == theirs.complete.typeid_with_size
     deps: list[Any] = [ours.complete.dependent_typeids, theirs.complete.dependent_typeids]
     assert sorted(map(repr, deps[0])) == sorted(map(repr, deps[1]))
+
+
+HUMBLE_LOCALHOST_ONLY = (
+    '<CycloneDDS><Domain><General><Interfaces><NetworkInterface address="127.0.0.1"/></Interfaces></General>'
+    "</Domain></CycloneDDS>"
+)
+"""What Humble's rmw_cyclonedds puts before CYCLONEDDS_URI under ROS_LOCALHOST_ONLY=1 (rmw_node.cpp)."""
+JAZZY_LOCALHOST = (
+    "<CycloneDDS><Domain><General><AllowMulticast>false</AllowMulticast></General><Discovery>"
+    "<ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>32</MaxAutoParticipantIndex>"
+    '<Peers><Peer address="localhost"/></Peers></Discovery></Domain></CycloneDDS>'
+)
+"""What Jazzy's rmw_cyclonedds puts there for ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (and ROS_LOCALHOST_ONLY=1)."""
+
+
+@pytest.mark.parametrize(
+    ("bridge_env", "robot"),
+    [
+        ({"ROS_LOCALHOST_ONLY": "1"}, "humble"),
+        ({"ROS_LOCALHOST_ONLY": "1"}, "jazzy"),
+        ({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}, "jazzy"),
+    ],
+)
+def test_a_localhost_only_robot_gets_the_grid_from_the_bridge_with_no_cyclonedds_uri_of_its_own(
+    tmp_path: Path, peer_binaries: Path, bridge_env: dict[str, str], robot: str
+) -> None:
+    """The robot's DDS is a Cyclone 0.10 reader configured as its rmw configures it; the bridge gets only ROS 2's
+    variables (ROS_DOMAIN_ID too: no --domain). With Cyclone's default configuration (before) neither robot found
+    the bridge. Not checked: that a host elsewhere cannot (one machine here; "localhost" means any process on it)."""
+    site_dir = slow_heartbeat_school(tmp_path)
+    site = load_site(site_dir)
+    domain = domain_id() + 3
+    reference = ZoneFeed(site.spec, GridFrame.of_grid(site.grid))
+    reference.take([], 0.0)
+    first = fnv1a(expected_grid(ZoneGridCodec(), reference))
+    robot_env = {
+        **clean_env(),
+        "CYCLONEDDS_URI": HUMBLE_LOCALHOST_ONLY if robot == "humble" else JAZZY_LOCALHOST,
+    }
+    reader = [str(peer_binaries / "cyclone_peer_typeinfo"), "reader", str(domain), GRID, "10"]
+    peers = [NativePeer(f"{robot} robot, localhost only", reader, robot_env)]
+    with BrokerThread(site_dir) as broker:  # for the credentials; the bridge is sent to a dead port
+        args = bridge_args(site, "127.0.0.1:9", broker.credentials_dir / "robot1.json", domain)
+        args = args[: args.index("--domain")] + args[args.index("--domain") + 2 :]
+        bridge = WsnavChild(args, {**clean_env(), **bridge_env, "ROS_DOMAIN_ID": str(domain)})
+        try:
+            line = bridge.wait_for("zone bridge for site school", 60)
+            assert f"domain {domain}" in line, line
+            assert ("this host only" if "ROS_LOCALHOST_ONLY" in bridge_env else "range LOCALHOST") in line, (
+                line
+            )
+            wait_until(lambda: bool(peers[0].grids), 30, f"the grid at the {robot} robot")
+            assert peers[0].grids[-1]["fnv1a"] == first
+            assert_alive(peers)
+        finally:
+            codes = {p.name: p.stop() for p in peers}
+            bridge.stop()
+    assert set(codes.values()) == {0}, codes

@@ -12,7 +12,7 @@ from wsnav.ros_bridge.zone_feed import ZoneFeed
 from wsnav.ros_bridge.zone_grid import UnrepresentableCost, UpdateWindow, ZoneGridCodec
 from wsnav.runtime.bus import Message
 from wsnav.schemas import topics
-from wsnav.schemas.messages import OperatorBlock
+from wsnav.schemas.messages import OperatorBlock, ZoneState
 from wsnav.schemas.site import Site, load_site
 from wsnav.zones.geometry import Bounds, GridFrame
 
@@ -179,3 +179,20 @@ def test_the_zone_grid_keeps_the_walls_where_a_grid_a_fraction_of_a_cell_off_wou
     model.add_layer("zones", first_map_only=True)
     assert model.incoming_map("zones", meta, zones)
     assert not model.incoming_map("zones", meta, zones), "a restarted bridge's grid is never read"
+
+
+def test_a_clear_zone_is_0_on_the_first_grid_not_only_after_a_change() -> None:
+    """docs/ros.md: a clear zone is 0 on the grid. The layer starts every zone clear, so a zone reported clear
+    changes nothing in it; the first grid (what a StaticLayer or KeepoutFilter gets first) must already say 0
+    there, and -1 only outside the zones."""
+    site, feed = _school_feed()
+    zone = site.spec.zones[0]
+    node = next(n for n in site.spec.nodes if n.zone == zone.id)
+    topic = topics.zone_state(site.name, zone.id, node.id)
+    payload = ZoneState(zone=zone.id, node=node.id, state="clear", seq=1).to_payload()
+    feed.take([Message(topic, payload, True, 1.0)], 1.0)
+    grid = ZoneGridCodec().encode(feed.costs)
+    window = feed.layer.paint(Bounds(0, 0, feed.frame.height, feed.frame.width), outside=255) != 255
+    assert window.any()
+    assert set(np.unique(grid[window]).tolist()) == {0}, "every zone cell of a clear school reads 0"
+    assert set(np.unique(grid[~window]).tolist()) == {-1}, "outside the zones: no information"
