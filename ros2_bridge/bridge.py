@@ -17,7 +17,7 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from wsnav.ros2_bridge.discovery import Discovery, cyclone_config, discovery_from_env
+from wsnav.ros2_bridge.discovery import NODE_NAME, Discovery, cyclone_config, discovery_from_env
 from wsnav.ros_bridge.zone_feed import ZoneFeed
 from wsnav.ros_bridge.zone_source import LinkWatch, load_bridge_site, refuse_bad_login, start_broker_link
 from wsnav.runtime.bus import Bus
@@ -34,6 +34,8 @@ log = logging.getLogger(__name__)
 MAX_DOMAIN_ID = 232
 """DDS's largest domain id with the standard port mapping (ROS 2 recommends 0-101 on Linux)."""
 RETRY_WRITE_S = 1.0
+DISTRO_LAYOUT = {"humble": "humble", "iron": "jazzy", "jazzy": "jazzy", "kilted": "jazzy", "rolling": "jazzy"}
+"""$ROS_DISTRO -> whose ros_discovery_info layout to write (rmw_dds_common's Gid shrank to 16 bytes in Iron)."""
 _TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
@@ -49,6 +51,7 @@ class Ros2Options:
     frame_id: str
     domain: int
     discovery: Discovery
+    distro: str
 
 
 def ros2_options(args: argparse.Namespace) -> Ros2Options:
@@ -74,7 +77,16 @@ def ros2_options(args: argparse.Namespace) -> Ros2Options:
             raise CliError(f"ROS_DOMAIN_ID={env!r}: not a domain id (0-{MAX_DOMAIN_ID})")
     if not 0 <= domain <= MAX_DOMAIN_ID:
         raise CliError(f"--domain {domain}: a ROS 2 domain id is 0-{MAX_DOMAIN_ID}")
-    return Ros2Options(namespace, frame, domain, discovery_from_env())
+    distro = getattr(args, "ros_distro", None)
+    if distro is None:
+        env_distro = os.environ.get("ROS_DISTRO", "").strip().lower()
+        distro = DISTRO_LAYOUT.get(env_distro, "humble") if env_distro else "humble"
+        if env_distro and env_distro not in DISTRO_LAYOUT:
+            raise CliError(
+                f"ROS_DISTRO={env_distro!r}: not one the bridge knows ({', '.join(DISTRO_LAYOUT)}); "
+                "give --ros-distro humble or jazzy"
+            )
+    return Ros2Options(namespace, frame, domain, discovery_from_env(), distro)
 
 
 def require_cyclonedds() -> None:
@@ -99,7 +111,14 @@ def bridge_command(args: argparse.Namespace) -> int:
     names = Ros2Names(options.namespace)
     config = cyclone_config(options.discovery, os.environ.get("CYCLONEDDS_URI", ""), os.getpid())
     writer = ZoneGridWriter(
-        options.domain, names, options.frame_id, frame, site.grid.origin[2], loaded.codec, config
+        options.domain,
+        names,
+        options.frame_id,
+        frame,
+        site.grid.origin[2],
+        loaded.codec,
+        config,
+        options.distro,
     )
     feed = ZoneFeed(site.spec, frame)
     clock = WallClock()
@@ -107,10 +126,12 @@ def bridge_command(args: argparse.Namespace) -> int:
     writer.write_filter_info()
     writer.write_grid(feed)
     log.info(
-        "zone bridge for site %s on ROS 2 domain %d (%s): %s (%dx%d cells, frame %s), %s",
+        "zone bridge for site %s on ROS 2 domain %d (%s, node /%s as %s sees it): %s (%dx%d cells, frame %s), %s",
         site.name,
         options.domain,
         options.discovery.describe(),
+        NODE_NAME,
+        options.distro,
         names.grid,
         frame.width,
         frame.height,

@@ -39,6 +39,12 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         metavar="N",
         help="ROS 2 domain id (default: $ROS_DOMAIN_ID, else 0)",
     )
+    bridge.add_argument(
+        "--ros-distro",
+        choices=["humble", "jazzy"],
+        help="whose rmw_dds_common layout ros_discovery_info is written in (jazzy: Iron and later; "
+        "default: $ROS_DISTRO, else humble)",
+    )
     bridge.add_argument("--connect-timeout", type=float, default=10.0, metavar="S", help="MQTT, default 10")
     bridge.set_defaults(func=bridge_command)
 

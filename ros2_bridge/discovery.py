@@ -1,4 +1,5 @@
-"""The bridge's Cyclone DDS configuration, built from ROS 2's environment as rmw_cyclonedds builds its own.
+"""How the bridge meets ROS 2's graph: its Cyclone DDS configuration, built from ROS 2's environment as
+rmw_cyclonedds builds its own, and the node it announces.
 
 rmw_cyclonedds (Jazzy's `check_create_domain`) puts a fragment of its own before the user's `CYCLONEDDS_URI`, so
 the user's file still wins; the bridge does the same, so a robot started with `ROS_LOCALHOST_ONLY=1` or
@@ -14,6 +15,10 @@ from xml.sax.saxutils import quoteattr
 
 from wsnav.runtime.cli_support import CliError
 
+NODE_NAMESPACE = "/"
+NODE_NAME = "wsnav_ros2_bridge"
+"""The node the bridge announces on ros_discovery_info: what `ros2 node list` shows, and `ros2 topic info -v` as
+its topics' publisher."""
 RANGES = ("SUBNET", "LOCALHOST", "OFF", "SYSTEM_DEFAULT")
 """ROS_AUTOMATIC_DISCOVERY_RANGE's values (rcl's `rcl_get_automatic_discovery_range`); unset is SUBNET."""
 MAX_AUTO_PARTICIPANT_INDEX = 32

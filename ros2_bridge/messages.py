@@ -16,7 +16,7 @@ from cyclonedds.core import Policy, Qos
 from cyclonedds.idl import IdlStruct
 from cyclonedds.idl._support import Endianness
 from cyclonedds.idl._xt_builder import TypeHash, XTBuilder
-from cyclonedds.idl.types import float32, float64, int8, int32, sequence, uint8, uint32
+from cyclonedds.idl.types import array, bounded_str, float32, float64, int8, int32, sequence, uint8, uint32
 from cyclonedds.util import duration
 
 DDS_TOPIC_PREFIX = "rt"
@@ -28,9 +28,16 @@ WRITE_BLOCK_S = 1.0
 
 if TYPE_CHECKING:
     Int8Sequence = list[int]
+    Gid24Data = list[int]
+    Gid16Data = list[int]
+    String256 = str
 else:  # cyclonedds's sequence[...] is Annotated[Sequence[...], ...] at run time, which pyright does not read
     Int8Sequence = sequence[int8]
-"""ROS 2's int8[]: an unbounded IDL sequence (serialized in one piece, unlike a plain list[int8])."""
+    Gid24Data = array[uint8, 24]
+    Gid16Data = array[uint8, 16]
+    String256 = bounded_str[256]
+"""ROS 2's int8[]: an unbounded IDL sequence (serialized in one piece, unlike a plain list[int8]); char[24] and
+char[16] (ROS's char is uint8): rmw_dds_common's Gid in Humble and from Iron on; string<=256."""
 
 
 def dds_topic(ros_topic: str) -> str:
@@ -96,6 +103,76 @@ class CostmapFilterInfo(IdlStruct, typename="nav2_msgs::msg::dds_::CostmapFilter
     multiplier: float32 = 1.0
 
 
+DISCOVERY_TOPIC = "ros_discovery_info"
+"""rmw_dds_common's graph topic, without the rt/ prefix (rmw creates it avoiding ROS's namespace conventions)."""
+
+
+@dataclass
+class Gid24(IdlStruct, typename="rmw_dds_common::msg::dds_::Gid_"):
+    data: Gid24Data = field(default_factory=lambda: [0] * 24)
+
+
+if TYPE_CHECKING:
+    Gid24Sequence = list[Gid24]
+else:
+    Gid24Sequence = sequence[Gid24]
+
+
+@dataclass
+class NodeEntitiesInfo24(IdlStruct, typename="rmw_dds_common::msg::dds_::NodeEntitiesInfo_"):
+    node_namespace: String256 = ""
+    node_name: String256 = ""
+    reader_gid_seq: Gid24Sequence = field(default_factory=list)
+    writer_gid_seq: Gid24Sequence = field(default_factory=list)
+
+
+if TYPE_CHECKING:
+    NodeEntitiesInfo24Sequence = list[NodeEntitiesInfo24]
+else:
+    NodeEntitiesInfo24Sequence = sequence[NodeEntitiesInfo24]
+
+
+@dataclass
+class ParticipantEntitiesInfo24(IdlStruct, typename="rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_"):
+    """Humble's rmw_dds_common/msg/ParticipantEntitiesInfo (24-byte gids: a DDS GUID and 8 zero bytes)."""
+
+    gid: Gid24 = field(default_factory=Gid24)
+    node_entities_info_seq: NodeEntitiesInfo24Sequence = field(default_factory=list)
+
+
+@dataclass
+class Gid16(IdlStruct, typename="rmw_dds_common::msg::dds_::Gid_"):
+    data: Gid16Data = field(default_factory=lambda: [0] * 16)
+
+
+if TYPE_CHECKING:
+    Gid16Sequence = list[Gid16]
+else:
+    Gid16Sequence = sequence[Gid16]
+
+
+@dataclass
+class NodeEntitiesInfo16(IdlStruct, typename="rmw_dds_common::msg::dds_::NodeEntitiesInfo_"):
+    node_namespace: String256 = ""
+    node_name: String256 = ""
+    reader_gid_seq: Gid16Sequence = field(default_factory=list)
+    writer_gid_seq: Gid16Sequence = field(default_factory=list)
+
+
+if TYPE_CHECKING:
+    NodeEntitiesInfo16Sequence = list[NodeEntitiesInfo16]
+else:
+    NodeEntitiesInfo16Sequence = sequence[NodeEntitiesInfo16]
+
+
+@dataclass
+class ParticipantEntitiesInfo16(IdlStruct, typename="rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_"):
+    """Iron's and later (Jazzy's) rmw_dds_common/msg/ParticipantEntitiesInfo: 16-byte gids, the DDS GUID."""
+
+    gid: Gid16 = field(default_factory=Gid16)
+    node_entities_info_seq: NodeEntitiesInfo16Sequence = field(default_factory=list)
+
+
 KEEPOUT_FILTER = 0
 """CostmapFilterInfo.type of Nav2's KeepoutFilter (nav2_costmap_2d's filter_values.hpp: KEEPOUT_FILTER)."""
 
@@ -153,5 +230,5 @@ def announce_as_cyclone_0_10(datatype: type[IdlStruct]) -> None:
     )
 
 
-for _topic_type in (OccupancyGrid, CostmapFilterInfo):
+for _topic_type in (OccupancyGrid, CostmapFilterInfo, ParticipantEntitiesInfo24, ParticipantEntitiesInfo16):
     announce_as_cyclone_0_10(_topic_type)

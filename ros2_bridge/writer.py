@@ -11,17 +11,25 @@ import math
 import time
 from dataclasses import dataclass
 
-from cyclonedds.core import DDSException
+from cyclonedds.core import DDSException, Policy, Qos
 from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.pub import DataWriter
 from cyclonedds.topic import Topic
 
+from wsnav.ros2_bridge.discovery import NODE_NAME, NODE_NAMESPACE
 from wsnav.ros2_bridge.messages import (
+    DISCOVERY_TOPIC,
     KEEPOUT_FILTER,
     CostmapFilterInfo,
+    Gid16,
+    Gid24,
     Header,
     MapMetaData,
+    NodeEntitiesInfo16,
+    NodeEntitiesInfo24,
     OccupancyGrid,
+    ParticipantEntitiesInfo16,
+    ParticipantEntitiesInfo24,
     Point,
     Pose,
     Quaternion,
@@ -36,6 +44,10 @@ from wsnav.zones.geometry import GridFrame
 
 GRID_TOPIC = "zone_grid"
 FILTER_INFO_TOPIC = "costmap_filter_info"
+ENCLAVE_USER_DATA = b"enclave=/;"
+"""The participant's USER_DATA as rmw sets it: ROS 2's graph reads the participant's security enclave from it."""
+GID_SIZE = {"humble": 24, "jazzy": 16}
+"""rmw_dds_common's Gid: 24 bytes in Humble (the GUID and 8 zero bytes), 16 from Iron on."""
 
 
 @dataclass(frozen=True)
@@ -71,9 +83,10 @@ class ZoneGridWriter:
         origin_yaw: float,
         codec: ZoneGridCodec,
         config: str = "",
+        distro: str = "humble",
     ) -> None:
         """`config`: the Cyclone DDS configuration (ros2_bridge.discovery.cyclone_config); "" is Cyclone's own
-        (CYCLONEDDS_URI)."""
+        (CYCLONEDDS_URI). `distro`: whose rmw_dds_common layout ros_discovery_info is written in."""
         self.names = names
         self.frame_id = frame_id
         self.frame = frame
@@ -81,7 +94,7 @@ class ZoneGridWriter:
         self.codec = codec
         try:
             self.domain = Domain(domain, config) if config else None  # kept: the participant lives in it
-            self.participant = DomainParticipant(domain)
+            self.participant = DomainParticipant(domain, qos=Qos(Policy.Userdata(ENCLAVE_USER_DATA)))
             qos = latched_qos()
             self._grid = DataWriter(
                 self.participant, Topic(self.participant, dds_topic(names.grid), OccupancyGrid), qos=qos
@@ -91,8 +104,38 @@ class ZoneGridWriter:
                 Topic(self.participant, dds_topic(names.filter_info), CostmapFilterInfo),
                 qos=qos,
             )
+            self._write_entities_info(distro, qos)
         except DDSException as exc:
             raise CliError(f"cannot start DDS on ROS 2 domain {domain}: {exc}") from None
+
+    def _write_entities_info(self, distro: str, qos: Qos) -> None:
+        """The participant's node and its two publishers on ros_discovery_info, as rmw publishes them (reliable,
+        transient_local, depth 1): what `ros2 node list` and `ros2 topic info -v` read. Written once: they never
+        change while the bridge runs."""
+        size = GID_SIZE[distro]
+
+        def gid(entity: DomainParticipant | DataWriter) -> list[int]:
+            return list(entity.guid.bytes.ljust(size, b"\0"))
+
+        writers = [gid(self._grid), gid(self._info)]
+        if size == 24:
+            info24 = ParticipantEntitiesInfo24(
+                Gid24(gid(self.participant)),
+                [NodeEntitiesInfo24(NODE_NAMESPACE, NODE_NAME, [], [Gid24(w) for w in writers])],
+            )
+            self._entities = DataWriter(
+                self.participant, Topic(self.participant, DISCOVERY_TOPIC, ParticipantEntitiesInfo24), qos=qos
+            )
+            self._entities.write(info24)
+        else:
+            info16 = ParticipantEntitiesInfo16(
+                Gid16(gid(self.participant)),
+                [NodeEntitiesInfo16(NODE_NAMESPACE, NODE_NAME, [], [Gid16(w) for w in writers])],
+            )
+            self._entities = DataWriter(
+                self.participant, Topic(self.participant, DISCOVERY_TOPIC, ParticipantEntitiesInfo16), qos=qos
+            )
+            self._entities.write(info16)
 
     def grid_message(self, feed: ZoneFeed, now: float) -> OccupancyGrid:
         stamp = ros_time(now)

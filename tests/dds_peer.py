@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 from cyclonedds.core import Policy, Qos, WaitSet
 from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import float32, float64, int8, int32, sequence, uint8, uint32
+from cyclonedds.idl.types import array, bounded_str, float32, float64, int8, int32, sequence, uint8, uint32
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
@@ -91,7 +91,80 @@ class FilterInfo(IdlStruct, typename="nav2_msgs::msg::dds_::CostmapFilterInfo_")
     multiplier: float32 = 1.0
 
 
-TYPES: dict[str, type[IdlStruct]] = {"zone_grid": Grid, "costmap_filter_info": FilterInfo}
+if TYPE_CHECKING:
+    Gid24Data = list[int]
+    Gid16Data = list[int]
+    String256 = str
+else:
+    Gid24Data = array[uint8, 24]
+    Gid16Data = array[uint8, 16]
+    String256 = bounded_str[256]
+
+
+@dataclass
+class GidMsg(IdlStruct, typename="rmw_dds_common::msg::dds_::Gid_"):
+    data: Gid24Data = field(default_factory=lambda: [0] * 24)
+
+
+@dataclass
+class GidMsg16(IdlStruct, typename="rmw_dds_common::msg::dds_::Gid_"):
+    data: Gid16Data = field(default_factory=lambda: [0] * 16)
+
+
+if TYPE_CHECKING:
+    Gids = list[GidMsg]
+    Gids16 = list[GidMsg16]
+else:
+    Gids = sequence[GidMsg]
+    Gids16 = sequence[GidMsg16]
+
+
+@dataclass
+class NodeInfo(IdlStruct, typename="rmw_dds_common::msg::dds_::NodeEntitiesInfo_"):
+    node_namespace: String256 = ""
+    node_name: String256 = ""
+    reader_gid_seq: Gids = field(default_factory=list)
+    writer_gid_seq: Gids = field(default_factory=list)
+
+
+@dataclass
+class NodeInfo16(IdlStruct, typename="rmw_dds_common::msg::dds_::NodeEntitiesInfo_"):
+    node_namespace: String256 = ""
+    node_name: String256 = ""
+    reader_gid_seq: Gids16 = field(default_factory=list)
+    writer_gid_seq: Gids16 = field(default_factory=list)
+
+
+if TYPE_CHECKING:
+    NodeInfos = list[NodeInfo]
+    NodeInfos16 = list[NodeInfo16]
+else:
+    NodeInfos = sequence[NodeInfo]
+    NodeInfos16 = sequence[NodeInfo16]
+
+
+@dataclass
+class EntitiesInfo(IdlStruct, typename="rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_"):
+    """Humble's layout (24-byte gids)."""
+
+    gid: GidMsg = field(default_factory=GidMsg)
+    node_entities_info_seq: NodeInfos = field(default_factory=list)
+
+
+@dataclass
+class EntitiesInfo16(IdlStruct, typename="rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_"):
+    """Iron's and later layout (16-byte gids): `--gid-bytes 16`. Cyclone checks the bytes against the reader's
+    type before handing them over, so the reader must have the writer's layout."""
+
+    gid: GidMsg16 = field(default_factory=GidMsg16)
+    node_entities_info_seq: NodeInfos16 = field(default_factory=list)
+
+
+TYPES: dict[str, type[IdlStruct]] = {
+    "zone_grid": Grid,
+    "costmap_filter_info": FilterInfo,
+    "ros_discovery_info": EntitiesInfo,
+}
 
 
 class Raw:
@@ -144,6 +217,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--domain", type=int, required=True)
     parser.add_argument("--seconds", type=float, default=120.0)
+    parser.add_argument("--gid-bytes", type=int, choices=[24, 16], default=24)
     parser.add_argument("topics", nargs="+")
     args = parser.parse_args()
     # rmw_cyclonedds's readers carry no XTypes type information and are matched by type name; this one ignores
@@ -162,7 +236,9 @@ def main() -> None:
     waitset = WaitSet(participant)
     readers: list[tuple[str, DataReader[Any]]] = []
     for name in args.topics:
-        topic = Topic(participant, name, TYPES[name.rsplit("/", 1)[-1]])
+        short = name.rsplit("/", 1)[-1]
+        datatype = EntitiesInfo16 if short == "ros_discovery_info" and args.gid_bytes == 16 else TYPES[short]
+        topic = Topic(participant, name, datatype)
         topic.data_type = RawType  # pyright: ignore[reportAttributeAccessIssue]
         reader = DataReader(participant, topic, qos=qos)
         waitset.attach(reader)
@@ -180,6 +256,8 @@ def main() -> None:
                     "topic": name,
                     "writer_topic": writer.topic_name if writer else None,
                     "type_name": writer.type_name if writer else None,
+                    "writer_guid": str(writer.key) if writer else None,
+                    "participant_guid": str(writer.participant_key) if writer else None,
                     "qos": describe(writer.qos) if writer else {},
                     "cdr": base64.b64encode(sample.data).decode(),
                 }

@@ -26,6 +26,7 @@ import socket
 import subprocess
 import sys
 import threading
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -82,10 +83,19 @@ def domain_id() -> int:
 class DdsPeer:
     """tests/dds_peer.py as a child process; its samples as they arrive."""
 
-    def __init__(self, domain: int, *names: str) -> None:
+    def __init__(self, domain: int, *names: str, gid_bytes: int = 24) -> None:
         self.samples: list[dict[str, Any]] = []
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "tests.dds_peer", "--domain", str(domain), *names],
+            [
+                sys.executable,
+                "-m",
+                "tests.dds_peer",
+                "--domain",
+                str(domain),
+                "--gid-bytes",
+                str(gid_bytes),
+                *names,
+            ],
             cwd=REPO,
             stdout=subprocess.PIPE,
             text=True,
@@ -275,3 +285,53 @@ def test_with_the_broker_unreachable_the_grid_is_written_from_the_site_and_the_o
     said = [line for line in bridge.lines if "MQTT broker unreachable" in line]
     assert len(said) == 1, "\n".join(bridge.lines)
     assert not any("Traceback" in line for line in bridge.lines), "\n".join(bridge.lines)
+
+
+@pytest.mark.parametrize(("distro", "gid_size"), [("humble", 24), ("jazzy", 16)])
+def test_the_bridge_is_a_ros2_node_on_ros_discovery_info_in_rmw_dds_commons_bytes(
+    tmp_path: Path, distro: str, gid_size: int
+) -> None:
+    """What `ros2 node list` and `ros2 topic info -v` read: one ParticipantEntitiesInfo on ros_discovery_info
+    (no rt/ prefix, reliable, transient_local, depth 1, as rmw writes it), its participant's gid, one node
+    (/wsnav_ros2_bridge) whose writers are the two topics' writers; decoded with rosbags' rmw_dds_common of that
+    distribution (Humble's Gid is 24 bytes, the GUID and 8 zeros; Jazzy's 16)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    site_dir = slow_heartbeat_school(tmp_path)
+    site = load_site(site_dir)
+    domain = domain_id() + (4 if distro == "humble" else 5)
+    with BrokerThread(site_dir) as broker:  # only for its credentials; the bridge is sent to a dead port
+        creds = broker.credentials_dir / "robot1.json"
+        args = [*bridge_args(site, f"127.0.0.1:{free_port()}", creds, domain), "--ros-distro", distro]
+        bridge = WsnavChild(args, dict(os.environ))
+        try:
+            bridge.wait_for("zone bridge for site school", 60)
+            peer = DdsPeer(domain, "ros_discovery_info", GRID, INFO, gid_bytes=gid_size)
+            try:
+                wait_until(
+                    lambda: all(peer.of(t) for t in ("ros_discovery_info", GRID, INFO)),
+                    30,
+                    "all three topics",
+                )
+            finally:
+                peer.stop()
+        finally:
+            bridge.stop()
+    sample = peer.of("ros_discovery_info")[0]
+    assert sample["writer_topic"] == "ros_discovery_info"
+    assert sample["type_name"] == "rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_"
+    assert sample["qos"] == LATCHED, sample["qos"]
+    store = get_typestore(Stores.ROS2_HUMBLE if distro == "humble" else Stores.ROS2_JAZZY)
+    info = decode(store, sample, "rmw_dds_common/msg/ParticipantEntitiesInfo")
+
+    def gid(guid: str) -> bytes:
+        return uuid.UUID(guid).bytes.ljust(gid_size, b"\0")
+
+    assert bytes(info.gid.data) == gid(sample["participant_guid"])
+    [node] = info.node_entities_info_seq
+    assert (node.node_namespace, node.node_name) == ("/", "wsnav_ros2_bridge")
+    assert node.reader_gid_seq == []
+    writers = {gid(peer.of(t)[0]["writer_guid"]) for t in (GRID, INFO)}
+    assert {bytes(g.data) for g in node.writer_gid_seq} == writers
+    assert all(peer.of(t)[0]["participant_guid"] == sample["participant_guid"] for t in (GRID, INFO))
+    assert f"node /wsnav_ros2_bridge as {distro} sees it" in bridge.wait_for("zone bridge for site", 1)

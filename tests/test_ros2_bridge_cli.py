@@ -186,3 +186,22 @@ def test_the_dds_types_have_ros2_humbles_fields_in_order_and_round_trip_through_
         0.0,
         1.0,
     )
+
+
+def test_the_ros_discovery_info_layout_follows_ros_distro_or_the_option(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def distro(option: str | None = None) -> str:
+        args = argparse.Namespace(namespace="/wsn", frame="map", domain=0, ros_distro=option)
+        return ros2_options(args).distro
+
+    monkeypatch.delenv("ROS_DISTRO", raising=False)
+    assert distro() == "humble"
+    for name, layout in (("humble", "humble"), ("iron", "jazzy"), ("jazzy", "jazzy"), ("rolling", "jazzy")):
+        monkeypatch.setenv("ROS_DISTRO", name)
+        assert distro() == layout
+    assert distro("humble") == "humble", "the option wins"
+    monkeypatch.setenv("ROS_DISTRO", "foxy")
+    assert "ROS_DISTRO='foxy'" in error_line(capsys, argv())
+    monkeypatch.delenv("ROS_DISTRO")
+    assert "--ros-distro" in error_line(capsys, argv("--ros-distro", "foxy"))
