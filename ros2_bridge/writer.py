@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import Any
 
 from cyclonedds.core import DDSException, Policy, Qos
 from cyclonedds.domain import Domain, DomainParticipant
@@ -48,6 +49,11 @@ ENCLAVE_USER_DATA = b"enclave=/;"
 """The participant's USER_DATA as rmw sets it: ROS 2's graph reads the participant's security enclave from it."""
 GID_SIZE = {"humble": 24, "jazzy": 16}
 """rmw_dds_common's Gid: 24 bytes in Humble (the GUID and 8 zero bytes), 16 from Iron on."""
+ENTITIES_INFO_TYPES: dict[int, tuple[type[Any], type[Any], type[Any]]] = {
+    24: (Gid24, NodeEntitiesInfo24, ParticipantEntitiesInfo24),
+    16: (Gid16, NodeEntitiesInfo16, ParticipantEntitiesInfo16),
+}
+"""Gid, NodeEntitiesInfo and ParticipantEntitiesInfo for a Gid size."""
 
 
 @dataclass(frozen=True)
@@ -117,25 +123,13 @@ class ZoneGridWriter:
         def gid(entity: DomainParticipant | DataWriter) -> list[int]:
             return list(entity.guid.bytes.ljust(size, b"\0"))
 
-        writers = [gid(self._grid), gid(self._info)]
-        if size == 24:
-            info24 = ParticipantEntitiesInfo24(
-                Gid24(gid(self.participant)),
-                [NodeEntitiesInfo24(NODE_NAMESPACE, NODE_NAME, [], [Gid24(w) for w in writers])],
-            )
-            self._entities = DataWriter(
-                self.participant, Topic(self.participant, DISCOVERY_TOPIC, ParticipantEntitiesInfo24), qos=qos
-            )
-            self._entities.write(info24)
-        else:
-            info16 = ParticipantEntitiesInfo16(
-                Gid16(gid(self.participant)),
-                [NodeEntitiesInfo16(NODE_NAMESPACE, NODE_NAME, [], [Gid16(w) for w in writers])],
-            )
-            self._entities = DataWriter(
-                self.participant, Topic(self.participant, DISCOVERY_TOPIC, ParticipantEntitiesInfo16), qos=qos
-            )
-            self._entities.write(info16)
+        gid_type, node_type, info_type = ENTITIES_INFO_TYPES[size]
+        writers = [gid_type(gid(self._grid)), gid_type(gid(self._info))]
+        node = node_type(NODE_NAMESPACE, NODE_NAME, [], writers)
+        self._entities = DataWriter(
+            self.participant, Topic(self.participant, DISCOVERY_TOPIC, info_type), qos=qos
+        )
+        self._entities.write(info_type(gid_type(gid(self.participant)), [node]))
 
     def grid_message(self, feed: ZoneFeed, now: float) -> OccupancyGrid:
         stamp = ros_time(now)

@@ -12,9 +12,11 @@ same MQTT messages and encoded by ros_bridge's ZoneGridCodec, which is what `wsn
 blocked over MQTT shows up lethal in the next grid. Also: the grid is written before the broker answers, and an
 unreachable broker is said once.
 
-Not checked: no ROS 2 and no Nav2 run here. No rclcpp/rclpy subscriber, no Fast DDS (Humble's default rmw)
-peer, and no StaticLayer or KeepoutFilter reading the grid: that Nav2 turns these values into the costs
-docs/ros.md says is read from Nav2's source, not run.
+Also: the bridge as a ROS 2 node on ros_discovery_info, in Humble's and Jazzy's rmw_dds_common bytes.
+
+Not checked here: no ROS 2 and no Nav2 run here. No rclcpp/rclpy subscriber and no StaticLayer or KeepoutFilter
+reading the grid: that Nav2 turns these values into the costs docs/ros.md says is read from Nav2's source, not
+run. The DDS that ROS 2 ships (Cyclone 0.10, Fast DDS 2.9) is tests/test_ros2_dds_peers.py's.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import os
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import uuid
 from collections.abc import Iterator
@@ -80,32 +83,29 @@ def domain_id() -> int:
     return 100 + os.getpid() % 100
 
 
-class DdsPeer:
-    """tests/dds_peer.py as a child process; its samples as they arrive."""
+class NativePeer:
+    """A peer program as a child process printing JSON lines: `{"ready": true}`, then one line per sample, kept
+    in `samples` as they arrive; its stderr goes to a file (a crash's last words, without a pipe to fill)."""
 
-    def __init__(self, domain: int, *names: str, gid_bytes: int = 24) -> None:
+    def __init__(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> None:
+        self.name = name
         self.samples: list[dict[str, Any]] = []
+        self._err = tempfile.TemporaryFile("w+")  # noqa: SIM115  # lives as long as the peer; closed by the GC
         self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "tests.dds_peer",
-                "--domain",
-                str(domain),
-                "--gid-bytes",
-                str(gid_bytes),
-                *names,
-            ],
+            argv,
             cwd=REPO,
             stdout=subprocess.PIPE,
+            stderr=self._err,
             text=True,
+            env=env,
+            start_new_session=True,
         )
         self._ready = threading.Event()
         self._pump = threading.Thread(target=self._read, daemon=True)
         self._pump.start()
         if not self._ready.wait(30):
             self.stop()
-            pytest.fail("the DDS peer did not start")
+            pytest.fail(f"the {name} peer did not start: {self.stderr()}")
 
     def _read(self) -> None:
         assert self.proc.stdout is not None
@@ -116,13 +116,40 @@ class DdsPeer:
             else:
                 self.samples.append(item)
 
+    def stderr(self) -> str:
+        self._err.seek(0)
+        return self._err.read()[-2000:]
+
+    def stop(self) -> int:
+        """SIGTERM, then the exit code (-11: it had died of SIGSEGV)."""
+        if self.proc.poll() is None:
+            self.proc.terminate()
+        try:
+            code = self.proc.wait(10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            code = self.proc.wait(10)
+        self._pump.join(5)
+        return code
+
+
+class DdsPeer(NativePeer):
+    """tests/dds_peer.py (Cyclone 11 in Python) as a child process; its samples as they arrive."""
+
+    def __init__(self, domain: int, *names: str, gid_bytes: int = 24) -> None:
+        argv = [
+            sys.executable,
+            "-m",
+            "tests.dds_peer",
+            "--domain",
+            str(domain),
+            "--gid-bytes",
+            str(gid_bytes),
+        ]
+        super().__init__("Cyclone 11 (tests/dds_peer.py)", [*argv, *names])
+
     def of(self, topic: str) -> list[dict[str, Any]]:
         return [s for s in list(self.samples) if s["topic"] == topic]
-
-    def stop(self) -> None:
-        self.proc.terminate()
-        self.proc.wait(10)
-        self._pump.join(5)
 
 
 def decode(store: Any, sample: dict[str, Any], msgtype: str) -> Any:

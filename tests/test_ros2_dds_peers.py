@@ -17,12 +17,10 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import json
 import os
 import shutil
 import subprocess
 import tempfile
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -33,7 +31,7 @@ from numpy.typing import NDArray
 
 from tests.conftest import REPO, require_tool
 from tests.ros_fixtures import WsnavChild, slow_heartbeat_school, wait_until
-from tests.test_ros2_bridge import bridge_args, domain_id, expected_grid
+from tests.test_ros2_bridge import NativePeer, bridge_args, domain_id, expected_grid
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.ros_bridge.zone_feed import ZoneFeed
 from wsnav.ros_bridge.zone_grid import ZoneGridCodec
@@ -99,48 +97,6 @@ def peer_binaries() -> Path:
     return out
 
 
-class NativePeer:
-    """A peer binary as a child process; its JSON lines (one per grid) as they arrive."""
-
-    def __init__(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> None:
-        self.name = name
-        self.grids: list[dict[str, Any]] = []
-        self.proc = subprocess.Popen(
-            argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, start_new_session=True
-        )
-        self._ready = threading.Event()
-        self._pump = threading.Thread(target=self._read, daemon=True)
-        self._pump.start()
-        if not self._ready.wait(30):
-            self.stop()
-            pytest.fail(f"the {name} peer did not start: {self.stderr()}")
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            item = json.loads(line)
-            if item.get("ready"):
-                self._ready.set()
-            else:
-                self.grids.append(item)
-
-    def stderr(self) -> str:
-        if self.proc.poll() is None or self.proc.stderr is None:
-            return ""
-        return self.proc.stderr.read()[-2000:]
-
-    def stop(self) -> int:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-        try:
-            code = self.proc.wait(10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            code = self.proc.wait(10)
-        self._pump.join(5)
-        return code
-
-
 def fnv1a(data: NDArray[np.int8]) -> int:
     """The peers' hash of a grid's cells (FNV-1a, 32 bit, over the int8 cells as bytes)."""
     h = 2166136261
@@ -203,11 +159,11 @@ def test_cyclone_0_10_and_fast_dds_2_9_peers_live_beside_the_bridge_and_get_ever
 
         def all_got(h: int, among: list[NativePeer]) -> bool:
             assert_alive(peers)
-            return all(p.grids and p.grids[-1]["fnv1a"] == h for p in among)
+            return all(p.samples and p.samples[-1]["fnv1a"] == h for p in among)
 
         wait_until(lambda: all_got(first, readers(peers)), 30, "the first grid at every reader")
         for p in readers(peers):
-            g = p.grids[-1]
+            g = p.samples[-1]
             assert (g["width"], g["height"], g["length"], g["frame_id"]) == (
                 frame.width, frame.height, frame.width * frame.height, "map"
             ), p.name  # fmt: skip
@@ -232,7 +188,7 @@ def test_cyclone_0_10_and_fast_dds_2_9_peers_live_beside_the_bridge_and_get_ever
         peers += late
         wait_until(lambda: all_got(blocked, late), 30, "the latest grid at every late reader")
         for p in late:
-            assert [g["fnv1a"] for g in p.grids] == [blocked], f"{p.name}: the latest grid only"
+            assert [g["fnv1a"] for g in p.samples] == [blocked], f"{p.name}: the latest grid only"
         assert_alive(peers)
         assert bridge.proc.poll() is None, "\n".join(bridge.lines)
     finally:
@@ -319,8 +275,8 @@ def test_a_localhost_only_robot_gets_the_grid_from_the_bridge_with_no_cyclonedds
             assert ("this host only" if "ROS_LOCALHOST_ONLY" in bridge_env else "range LOCALHOST") in line, (
                 line
             )
-            wait_until(lambda: bool(peers[0].grids), 30, f"the grid at the {robot} robot")
-            assert peers[0].grids[-1]["fnv1a"] == first
+            wait_until(lambda: bool(peers[0].samples), 30, f"the grid at the {robot} robot")
+            assert peers[0].samples[-1]["fnv1a"] == first
             assert_alive(peers)
         finally:
             codes = {p.name: p.stop() for p in peers}
