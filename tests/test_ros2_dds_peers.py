@@ -243,6 +243,7 @@ JAZZY_LOCALHOST = (
     ("bridge_env", "robot"),
     [
         ({"ROS_LOCALHOST_ONLY": "1"}, "humble"),
+        ({"ROS_LOCALHOST_ONLY": "1"}, "humble, Fast DDS"),
         ({"ROS_LOCALHOST_ONLY": "1"}, "jazzy"),
         ({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}, "jazzy"),
     ],
@@ -250,8 +251,9 @@ JAZZY_LOCALHOST = (
 def test_a_localhost_only_robot_gets_the_grid_from_the_bridge_with_no_cyclonedds_uri_of_its_own(
     tmp_path: Path, peer_binaries: Path, bridge_env: dict[str, str], robot: str
 ) -> None:
-    """The robot's DDS is a Cyclone 0.10 reader configured as its rmw configures it; the bridge gets only ROS 2's
-    variables (ROS_DOMAIN_ID too: no --domain). With Cyclone's default configuration (before) neither robot found
+    """The robot's DDS is a Cyclone 0.10 reader configured as its rmw_cyclonedds configures it, or a Fast DDS 2.9
+    reader with the transports Humble's rmw_fastrtps sets for ROS_LOCALHOST_ONLY=1; the bridge gets only ROS 2's
+    variables (ROS_DOMAIN_ID too: no --domain). With Cyclone's default configuration (before) no robot found
     the bridge. Not checked: that a host elsewhere cannot (one machine here; "localhost" means any process on it)."""
     site_dir = slow_heartbeat_school(tmp_path)
     site = load_site(site_dir)
@@ -259,11 +261,13 @@ def test_a_localhost_only_robot_gets_the_grid_from_the_bridge_with_no_cyclonedds
     reference = ZoneFeed(site.spec, GridFrame.of_grid(site.grid))
     reference.take([], 0.0)
     first = fnv1a(expected_grid(ZoneGridCodec(), reference))
-    robot_env = {
-        **clean_env(),
-        "CYCLONEDDS_URI": HUMBLE_LOCALHOST_ONLY if robot == "humble" else JAZZY_LOCALHOST,
-    }
-    reader = [str(peer_binaries / "cyclone_peer_typeinfo"), "reader", str(domain), GRID, "10"]
+    if robot == "humble, Fast DDS":  # Humble's default rmw reads ROS_LOCALHOST_ONLY itself (fastdds_peer.cpp)
+        robot_env = {**clean_env(), "ROS_LOCALHOST_ONLY": "1"}
+        reader = [str(peer_binaries / "fastdds_peer"), str(domain), GRID, "10"]
+    else:
+        uri = HUMBLE_LOCALHOST_ONLY if robot == "humble" else JAZZY_LOCALHOST
+        robot_env = {**clean_env(), "CYCLONEDDS_URI": uri}
+        reader = [str(peer_binaries / "cyclone_peer_typeinfo"), "reader", str(domain), GRID, "10"]
     peers = [NativePeer(f"{robot} robot, localhost only", reader, robot_env)]
     with BrokerThread(site_dir) as broker:  # for the credentials; the bridge is sent to a dead port
         args = bridge_args(site, "127.0.0.1:9", broker.credentials_dir / "robot1.json", domain)

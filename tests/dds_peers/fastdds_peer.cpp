@@ -2,12 +2,15 @@
 // Humble's default rmw (rmw_fastrtps_cpp) uses it. The reader is set up as rmw_fastrtps_cpp sets up a
 // subscription's: a TopicDataType of its own (no key, no type object or type information sent: rmw's TypeSupport
 // turns both off), the default subscriber, PREALLOCATED_WITH_REALLOC history memory, reliable, transient_local,
-// keep-last DEPTH, and a participant with "enclave=/;" user data. One JSON line per sample, as cyclone_peer.c.
+// keep-last DEPTH, and a participant with "enclave=/;" user data. ROS_LOCALHOST_ONLY=1 sets the participant's
+// transports as Humble's rmw_fastrtps does: UDPv4 on 127.0.0.1 only, and shared memory. One JSON line per
+// sample, as cyclone_peer.c.
 #include <atomic>
 #include <chrono>
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
+#include <memory>
 #include <string>
 #include <thread>
 #include <vector>
@@ -22,6 +25,8 @@
 #include <fastdds/dds/topic/Topic.hpp>
 #include <fastdds/dds/topic/TopicDataType.hpp>
 #include <fastdds/dds/topic/TypeSupport.hpp>
+#include <fastdds/rtps/transport/UDPv4TransportDescriptor.h>
+#include <fastdds/rtps/transport/shared_mem/SharedMemTransportDescriptor.h>
 
 using namespace eprosima::fastdds::dds;
 using eprosima::fastrtps::rtps::InstanceHandle_t;
@@ -85,6 +90,14 @@ int main(int argc, char **argv) {
   std::string enclave = "enclave=/;";
   pqos.user_data().setValue(std::vector<eprosima::fastrtps::rtps::octet>(enclave.begin(), enclave.end()));
   pqos.name("wsnav_fastdds_peer");
+  const char *localhost_only = std::getenv("ROS_LOCALHOST_ONLY");
+  if (localhost_only && std::string(localhost_only) == "1") {
+    pqos.transport().use_builtin_transports = false;
+    auto udp = std::make_shared<eprosima::fastdds::rtps::UDPv4TransportDescriptor>();
+    udp->interfaceWhiteList.emplace_back("127.0.0.1");
+    pqos.transport().user_transports.push_back(udp);
+    pqos.transport().user_transports.push_back(std::make_shared<eprosima::fastdds::rtps::SharedMemTransportDescriptor>());
+  }
   DomainParticipant *pp = factory->create_participant(std::atoi(argv[1]), pqos);
   if (!pp) return 1;
   TypeSupport type(new GridType());
