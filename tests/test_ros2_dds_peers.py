@@ -197,32 +197,38 @@ def test_cyclone_0_10_and_fast_dds_2_9_peers_live_beside_the_bridge_and_get_ever
     assert set(codes.values()) == {0}, f"exit codes after SIGTERM (-11 is SIGSEGV): {codes}"
 
 
-def test_the_bridge_announces_the_grid_type_as_cyclone_0_10_s_idlc_does(peer_binaries: Path) -> None:
-    """Same type identifiers as Debian's idlc (0.10.2) gives Humble's OccupancyGrid: a 0.10 reader with type
-    information matches the bridge without looking anything up, and nothing the bridge announces is a type
-    kind 0.10 cannot read (TK_INT8/TK_UINT8)."""
+@pytest.mark.parametrize(
+    ("name", "ours"),
+    [
+        ("nav_msgs_msg_dds__OccupancyGrid_", "OccupancyGrid"),
+        ("nav2_msgs_msg_dds__CostmapFilterInfo_", "CostmapFilterInfo"),
+        ("rmw_dds_common_msg_dds__ParticipantEntitiesInfo_", "ParticipantEntitiesInfo24"),
+    ],
+)
+def test_the_bridge_announces_its_types_as_cyclone_0_10_s_idlc_does(
+    peer_binaries: Path, name: str, ours: str
+) -> None:
+    """Same type identifiers as Debian's idlc (0.10.2) gives Humble's messages (int8, uint8, uint8 arrays, bounded
+    strings): a 0.10 reader with type information matches the bridge without looking anything up, and nothing
+    the bridge announces is a type kind 0.10 cannot read (TK_INT8/TK_UINT8)."""
     import re
 
     import cyclonedds.idl._typesupport.DDS.XTypes as xt  # pyright: ignore[reportMissingTypeStubs]
     from cyclonedds.idl._support import Endianness
 
-    from wsnav.ros2_bridge.messages import OccupancyGrid
+    from wsnav.ros2_bridge import messages
 
     source = (peer_binaries / "typeinfo" / "ros2_grid.c").read_text()
-    block = re.search(
-        r"#define TYPE_INFO_CDR_nav_msgs_msg_dds__OccupancyGrid_ \(unsigned char \[\]\)\{(.*?)\}",
-        source,
-        re.S,
-    )
+    block = re.search(rf"#define TYPE_INFO_CDR_{name} \(unsigned char \[\]\)\{{(.*?)\}}", source, re.S)
     assert block is not None
-    ours = OccupancyGrid.__idl__.get_type_info()
-    header = ours.serialize(endianness=Endianness.Little, use_version_2=True)[:4]
+    info = getattr(messages, ours).__idl__.get_type_info()
+    header = info.serialize(endianness=Endianness.Little, use_version_2=True)[:4]
     theirs = xt.TypeInformation.deserialize(
         header + bytes(int(x, 16) for x in re.findall(r"0x([0-9a-f]{2})", block.group(1)))
     )
-    assert ours.minimal.typeid_with_size == theirs.minimal.typeid_with_size
-    assert ours.complete.typeid_with_size == theirs.complete.typeid_with_size
-    deps: list[Any] = [ours.complete.dependent_typeids, theirs.complete.dependent_typeids]
+    assert info.minimal.typeid_with_size == theirs.minimal.typeid_with_size
+    assert info.complete.typeid_with_size == theirs.complete.typeid_with_size
+    deps: list[Any] = [info.complete.dependent_typeids, theirs.complete.dependent_typeids]
     assert sorted(map(repr, deps[0])) == sorted(map(repr, deps[1]))
 
 
