@@ -105,17 +105,27 @@ def fnv1a(data: NDArray[np.int8]) -> int:
     return h
 
 
-def start_peers(binaries: Path, domain: int, env: dict[str, str] | None = None) -> list[NativePeer]:
-    """The three Cyclone 0.10 peers and the Fast DDS reader; readers keep 10 grids (so extra ones would show)."""
+def start_peers(
+    binaries: Path, domain: int, env: dict[str, str], into: list[NativePeer], bare: bool = True
+) -> list[NativePeer]:
+    """The Cyclone 0.10 readers (with and without type information), a bare Cyclone 0.10 participant (unless not
+    `bare`) and the Fast DDS reader, each added to `into` as it starts (so the test stops every one it started);
+    readers keep 10 grids, so extra ones would show. Returns the ones started here."""
     d = str(domain)
-    return [
-        NativePeer("Cyclone 0.10 reader with type information",
-                   [str(binaries / "cyclone_peer_typeinfo"), "reader", d, GRID, "10"], env),
-        NativePeer("Cyclone 0.10 reader without type information",
-                   [str(binaries / "cyclone_peer_no_typeinfo"), "reader", d, GRID, "10"], env),
-        NativePeer("Cyclone 0.10 bare participant", [str(binaries / "cyclone_peer_typeinfo"), "bare", d], env),
-        NativePeer("Fast DDS 2.9 reader as rmw_fastrtps", [str(binaries / "fastdds_peer"), d, GRID, "10"], env),
+    specs = [
+        ("Cyclone 0.10 reader with type information",
+         [str(binaries / "cyclone_peer_typeinfo"), "reader", d, GRID, "10"]),
+        ("Cyclone 0.10 reader without type information",
+         [str(binaries / "cyclone_peer_no_typeinfo"), "reader", d, GRID, "10"]),
+        ("Cyclone 0.10 bare participant", [str(binaries / "cyclone_peer_typeinfo"), "bare", d]),
+        ("Fast DDS 2.9 reader as rmw_fastrtps", [str(binaries / "fastdds_peer"), d, GRID, "10"]),
     ]  # fmt: skip
+    started: list[NativePeer] = []
+    for name, argv in specs:
+        if bare or "bare" not in name:
+            started.append(NativePeer(name, argv, env))
+            into.append(started[-1])
+    return started
 
 
 def readers(peers: list[NativePeer]) -> list[NativePeer]:
@@ -149,12 +159,14 @@ def test_cyclone_0_10_and_fast_dds_2_9_peers_live_beside_the_bridge_and_get_ever
     reference = ZoneFeed(site.spec, frame)
     reference.take([], 0.0)
     first = fnv1a(expected_grid(codec, reference))
-    peers = start_peers(peer_binaries, domain, clean_env())  # early joiners: there before the bridge
-    bridge = WsnavChild(
-        bridge_args(site, f"{broker.host}:{broker.port}", broker.credentials_dir / "robot1.json", domain),
-        clean_env(),
-    )
+    peers: list[NativePeer] = []
+    bridge: WsnavChild | None = None
     try:
+        start_peers(peer_binaries, domain, clean_env(), peers)  # early joiners: there before the bridge
+        bridge = WsnavChild(
+            bridge_args(site, f"{broker.host}:{broker.port}", broker.credentials_dir / "robot1.json", domain),
+            clean_env(),
+        )
         bridge.wait_for("MQTT broker connected", 60)
 
         def all_got(h: int, among: list[NativePeer]) -> bool:
@@ -184,17 +196,17 @@ def test_cyclone_0_10_and_fast_dds_2_9_peers_live_beside_the_bridge_and_get_ever
         finally:
             link.close()
 
-        late = [p for p in start_peers(peer_binaries, domain, clean_env()) if "bare" not in p.name]
-        peers += late
+        late = start_peers(peer_binaries, domain, clean_env(), peers, bare=False)
         wait_until(lambda: all_got(blocked, late), 30, "the latest grid at every late reader")
         for p in late:
             assert [g["fnv1a"] for g in p.samples] == [blocked], f"{p.name}: the latest grid only"
         assert_alive(peers)
         assert bridge.proc.poll() is None, "\n".join(bridge.lines)
     finally:
-        codes = {p.name: p.stop() for p in peers}
-        bridge.stop()
-    assert set(codes.values()) == {0}, f"exit codes after SIGTERM (-11 is SIGSEGV): {codes}"
+        codes = [(p.name, p.stop()) for p in peers]
+        if bridge is not None:
+            bridge.stop()
+    assert all(code == 0 for _, code in codes), f"exit codes after SIGTERM (-11 is SIGSEGV): {codes}"
 
 
 @pytest.mark.parametrize(
@@ -274,10 +286,10 @@ def test_a_localhost_only_robot_gets_the_grid_from_the_bridge_with_no_cyclonedds
         uri = HUMBLE_LOCALHOST_ONLY if robot == "humble" else JAZZY_LOCALHOST
         robot_env = {**clean_env(), "CYCLONEDDS_URI": uri}
         reader = [str(peer_binaries / "cyclone_peer_typeinfo"), "reader", str(domain), GRID, "10"]
-    peers = [NativePeer(f"{robot} robot, localhost only", reader, robot_env)]
     with BrokerThread(site_dir) as broker:  # for the credentials; the bridge is sent to a dead port
         args = bridge_args(site, "127.0.0.1:9", broker.credentials_dir / "robot1.json", domain)
         args = args[: args.index("--domain")] + args[args.index("--domain") + 2 :]
+        peers = [NativePeer(f"{robot} robot, localhost only", reader, robot_env)]
         bridge = WsnavChild(args, {**clean_env(), **bridge_env, "ROS_DOMAIN_ID": str(domain)})
         try:
             line = bridge.wait_for("zone bridge for site school", 60)
