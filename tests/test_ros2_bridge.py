@@ -22,23 +22,26 @@ run. The DDS that ROS 2 ships (Cyclone 0.10, Fast DDS 2.9) is tests/test_ros2_dd
 from __future__ import annotations
 
 import base64
-import json
 import os
 import socket
-import subprocess
-import sys
-import tempfile
-import threading
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
-from numpy.typing import NDArray
 
-from tests.conftest import REPO
+from tests.ros2_fixtures import (
+    GRID,
+    INFO,
+    LATCHED,
+    DdsPeer,
+    bridge_args,
+    decode,
+    domain_id,
+    expected_grid,
+    typestore,
+)
 from tests.ros_fixtures import WsnavChild, slow_heartbeat_school, wait_until
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.ros_bridge.zone_feed import ZoneFeed
@@ -51,128 +54,12 @@ from wsnav.schemas.site import Site, load_site
 from wsnav.zones.cost_values import LETHAL_OBSTACLE
 from wsnav.zones.geometry import GridFrame
 
-GRID = "rt/wsn/zone_grid"
-INFO = "rt/wsn/costmap_filter_info"
-COSTMAP_FILTER_INFO_MSG = """\
-std_msgs/Header header
-uint8 type
-string filter_mask_topic
-float32 base
-float32 multiplier
-"""
-"""nav2_msgs/msg/CostmapFilterInfo.msg in Nav2's humble branch, comments left out."""
-LATCHED = {
-    "reliability": "RELIABLE",
-    "durability": "TRANSIENT_LOCAL",
-    "history": ["KEEP_LAST", 1],
-    "data_representation": ["XCDR1"],
-}
-"""What the matched writer must announce: Nav2's map QoS, in the one representation Humble's rmw accepts."""
-
-
-def typestore() -> Any:
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    store.register(get_types_from_msg(COSTMAP_FILTER_INFO_MSG, "nav2_msgs/msg/CostmapFilterInfo"))
-    return store
-
-
-def domain_id() -> int:
-    """A domain of this test run's own, so no other DDS traffic on the machine mixes in."""
-    return 100 + os.getpid() % 100
-
-
-class NativePeer:
-    """A peer program as a child process printing JSON lines: `{"ready": true}`, then one line per sample, kept
-    in `samples` as they arrive; its stderr goes to a file (a crash's last words, without a pipe to fill)."""
-
-    def __init__(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> None:
-        self.name = name
-        self.samples: list[dict[str, Any]] = []
-        self._err = tempfile.TemporaryFile("w+")  # noqa: SIM115  # lives as long as the peer; closed by the GC
-        self.proc = subprocess.Popen(
-            argv,
-            cwd=REPO,
-            stdout=subprocess.PIPE,
-            stderr=self._err,
-            text=True,
-            env=env,
-            start_new_session=True,
-        )
-        self._ready = threading.Event()
-        self._pump = threading.Thread(target=self._read, daemon=True)
-        self._pump.start()
-        if not self._ready.wait(30):
-            self.stop()
-            pytest.fail(f"the {name} peer did not start: {self.stderr()}")
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            item = json.loads(line)
-            if item.get("ready"):
-                self._ready.set()
-            else:
-                self.samples.append(item)
-
-    def stderr(self) -> str:
-        self._err.seek(0)
-        return self._err.read()[-2000:]
-
-    def stop(self) -> int:
-        """SIGTERM, then the exit code (-11: it had died of SIGSEGV)."""
-        if self.proc.poll() is None:
-            self.proc.terminate()
-        try:
-            code = self.proc.wait(10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            code = self.proc.wait(10)
-        self._pump.join(5)
-        return code
-
-
-class DdsPeer(NativePeer):
-    """tests/dds_peer.py (Cyclone 11 in Python) as a child process; its samples as they arrive."""
-
-    def __init__(self, domain: int, *names: str, gid_bytes: int = 24) -> None:
-        argv = [
-            sys.executable,
-            "-m",
-            "tests.dds_peer",
-            "--domain",
-            str(domain),
-            "--gid-bytes",
-            str(gid_bytes),
-        ]
-        super().__init__("Cyclone 11 (tests/dds_peer.py)", [*argv, *names])
-
-    def of(self, topic: str) -> list[dict[str, Any]]:
-        return [s for s in list(self.samples) if s["topic"] == topic]
-
-
-def decode(store: Any, sample: dict[str, Any], msgtype: str) -> Any:
-    return store.deserialize_cdr(base64.b64decode(sample["cdr"]), msgtype)
-
-
-def expected_grid(codec: ZoneGridCodec, feed: ZoneFeed) -> NDArray[np.int8]:
-    """What `wsnav ros bridge` (ROS 1) serves for these zone states: ZoneBridgeNode.full_grid_message's data."""
-    return codec.encode(feed.costs).ravel()
-
 
 @pytest.fixture
 def school_broker(tmp_path: Path) -> Iterator[tuple[Site, BrokerThread]]:
     site_dir = slow_heartbeat_school(tmp_path)
     with BrokerThread(site_dir) as broker:
         yield load_site(site_dir), broker
-
-
-def bridge_args(site: Site, broker: str, credentials: Path, domain: int) -> list[str]:
-    return [
-        "ros2", "bridge", "--site", str(site.path), "--broker", broker, "--credentials", str(credentials),
-        "--domain", str(domain), "--log-level", "info",
-    ]  # fmt: skip
 
 
 def test_the_zone_grid_reaches_a_late_ros2_subscriber_with_ros2_names_qos_and_the_ros1_bridges_values(

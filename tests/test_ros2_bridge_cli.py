@@ -13,7 +13,7 @@ import pytest
 
 from tests.cli_fixtures import error_line
 from tests.conftest import SCHOOL
-from tests.test_ros2_bridge import typestore
+from tests.ros2_fixtures import typestore
 from wsnav.ros2_bridge.bridge import ros2_options
 from wsnav.ros2_bridge.discovery import Discovery, cyclone_config, discovery_from_env
 

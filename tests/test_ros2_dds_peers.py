@@ -30,8 +30,8 @@ import pytest
 from numpy.typing import NDArray
 
 from tests.conftest import REPO, require_tool
+from tests.ros2_fixtures import NativePeer, bridge_args, domain_id, expected_grid
 from tests.ros_fixtures import WsnavChild, slow_heartbeat_school, wait_until
-from tests.test_ros2_bridge import NativePeer, bridge_args, domain_id, expected_grid
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.ros_bridge.zone_feed import ZoneFeed
 from wsnav.ros_bridge.zone_grid import ZoneGridCodec
