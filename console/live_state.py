@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -19,6 +20,8 @@ from wsnav.console.site_view import Key, SiteView
 from wsnav.runtime.bus import Bus
 from wsnav.runtime.clock import Clock
 from wsnav.schemas import topics
+
+log = logging.getLogger(__name__)
 
 BATCH_S = 0.05
 TICK_S = 1.0
@@ -63,6 +66,8 @@ class LiveState:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="console-mqtt", daemon=True)
         self.connected = bus.connected
+        self.failed: str | None = None
+        """Why the bus thread stopped, if it did: the page then says the console is blind."""
         self.messages = 0
         for flt in subscriptions(view.site.name):
             bus.subscribe(flt)
@@ -76,10 +81,18 @@ class LiveState:
 
     # -- pages ---------------------------------------------------------------------------------------------
 
+    @property
+    def link_up(self) -> bool:
+        """The broker is connected and the thread that reads it still runs: what the page's banner shows."""
+        started = self._thread.ident is not None
+        return self.connected and self.failed is None and (not started or self._thread.is_alive())
+
     def snapshot(self) -> dict[str, Any]:
         with self.lock:
             snap = self.view.snapshot(self.clock.now())
-        snap["broker_connected"] = self.connected
+        snap["broker_connected"] = self.link_up
+        if self.failed is not None:
+            snap["link_error"] = self.failed
         return snap
 
     def open_feed(self, loop: asyncio.AbstractEventLoop) -> PageFeed:
@@ -105,6 +118,16 @@ class LiveState:
     # -- the bus thread ------------------------------------------------------------------------------------
 
     def _run(self) -> None:
+        try:
+            self._loop()
+        except (
+            BaseException
+        ) as exc:  # a bug of ours: say so on every page at once rather than freeze silently
+            self.failed = f"the console stopped reading the broker ({type(exc).__name__}: {exc}); restart it"
+            log.exception("console-mqtt: %s", self.failed)
+            self._broadcast({"type": "link", "broker_connected": False, "link_error": self.failed})
+
+    def _loop(self) -> None:
         dirty: set[Key] = set()
         zone_states: dict[str, str] = {}
         fresh: dict[str, bool] = {}

@@ -34,6 +34,11 @@ Key = tuple[Kind, str]
 TRAIL_S = 300.0
 """How much of each robot's way the console keeps (and the page draws)."""
 TRAIL_STEP_M = 0.05
+TRAIL_POINTS = 1500
+"""At most this many points per trail (5 per second for TRAIL_S): a robot credential sending statuses as fast
+as it can cannot grow the page's state without limit."""
+DROP_LOG_INTERVAL_S = 10.0
+"""At most one log line per drop reason in this many seconds; every drop is counted in `dropped`."""
 log = logging.getLogger(__name__)
 
 
@@ -54,7 +59,9 @@ class NodeView:
 class RobotView:
     status: RobotStatus | None = None
     heard_at: float | None = None
-    trail: collections.deque[tuple[float, float, float]] = field(default_factory=collections.deque)
+    trail: collections.deque[tuple[float, float, float]] = field(
+        default_factory=lambda: collections.deque(maxlen=TRAIL_POINTS)
+    )
 
 
 @dataclass
@@ -79,44 +86,64 @@ class SiteView:
         """The robots' own zone layer, fed the same messages: a zone's state is what the robots make of it."""
         self.dropped: collections.Counter[str] = collections.Counter()
         self.last_drop: str | None = None
-        self._logged: dict[str, str] = {}
-        """topic -> the last drop logged for it: one line per sender and problem, not one per message."""
+        self._logged_at: dict[str, float] = {}
+        """reason -> when a drop of it was last logged (receipt time): one line per reason and interval."""
+        self._unlogged: collections.Counter[str] = collections.Counter()
 
     # -- intake --------------------------------------------------------------------------------------------
 
     def apply(self, topic: str, payload: bytes, received_at: float) -> set[Key]:
-        """Take one message in; the entries it changed (none for a message that is dropped, counted why)."""
+        """Take one message in; the entries it changed (none for a message that is dropped, counted why).
+
+        Never raises: whatever one message does (nested JSON, a zone the site lacks, a bug of ours), it is
+        dropped, counted and logged, and the next message is read (no message may stop the console's intake)."""
         try:
-            parsed = topics.parse(topic)
-            if parsed is None or parsed.site != self.site.name:
-                return self._drop(f"not a topic of site {self.site.name}: {topic}")
-            if parsed.kind == "node_info" and parsed.node is not None:
-                return self._node_info(parsed.node, payload, received_at)
-            if parsed.kind == "zone_state" and parsed.node is not None:
-                return self._zone_state(parsed.node, parse_payload(ZoneState, payload), received_at)
-            if parsed.kind == "node_status" and parsed.node is not None:
-                return self._node_status(parsed.node, payload, received_at)
-            if parsed.kind == "robot_status" and parsed.robot is not None:
-                status = parse_payload(RobotStatus, payload, max_bytes=MAX_OPERATOR_PAYLOAD_BYTES)
-                return self._robot_status(parsed.robot, status, received_at)
-            if parsed.kind == "operator_block" and parsed.block_id is not None:
-                return self._block(parsed.block_id, payload, received_at)
+            return self._apply(topic, payload, received_at)
         except PayloadError as exc:
-            return self._drop(f"{topic}: {exc}", topic)
+            return self._drop("invalid", f"{topic}: {exc}", received_at)
+        except Exception as exc:  # the intake boundary: one message must not stop the reader
+            return self._drop("internal_error", f"{topic}: {type(exc).__name__}: {exc}"[:300], received_at)
+
+    def _apply(self, topic: str, payload: bytes, received_at: float) -> set[Key]:
+        parsed = topics.parse(topic)
+        if parsed is None or parsed.site != self.site.name:
+            return self._drop("wrong_topic", f"not a topic of site {self.site.name}: {topic}", received_at)
+        if parsed.kind == "node_info" and parsed.node is not None:
+            return self._node_info(parsed.node, payload, received_at)
+        if parsed.kind == "zone_state" and parsed.node is not None:
+            return self._zone_state(parsed.node, parse_payload(ZoneState, payload), received_at)
+        if parsed.kind == "node_status" and parsed.node is not None:
+            return self._node_status(parsed.node, payload, received_at)
+        if parsed.kind == "robot_status" and parsed.robot is not None:
+            status = parse_payload(RobotStatus, payload, max_bytes=MAX_OPERATOR_PAYLOAD_BYTES)
+            return self._robot_status(parsed.robot, status, received_at)
+        if parsed.kind == "operator_block" and parsed.block_id is not None:
+            return self._block(parsed.block_id, payload, received_at)
         return set()
 
-    def _drop(self, why: str, topic: str | None = None) -> set[Key]:
-        self.dropped[why.split(":")[0]] += 1
+    def _drop(self, reason: str, why: str, at: float) -> set[Key]:
+        """Count a dropped message by reason; log the first of a reason at once, then at most one line per
+        reason every DROP_LOG_INTERVAL_S (with how many went unlogged), so a flood cannot flood the log."""
+        self.dropped[reason] += 1
         self.last_drop = why
-        if topic is not None and self._logged.get(topic) != why:
-            self._logged[topic] = why
-            log.warning("dropped %s", why)
+        since = self._logged_at.get(reason)
+        if since is not None and at - since < DROP_LOG_INTERVAL_S:
+            self._unlogged[reason] += 1
+            return set()
+        unlogged = self._unlogged.pop(reason, 0)
+        more = (
+            f" (and {unlogged} more of this kind in the last {at - since:.0f} s)"
+            if unlogged and since
+            else ""
+        )
+        self._logged_at[reason] = at
+        log.warning("dropped (%s) %s%s", reason, why, more)
         return set()
 
     def _zone_state(self, node_id: str, msg: ZoneState, at: float) -> set[Key]:
         node = self.nodes.get(node_id)
         if node is None or msg.node != node_id or msg.zone != node.zone:
-            return self._drop(f"zone state of unknown node or wrong zone: {node_id}")
+            return self._drop("unknown_node", f"zone state of unknown node or wrong zone: {node_id}", at)
         node.state, node.seq, node.heard_at = msg.state, msg.seq, at
         self.rule.on_zone_state(msg, at)
         if node.online is None:
@@ -126,10 +153,10 @@ class SiteView:
     def _node_status(self, node_id: str, payload: bytes, at: float) -> set[Key]:
         node = self.nodes.get(node_id)
         if node is None:
-            return self._drop(f"status of unknown node: {node_id}")
+            return self._drop("unknown_node", f"status of unknown node: {node_id}", at)
         msg = parse_payload(NodeStatus, payload)
         if msg.node != node_id:
-            return self._drop(f"status of {msg.node} on {node_id}'s topic")
+            return self._drop("mismatch", f"status of {msg.node} on {node_id}'s topic", at)
         node.online, node.status_at = msg.status == "online", at
         self.rule.on_node_status(msg, at)
         return {("node", node_id), ("zone", node.zone)}
@@ -138,34 +165,36 @@ class SiteView:
         """A node's diagnostics (schemas.messages.NodeInfo), shown field by field; an empty payload clears them."""
         node = self.nodes.get(node_id)
         if node is None:
-            return self._drop(f"info of unknown node: {node_id}")
+            return self._drop("unknown_node", f"info of unknown node: {node_id}", at)
         if not payload:
             node.info, node.info_at = None, None
             return {("node", node_id)}
         msg = parse_payload(NodeInfo, payload)
         if msg.node != node_id:
-            return self._drop(
-                f"info of {msg.node} on {node_id}'s topic", topics.node_info(self.site.name, node_id)
-            )
+            return self._drop("mismatch", f"info of {msg.node} on {node_id}'s topic", at)
         node.info, node.info_at = msg.model_dump(exclude={"v", "node"}, exclude_none=True), at
         return {("node", node_id)}
 
     def _robot_status(self, robot_id: str, msg: RobotStatus, at: float) -> set[Key]:
         robot = self.robots.setdefault(robot_id, RobotView())
         if msg.robot != robot_id:
-            return self._drop(f"status of {msg.robot} on {robot_id}'s topic")
+            return self._drop("mismatch", f"status of {msg.robot} on {robot_id}'s topic", at)
         robot.status, robot.heard_at = msg, at
-        t = msg.t if msg.t is not None else at
         x, y, _ = msg.pose
-        trail = robot.trail
+        trail = robot.trail  # by the console's own receipt time: a status's `t` is the sender's word
         if not trail or math.hypot(x - trail[-1][1], y - trail[-1][2]) >= TRAIL_STEP_M:
-            trail.append((t, x, y))
-        while trail and trail[0][0] < t - TRAIL_S:
+            trail.append((at, x, y))
+        while trail and trail[0][0] < at - TRAIL_S:
             trail.popleft()
         return {("robot", robot_id)}
 
     def _block(self, block_id: str, payload: bytes, at: float) -> set[Key]:
         msg = parse_payload(OperatorBlock, payload, max_bytes=MAX_OPERATOR_PAYLOAD_BYTES) if payload else None
+        if msg is not None and msg.zone is not None and msg.zone not in self.zones:
+            # the robots' intake drops it too (zones.intake): a zone removed from the site, or a typo
+            return self._drop(
+                "unknown_zone", f"operator block {block_id} on zone {msg.zone!r}, not in the site", at
+            )
         before = self.blocks.pop(block_id, None)
         keys: set[Key] = {("block", block_id)}
         if before is not None and before.block.zone is not None:

@@ -6,7 +6,6 @@ is noticed instead of silently ignored.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import struct
 from typing import Annotated, Any, Literal, TypeVar
@@ -338,8 +337,12 @@ def parse_payload(model: type[M], payload: bytes | str, *, max_bytes: int = MAX_
     raw = payload.encode() if isinstance(payload, str) else payload
     if len(raw) > max_bytes:
         raise PayloadError(f"payload of {len(raw)} bytes exceeds {max_bytes}")
-    with contextlib.suppress(json.JSONDecodeError, UnicodeDecodeError):  # pydantic below says where
+    try:
         json.loads(raw, object_pairs_hook=refuse_duplicate_keys)
+    except (json.JSONDecodeError, UnicodeDecodeError):  # pydantic below says where
+        pass
+    except RecursionError:  # `[` x 4000: Python's parser gives up on depth, a reader must not
+        raise PayloadError("JSON nested too deeply") from None
     try:
         return model.model_validate_json(raw)
     except ValidationError as exc:

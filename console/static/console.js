@@ -301,7 +301,7 @@ function scheduleTables() {
 
 function renderBanner() {
   const banner = $("banner");
-  const why = !state.streamOk ? "Lost the console server: reconnecting..." : !state.connected ? "The MQTT broker is not reachable: the console reconnects by itself; what you see may be out of date." : "";
+  const why = !state.streamOk ? "Lost the console server: reconnecting..." : state.linkError ? `The console is blind: ${state.linkError}` : !state.connected ? "The MQTT broker is not reachable: the console reconnects by itself; what you see may be out of date." : "";
   banner.hidden = !why;
   banner.textContent = why;
 }
@@ -311,6 +311,7 @@ function renderBanner() {
 function apply(ev) {
   if (ev.now) state.offset = ev.now - Date.now() / 1000;
   if (ev.broker_connected !== undefined) state.connected = ev.broker_connected;
+  if (ev.type === "snapshot" || ev.type === "link") state.linkError = ev.link_error || null;
   if (ev.type === "snapshot") {
     for (const id of Object.keys(state.blocks)) dropBlock(id);
     state.trails = {};

@@ -1,0 +1,212 @@
+"""The console's intake against hostile messages on both real brokers (amqtt and Mosquitto): whatever one message
+does, from a robot's credential or the operator's, retained or live, the console keeps reading, `wsnav status`
+answers without a traceback, and a console whose reading thread dies says so at once."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from tests.broker_fixtures import Endpoint, client
+from tests.conftest import require_tool
+from tests.stack_fixtures import SITE, WSNAV, make_site
+from wsnav.broker.amqtt.embedded import BrokerThread
+from wsnav.broker.credentials import write_credentials
+from wsnav.broker.mosquitto.process import mosquitto_process
+from wsnav.console.live_state import LiveState
+from wsnav.console.site_view import Key, SiteView
+from wsnav.runtime.clock import WallClock
+from wsnav.runtime.mqtt_bus import connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.credentials import load_credentials
+from wsnav.schemas.messages import RobotStatus, ZoneState
+from wsnav.schemas.site import load_site
+
+pytestmark = pytest.mark.timeout(120)
+
+NESTED = b"[" * 4000 + b"]" * 4000
+"""8,000 bytes of nested JSON: Python's parser raised RecursionError, which stopped the console's thread."""
+
+
+@pytest.fixture(scope="module")
+def site_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return make_site(tmp_path_factory.mktemp("intake") / "site")
+
+
+@pytest.fixture(scope="module")
+def creds_dir(site_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("creds") / "creds"
+    write_credentials(load_site(site_dir).spec, out)
+    return out
+
+
+@pytest.fixture(params=["amqtt", "mosquitto"])
+def endpoint(
+    request: pytest.FixtureRequest, site_dir: Path, creds_dir: Path, tmp_path: Path
+) -> Iterator[Endpoint]:
+    """A fresh broker per test: retained poison from one test must not reach the next."""
+    if request.param == "amqtt":
+        with BrokerThread(site_dir, creds_dir, data_dir=tmp_path / "amqtt") as broker:
+            yield Endpoint("amqtt", broker.host, broker.port, creds_dir)
+    else:
+        require_tool("mosquitto")
+        with mosquitto_process(load_site(site_dir).spec, creds_dir, tmp_path / "mosquitto") as mq:
+            yield Endpoint("mosquitto", mq.host, mq.port, creds_dir)
+
+
+def poison() -> list[tuple[str, str, bytes]]:
+    """(credential, topic, payload): what a robot's, a node's and the operator's credentials can publish."""
+    status = topics.robot_status(SITE, "robot1")
+    return [
+        ("robot1", status, NESTED),
+        ("robot1", status, b'{"v":1,"robot":"robot1","state":"idle","pose":[0,0,0],"state":"stuck"}'),
+        ("robot1", status, b'{"v":1,"robot":"robot1","state":"idle","pose":[1e400,0,0]}'),
+        ("operator", topics.operator_block(SITE, "op-ghost"), b'{"v":1,"zone":"z99"}'),
+        ("operator", topics.operator_block(SITE, "op-nested"), NESTED),
+        ("s1", topics.node_info(SITE, "s1"), NESTED),
+    ]
+
+
+def publish(endpoint: Endpoint, messages: list[tuple[str, str, bytes]]) -> None:
+    for ident, topic, payload in messages:
+        with client(endpoint, ident, f"{ident}-hostile-{time.monotonic_ns()}") as c:
+            c.publish(topic, payload, qos=1, retain=True)
+            time.sleep(0.05)
+
+
+def good_status(x: float) -> bytes:
+    return RobotStatus(robot="robot1", state="navigating", pose=(x, 0.0, 0.0), goal="P2").to_payload()
+
+
+def console(endpoint: Endpoint, site_dir: Path) -> LiveState:
+    creds = load_credentials(endpoint.credentials_dir / "operator.json")
+    clock = WallClock()
+    bus = connect_with_credentials(
+        endpoint.host, endpoint.port, creds, client_id=f"operator-console-{time.monotonic_ns()}", clock=clock
+    )
+    live = LiveState(SiteView(load_site(site_dir)), bus, clock)
+    live.start()
+    return live
+
+
+def wait_for(what: str, done: object, timeout_s: float = 15.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not done():  # type: ignore[operator]
+        assert time.monotonic() < deadline, f"timed out waiting for: {what}"
+        time.sleep(0.1)
+
+
+def robot_x(live: LiveState) -> float | None:
+    robot = next(r for r in live.snapshot()["robots"] if r["id"] == "robot1")
+    return robot["pose"][0] if robot.get("state") else None
+
+
+def test_retained_and_live_poison_from_a_robot_and_the_operator_stops_no_console(
+    endpoint: Endpoint, site_dir: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Retained before the console starts, then live while it runs: each message is dropped, counted and logged
+    (rate-limited), and a good status after each is still shown; the page's `broker_connected` stays true only
+    because the console really still reads."""
+    publish(endpoint, poison())
+    live = console(endpoint, site_dir)
+    try:
+        wait_for("the retained poison read", lambda: sum(live.view.dropped.values()) >= 3)
+        time.sleep(0.5)  # every retained message in
+        assert live.snapshot()["broker_connected"] is True
+        assert live.snapshot()["blocks"] == [], (
+            "a block on a zone the site lacks is not shown, as robots ignore it"
+        )
+        for i, (ident, topic, payload) in enumerate(poison()):
+            publish(endpoint, [(ident, topic, payload)])
+            publish(endpoint, [("robot1", topics.robot_status(SITE, "robot1"), good_status(0.1 * (i + 1)))])
+            wait_for(
+                f"a good status after {topic}", lambda i=i: robot_x(live) == pytest.approx(0.1 * (i + 1))
+            )
+        snap = live.snapshot()
+        assert snap["broker_connected"] is True and "link_error" not in snap
+        assert live.view.dropped["unknown_zone"] >= 2 and live.view.dropped["invalid"] >= 8, live.view.dropped
+        json.dumps(snap, allow_nan=False)
+    finally:
+        live.stop()
+        live.bus.close()
+    drops = [r for r in caplog.records if r.name == "wsnav.console.site_view"]
+    assert 1 <= len(drops) <= 6, [r.getMessage() for r in drops]  # one line per reason, not per message
+    assert all(r.exc_info is None for r in drops)
+
+
+def test_wsnav_status_reads_a_retained_poisoned_bus_without_a_traceback(
+    endpoint: Endpoint, site_dir: Path
+) -> None:
+    publish(endpoint, poison())
+    publish(endpoint, [("robot1", topics.robot_status(SITE, "robot1"), good_status(0.5))])
+    out = subprocess.run(
+        [
+            *WSNAV,
+            "status",
+            "--json",
+            "--site",
+            str(site_dir),
+            "--broker",
+            f"{endpoint.host}:{endpoint.port}",
+            "--credentials",
+            str(endpoint.credentials_dir / "operator.json"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 0, out.stderr
+    assert "Traceback" not in out.stderr
+    snap = json.loads(out.stdout)
+    assert snap["robots"][0]["pose"][0] == pytest.approx(0.5)
+    assert snap["blocks"] == []
+
+
+class BrokenView(SiteView):
+    """A bug of ours that escapes the intake (the boundary a test cannot reach with a message): rendering
+    fails in the console's thread once a zone state arrives."""
+
+    def entry(self, key: Key, now: float) -> dict[str, object] | None:
+        in_thread = threading.current_thread().name == "console-mqtt"
+        if in_thread and key[0] == "zone" and self.nodes["s1"].state is not None:
+            raise RuntimeError("a bug")
+        return super().entry(key, now)
+
+
+def test_a_console_whose_reading_thread_dies_says_so_at_once(endpoint: Endpoint, site_dir: Path) -> None:
+    """/api/state says broker_connected false with why, and an open page gets a `link` event at once."""
+    creds = load_credentials(endpoint.credentials_dir / "operator.json")
+    clock = WallClock()
+    bus = connect_with_credentials(
+        endpoint.host, endpoint.port, creds, client_id=f"operator-console-{time.monotonic_ns()}", clock=clock
+    )
+    live = LiveState(BrokenView(load_site(site_dir)), bus, clock)
+    loop = asyncio.new_event_loop()
+    pages = threading.Thread(target=loop.run_forever, daemon=True)
+    pages.start()
+    feed = live.open_feed(loop)
+    live.start()
+    try:
+        assert live.snapshot()["broker_connected"] is True
+        blocked = ZoneState(zone="upper", node="s1", state="blocked", seq=1).to_payload()
+        publish(endpoint, [("s1", topics.zone_state(SITE, "upper", "s1"), blocked)])
+        wait_for("the thread to die", lambda: not live._thread.is_alive())
+        snap = live.snapshot()
+        assert snap["broker_connected"] is False
+        assert "restart" in snap["link_error"]
+        events = []
+        while not feed.queue.empty():
+            events.append(json.loads(feed.queue.get_nowait()))
+        assert {"type": "link", "broker_connected": False, "link_error": snap["link_error"]} in events
+    finally:
+        live.stop()
+        live.bus.close()
+        loop.call_soon_threadsafe(loop.stop)
+        pages.join(5)
