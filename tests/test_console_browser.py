@@ -8,11 +8,15 @@ The tests share one stack and run in order: the broker outage comes last.
 from __future__ import annotations
 
 import json
+import select
 import signal
+import socket
 import subprocess
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import pytest
 
@@ -136,6 +140,11 @@ def test_malformed_requests_get_a_clear_4xx_and_change_nothing(page: Any, site_s
         ("POST", "/api/robots/robot1/goal", {"pose": [0.0, 0.0]}, 400, "in a wall"),
         ("POST", "/api/robots/robot1/goal", {"pose": [1, "a"]}, 400, "finite number"),
         ("POST", "/api/robots/robot1/goal", {}, 400, "give 'point'"),
+        ("POST", "/api/login", b"[" * 5000 + b"]" * 5000, 400, "nested too deeply"),
+        ("POST", "/api/blocks", b'{"zone": "upper", "for_s": 1%s}' % (b"0" * 400), 400, "finite number"),
+        ("POST", "/api/robots/robot1/goal", b'{"pose": [1%s, 0]}' % (b"0" * 400), 400, "finite number"),
+        ("POST", "/api/blocks", b'{"zone": "lower", "zone": "upper"}', 400, "duplicate key 'zone'"),
+        ("POST", "/api/robots/robot1/goal", b'{"point": "P1", "point": "P2"}', 400, "duplicate key"),
     ]
     for method, path, body, code, words in cases:
         headers = {"Content-Type": "application/json"} if isinstance(body, bytes) else None
@@ -167,6 +176,48 @@ def test_malformed_requests_get_a_clear_4xx_and_change_nothing(page: Any, site_s
     assert bus.poll() == [], "a refused request published something"
     assert site_stack.state()["blocks"] == before
     bus.close()
+
+
+def _raw_post(url: str, head: str) -> socket.socket:
+    host, port = urlsplit(url).netloc.split(":")
+    sock = socket.create_connection((host, int(port)), timeout=10)
+    sock.sendall(
+        f"POST /api/login HTTP/1.1\r\nHost: {host}:{port}\r\nContent-Type: application/json\r\n{head}\r\n".encode()
+    )
+    return sock
+
+
+def _rss_kb(pid: int) -> int:
+    status = Path(f"/proc/{pid}/status").read_text()
+    return int(next(line.split()[1] for line in status.splitlines() if line.startswith("VmRSS:")))
+
+
+def test_a_huge_body_is_refused_before_it_is_read(site_stack: ConsoleStack) -> None:
+    """`POST /api/login` read a body of any size before refusing it (300 MB: +315 MB in the console). A declared
+    Content-Length over the limit is refused unread; a streamed (chunked) body as soon as it passes the limit."""
+    pid = site_stack.console.popen.pid
+    before = _rss_kb(pid)
+    with _raw_post(site_stack.url, "Content-Length: 300000000\r\n") as sock:
+        sock.sendall(b'{"username": "operator", "password": "')
+        assert sock.recv(200).startswith(b"HTTP/1.1 413"), "refused at once, without the 300 MB"
+    chunk = b"%x\r\n%s\r\n" % (65536, b"x" * 65536)
+    sent = 0
+    with _raw_post(site_stack.url, "Transfer-Encoding: chunked\r\n") as sock:
+        answer = b""
+        while sent < 300_000_000:
+            readable, _, _ = select.select([sock], [], [], 0)
+            if readable:
+                answer = sock.recv(200)
+                break
+            try:
+                sock.sendall(chunk)
+            except OSError:  # the console closed the connection: its answer is waiting
+                answer = sock.recv(200)
+                break
+            sent += len(chunk)
+    assert answer.startswith(b"HTTP/1.1 413"), answer
+    assert sent < 8_000_000, f"the console took {sent} bytes of a body it refuses at 16 KB"
+    assert _rss_kb(pid) - before < 30_000, "the console's memory grew with a refused body"
 
 
 def test_a_node_saying_blocked_turns_its_zone_blocked_on_the_page_within_1s(

@@ -11,7 +11,7 @@ import pytest
 from tests.site_fixtures import tiny_site
 from wsnav.console import operator_commands as commands
 from wsnav.console.operator_commands import CommandError
-from wsnav.console.site_view import SiteView
+from wsnav.console.site_view import TRAIL_POINTS, TRAIL_S, SiteView
 from wsnav.console.terminal import render
 from wsnav.schemas import topics
 from wsnav.schemas.messages import (
@@ -175,6 +175,22 @@ def test_robot_trail_keeps_the_last_minutes(site: Site) -> None:
     trail = view.robot_trail("robot1")
     assert trail[0][0] >= 1000.0 + 698 - 300 and trail[-1][1] == pytest.approx(6.98, abs=0.05)
     assert view.entry(("robot", "robot1"), 1000.0 + 699)["age_s"] == 1.0  # type: ignore[index]
+
+
+def test_a_robot_credential_cannot_grow_its_trail_without_limit(site: Site) -> None:
+    """20,000 statuses with a fixed `t` grew /api/state from 2.7 KB to 188 KB: the trail is aged by the console's
+    own receipt time and capped in points."""
+    import json
+
+    view = SiteView(site)
+    for i in range(20_000):
+        status = RobotStatus(robot="robot1", state="navigating", pose=((i % 2) * 1.0, 1.0, 0.0), t=5.0)
+        view.apply(topics.robot_status("tiny", "robot1"), status.to_payload(), 1000.0 + i * 0.01)
+    assert len(view.robot_trail("robot1")) <= TRAIL_POINTS
+    assert len(json.dumps(view.snapshot(1200.0))) < 40_000
+    quiet = RobotStatus(robot="robot1", state="idle", pose=(3.0, 1.0, 0.0), t=5.0)
+    view.apply(topics.robot_status("tiny", "robot1"), quiet.to_payload(), 1200.0 + TRAIL_S + 1)
+    assert len(view.robot_trail("robot1")) == 1, "points older than TRAIL_S by the console's clock are gone"
 
 
 def test_a_full_robot_status_with_its_path_fits_the_payload_limit() -> None:
