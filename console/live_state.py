@@ -129,7 +129,7 @@ class LiveState:
 
     def _loop(self) -> None:
         dirty: set[Key] = set()
-        zone_states: dict[str, str] = {}
+        zone_states: dict[str, tuple[str, tuple[str, ...]]] = {}
         fresh: dict[str, bool] = {}
         next_tick = 0.0
         flush_at: float | None = None
@@ -154,7 +154,7 @@ class LiveState:
                 dirty |= expired
                 self._forget_expired(expired)
                 with self.lock:
-                    states = self.view.zone_states(now)
+                    states = self.view.zone_looks(now)
                     now_fresh = {n: self.view.node_fresh(v, now) for n, v in self.view.nodes.items()}
                 dirty |= {("zone", z) for z, s in states.items() if zone_states.get(z) != s}
                 dirty |= {("node", n) for n, f in now_fresh.items() if fresh.get(n) != f}

@@ -235,6 +235,12 @@ class SiteView:
     def zone_states(self, now: float) -> dict[str, str]:
         return {z: self.zone_state(z, now) for z in self.zones}
 
+    def zone_looks(self, now: float) -> dict[str, tuple[str, tuple[str, ...]]]:
+        """Per zone what the page draws from the rule: its word and its stale nodes (under `stale: keep` a
+        silent node's zone keeps its word but is drawn stale: the page must follow that change too)."""
+        self.rule.refresh(now)
+        return {z: (self.rule.zone_word(z), tuple(self.rule.stale_nodes(z))) for z in self.zones}
+
     # -- rendering -----------------------------------------------------------------------------------------
 
     def entry(self, key: Key, now: float) -> dict[str, Any] | None:
