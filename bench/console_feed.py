@@ -162,7 +162,7 @@ def measure(nodes: int, robots: int, seconds: float) -> dict[str, float]:
     index = {n.id: i for i, n in enumerate(spec.nodes)}
     sent_at = {(int(n), int(q)): t + wall_minus_mono for n, q, t in sent}
     to_browser = [at / 1000 - sent_at[(index[i], q)] for i, q, _h, at in arrivals if (index[i], q) in sent_at]
-    console_to_browser = [at / 1000 - heard for _i, _q, heard, at in arrivals]
+    console_to_browser = [at / 1000 - heard for _i, _q, heard, at in arrivals if heard is not None]
     baseline = [
         t + wall_minus_mono - sent_at[(n, q)]
         for n, q, t in got
@@ -176,6 +176,8 @@ def measure(nodes: int, robots: int, seconds: float) -> dict[str, float]:
     }
     per_second: dict[int, list[float]] = {}
     for _i, _q, heard, at in arrivals:
+        if heard is None:  # a retained replay: no live message to time
+            continue
         per_second.setdefault(int(at / 1000 - open_from), []).append(at / 1000 - heard)
     slow_seconds = sum(1 for xs in per_second.values() if np.percentile(xs, 99) > 0.5)
     ms = lambda xs, p: 1000 * float(np.percentile(xs, p))  # noqa: E731

@@ -138,7 +138,7 @@ class LiveState:
             messages = self.bus.poll()
             with self.lock:
                 for msg in messages:
-                    dirty |= self.view.apply(msg.topic, msg.payload, msg.received_at)
+                    dirty |= self.view.apply(msg.topic, msg.payload, msg.received_at, msg.retain)
             self.messages += len(messages)
             mono = time.monotonic()
             if messages and flush_at is None:

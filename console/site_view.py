@@ -92,26 +92,28 @@ class SiteView:
 
     # -- intake --------------------------------------------------------------------------------------------
 
-    def apply(self, topic: str, payload: bytes, received_at: float) -> set[Key]:
+    def apply(self, topic: str, payload: bytes, received_at: float, retained: bool = False) -> set[Key]:
         """Take one message in; the entries it changed (none for a message that is dropped, counted why).
 
         Never raises: whatever one message does (nested JSON, a zone the site lacks, a bug of ours), it is
-        dropped, counted and logged, and the next message is read (no message may stop the console's intake)."""
+        dropped, counted and logged, and the next message is read (no message may stop the console's intake).
+        A `retained` message is one the broker replays on subscribing: it says what a node last said, not that
+        the node spoke now, so it does not make the node "last heard" (its age comes from live messages only)."""
         try:
-            return self._apply(topic, payload, received_at)
+            return self._apply(topic, payload, received_at, retained)
         except PayloadError as exc:
             return self._drop("invalid", f"{topic}: {exc}", received_at)
         except Exception as exc:  # the intake boundary: one message must not stop the reader
             return self._drop("internal_error", f"{topic}: {type(exc).__name__}: {exc}"[:300], received_at)
 
-    def _apply(self, topic: str, payload: bytes, received_at: float) -> set[Key]:
+    def _apply(self, topic: str, payload: bytes, received_at: float, retained: bool) -> set[Key]:
         parsed = topics.parse(topic)
         if parsed is None or parsed.site != self.site.name:
             return self._drop("wrong_topic", f"not a topic of site {self.site.name}: {topic}", received_at)
         if parsed.kind == "node_info" and parsed.node is not None:
             return self._node_info(parsed.node, payload, received_at)
         if parsed.kind == "zone_state" and parsed.node is not None:
-            return self._zone_state(parsed.node, parse_payload(ZoneState, payload), received_at)
+            return self._zone_state(parsed.node, parse_payload(ZoneState, payload), received_at, retained)
         if parsed.kind == "node_status" and parsed.node is not None:
             return self._node_status(parsed.node, payload, received_at)
         if parsed.kind == "robot_status" and parsed.robot is not None:
@@ -140,13 +142,15 @@ class SiteView:
         log.warning("dropped (%s) %s%s", reason, why, more)
         return set()
 
-    def _zone_state(self, node_id: str, msg: ZoneState, at: float) -> set[Key]:
+    def _zone_state(self, node_id: str, msg: ZoneState, at: float, retained: bool) -> set[Key]:
         node = self.nodes.get(node_id)
         if node is None or msg.node != node_id or msg.zone != node.zone:
             return self._drop("unknown_node", f"zone state of unknown node or wrong zone: {node_id}", at)
-        node.state, node.seq, node.heard_at = msg.state, msg.seq, at
-        self.rule.on_zone_state(msg, at)
-        if node.online is None:
+        node.state, node.seq = msg.state, msg.seq
+        if not retained:
+            node.heard_at = at
+        self.rule.on_zone_state(msg, at)  # the robots' rule, fed as the robots' intake feeds it
+        if node.online is None and not retained:
             node.online = True  # a node that speaks is connected, even before its retained birth arrives
         return {("node", node_id), ("zone", node.zone)}
 

@@ -22,6 +22,7 @@ from wsnav.broker.credentials import write_credentials
 from wsnav.broker.mosquitto.process import mosquitto_process
 from wsnav.console.live_state import LiveState
 from wsnav.console.site_view import Key, SiteView
+from wsnav.console.terminal import SETTLE_MAX_S
 from wsnav.runtime.clock import WallClock
 from wsnav.runtime.mqtt_bus import connect_with_credentials
 from wsnav.schemas import topics
@@ -141,16 +142,11 @@ def test_retained_and_live_poison_from_a_robot_and_the_operator_stops_no_console
     assert all(r.exc_info is None for r in drops)
 
 
-def test_wsnav_status_reads_a_retained_poisoned_bus_without_a_traceback(
-    endpoint: Endpoint, site_dir: Path
-) -> None:
-    publish(endpoint, poison())
-    publish(endpoint, [("robot1", topics.robot_status(SITE, "robot1"), good_status(0.5))])
-    out = subprocess.run(
+def operator_command(endpoint: Endpoint, site_dir: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
         [
             *WSNAV,
-            "status",
-            "--json",
+            *args,
             "--site",
             str(site_dir),
             "--broker",
@@ -162,11 +158,52 @@ def test_wsnav_status_reads_a_retained_poisoned_bus_without_a_traceback(
         text=True,
         timeout=60,
     )
+
+
+def test_wsnav_status_reads_a_retained_poisoned_bus_without_a_traceback_or_waiting_for_a_quiet_bus(
+    endpoint: Endpoint, site_dir: Path
+) -> None:
+    """Robots at 2 Hz never let the bus be quiet: status waited its full 5 s every time; it now answers once
+    the broker's retained replay is over."""
+    publish(endpoint, poison())
+    publish(endpoint, [("robot1", topics.robot_status(SITE, "robot1"), good_status(0.5))])
+    stop = threading.Event()
+
+    def robots_at_2_hz() -> None:  # a few robots' statuses: one every 0.2 s on the bus
+        with client(endpoint, "robot1", f"robot1-live-{time.monotonic_ns()}") as robot:
+            while not stop.wait(0.2):
+                robot.publish(topics.robot_status(SITE, "robot1"), good_status(0.5), qos=0, retain=True)
+
+    live = threading.Thread(target=robots_at_2_hz)
+    live.start()
+    try:
+        started = time.monotonic()
+        out = operator_command(endpoint, site_dir, "status", "--json")
+        took = time.monotonic() - started
+    finally:
+        stop.set()
+        live.join(10)
     assert out.returncode == 0, out.stderr
     assert "Traceback" not in out.stderr
     snap = json.loads(out.stdout)
     assert snap["robots"][0]["pose"][0] == pytest.approx(0.5)
     assert snap["blocks"] == []
+    assert took < SETTLE_MAX_S, f"status took {took:.1f} s: it waited for a quiet bus"
+
+
+def test_wsnav_unblock_of_an_unknown_id_exits_2_in_one_line_and_a_held_block_is_lifted(
+    endpoint: Endpoint, site_dir: Path
+) -> None:
+    """`wsnav unblock op-...x` (a typo) printed "lifted" and exited 0 while the API answers 404."""
+    block = topics.operator_block(SITE, "op-spill")
+    publish(endpoint, [("operator", block, b'{"v":1,"zone":"upper","reason":"spill"}')])
+    typo = operator_command(endpoint, site_dir, "unblock", "op-spilx")
+    assert typo.returncode == 2 and typo.stdout == ""
+    assert typo.stderr.count("\n") == 1 and "no active block 'op-spilx'" in typo.stderr, typo.stderr
+    lifted = operator_command(endpoint, site_dir, "unblock", "op-spill")
+    assert lifted.returncode == 0 and lifted.stdout == "lifted: op-spill\n", lifted.stderr
+    again = operator_command(endpoint, site_dir, "unblock", "op-spill")
+    assert again.returncode == 2, "a lifted block is gone from the broker"
 
 
 class BrokenView(SiteView):

@@ -256,3 +256,18 @@ def test_numbers_no_json_can_carry_or_no_map_can_hold_are_refused_and_the_state_
     ):
         with pytest.raises(CommandError, match=why):
             commands.goal(site, "robot1", target)
+
+
+def test_last_heard_counts_live_messages_only_not_the_brokers_replay(site: Site) -> None:
+    """A node hung for minutes read "last heard 2 s" because the broker replayed its retained state to the
+    console; after a broker restart every node read as heard just now. Age comes from live messages only, while
+    the replayed word still shows what the node last said."""
+    view = SiteView(site)
+    topic, payload = zone_msg("n1", "z1", "blocked")
+    view.apply(topic, payload, 500.0, retained=True)
+    node = view.entry(("node", "n1"), 501.0)
+    assert node is not None
+    assert (node["state"], node["heard_at"], node["age_s"], node["fresh"]) == ("blocked", None, None, False)
+    view.apply(*zone_msg("n1", "z1", "blocked", seq=2), 502.0)
+    node = view.entry(("node", "n1"), 503.0)
+    assert node is not None and (node["age_s"], node["fresh"]) == (1.0, True)
