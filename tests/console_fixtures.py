@@ -54,6 +54,8 @@ class NodeS1:
         self.state = "clear"
         self._lock = threading.Lock()
         self._stop = threading.Event()
+        self.silent = threading.Event()
+        """Set: the node stays connected but says nothing (hung firmware): it turns stale."""
         self._beat = threading.Thread(target=self._heartbeat, daemon=True)
         self._beat.start()
 
@@ -67,7 +69,8 @@ class NodeS1:
     def _heartbeat(self) -> None:
         """As the firmware does: the current state again every heartbeat (1 s on this site)."""
         while not self._stop.wait(HEARTBEAT_S):
-            self.say(self.state)
+            if not self.silent.is_set():
+                self.say(self.state)
 
     def close(self) -> None:
         self._stop.set()

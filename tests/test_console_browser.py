@@ -324,6 +324,102 @@ def test_a_goal_clicked_is_reached_and_a_drawn_block_makes_the_robot_replan_then
     )
 
 
+def test_a_point_chosen_by_keyboard_moves_nothing_until_go_and_errors_show_next_to_the_action(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    """ArrowDown on a robot's "go to..." list sent the robot to a point on every press; an error after an action
+    landed 1116 px down in a 900 px window."""
+    bus = observer(site_stack.stack, f"{topics.ROOT}/{SITE}/robots/+/goal")
+    page.set_viewport_size({"width": 1400, "height": 700})
+    pick = page.locator("#robot-row-robot1 select")
+    pick.focus()
+    page.keyboard.press("ArrowDown")
+    page.keyboard.press("ArrowDown")
+    time.sleep(1.0)
+    assert bus.poll() == [], "choosing a point by keyboard sent a goal"
+    assert pick.input_value() == "P2"
+    page.click("#robot-row-robot1 button.go")
+    goals: list[bytes] = []
+    until(
+        "the confirmed goal on the bus",
+        lambda: (bus.wait(0.2) and goals.extend(m.payload for m in bus.poll())) or goals,
+        10,
+    )
+    time.sleep(0.5)
+    goals.extend(m.payload for m in bus.poll())
+    assert len(goals) == 1 and json.loads(goals[0])["goal"] == "P2", goals
+    page.click("#robot-row-robot1 .cancel")
+    bus.close()
+
+    def in_view(selector: str) -> bool:
+        box = page.locator(selector).bounding_box()
+        return box is not None and box["height"] > 0 and box["y"] >= 0 and box["y"] + box["height"] <= 700
+
+    page.fill("#block-for", "soon")
+    page.click("#block-zone-btn")
+    page.wait_for_function("document.querySelector('#action-error').textContent.includes('not a duration')")
+    assert in_view("#action-error"), "the error is not in view"
+    assert page.evaluate("document.querySelector('#block-form').nextElementSibling.id") == "action-error"
+    page.fill("#block-for", "10m")
+    page.click("#robot-row-robot1 .click-goal")
+    click_world(page, 0.0, 0.0)  # the sandbox's centre pillar
+    page.wait_for_function("document.querySelector('#action-error').textContent.includes('wall')")
+    assert in_view("#action-error")
+    assert page.evaluate("document.querySelector('#mode-line').nextElementSibling.id") == "action-error"
+
+
+def test_the_page_follows_a_node_going_stale_not_only_a_new_state_word(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    """Under `stale: keep` a hung node's blocked zone was drawn plain "blocked" for 30 s while /api/state
+    already named it stale."""
+    node = site_stack.node
+    node.say("blocked")
+    page.wait_for_function("document.querySelector('#zone-upper').dataset.state === 'blocked'")
+    node.silent.set()
+    try:
+        until(
+            "the API naming s1 stale",
+            lambda: (
+                next(z for z in site_stack.state()["zones"] if z["id"] == "upper")["stale_nodes"] == ["s1"]
+            ),
+            20,
+            0.1,
+        )
+        named = time.monotonic()
+        page.wait_for_function("document.querySelector('#zone-upper').dataset.stale === 's1'", timeout=10000)
+        assert time.monotonic() - named < 2.5, "the page followed the staleness late"
+        assert page.get_attribute("#zone-upper", "data-state") == "blocked"
+    finally:
+        node.silent.clear()
+        node.say("clear")
+    page.wait_for_function(
+        "document.querySelector('#zone-upper').dataset.state === 'clear' && !document.querySelector('#zone-upper').dataset.stale"
+    )
+
+
+def test_a_phone_lays_the_page_out_at_its_own_width(browser: Any, site_stack: ConsoleStack) -> None:
+    """Without a viewport meta a phone laid the page out at 980 px and cut the buttons off."""
+    context = browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True, has_touch=True)
+    try:
+        phone = context.new_page()
+        phone.goto(site_stack.url + "/")
+        assert phone.evaluate("window.innerWidth") == 390, "the login page is laid out wider than the phone"
+        phone.fill("input[name=password]", site_stack.password)
+        phone.click("button[type=submit]")
+        phone.wait_for_url(site_stack.url + "/")
+        phone.wait_for_selector("#robot-row-robot1 .cancel")
+        assert phone.evaluate("window.innerWidth") == 390
+        assert phone.evaluate("document.documentElement.scrollWidth") <= 390 + 1, (
+            "the page is wider than the phone"
+        )
+        for button in ("#block-zone-btn", "#robot-row-robot1 .cancel", "#logout"):
+            box = phone.locator(button).bounding_box()
+            assert box is not None and box["x"] >= 0 and box["x"] + box["width"] <= 390, button
+    finally:
+        context.close()
+
+
 def test_a_zone_block_and_a_drawn_polygon_from_the_page_are_lifted_from_the_page(
     page: Any, site_stack: ConsoleStack
 ) -> None:
