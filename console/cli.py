@@ -8,6 +8,7 @@ console.serve, imported only when a command runs.
 from __future__ import annotations
 
 import argparse
+import os
 import re
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -39,6 +40,13 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         default=("127.0.0.1", 8080),
         metavar="HOST:PORT",
         help="default 127.0.0.1:8080",
+    )
+    console.add_argument(
+        "--state-dir",
+        type=Path,
+        default=Path(os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state") / "wsnav",
+        metavar="DIR",
+        help="where login sessions are kept, so a restart keeps pages logged in (default ~/.local/state/wsnav)",
     )
     console.set_defaults(func=_run("serve", "console_command"))
 

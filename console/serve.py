@@ -7,7 +7,7 @@ import sys
 
 import uvicorn
 
-from wsnav.console.auth import Authenticator
+from wsnav.console.auth import Authenticator, open_store
 from wsnav.console.live_state import LiveState
 from wsnav.console.operator_link import connect
 from wsnav.console.site_view import SiteView
@@ -24,7 +24,11 @@ def console_command(args: argparse.Namespace) -> int:
         live,
         link.bus,
         link.clock,
-        Authenticator(link.credentials.username, link.credentials.password),
+        Authenticator(
+            link.credentials.username,
+            link.credentials.password,
+            open_store(args.state_dir / f"console-{link.site.name}.sqlite", link.credentials.password),
+        ),
     )
     live.start()
     config = uvicorn.Config(

@@ -122,8 +122,9 @@ class ConsoleStack:
         return next(r for r in self.state()["robots"] if r["id"] == "robot1")
 
 
-def start_console(stack: Stack) -> tuple[Proc, str]:
-    port = free_port()
+def start_console(stack: Stack, port: int | None = None) -> tuple[Proc, str]:
+    """`wsnav console` on `port` (a free one by default), its sessions under the stack's work directory."""
+    port = port if port is not None else free_port()
     proc = stack.start(
         "console",
         [
@@ -137,6 +138,8 @@ def start_console(stack: Stack) -> tuple[Proc, str]:
             str(stack.creds / "operator.json"),
             "--bind",
             f"127.0.0.1:{port}",
+            "--state-dir",
+            str(stack.work / "console-state"),
         ],
     )
     wait_listening("127.0.0.1", port, proc.popen)

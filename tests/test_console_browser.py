@@ -454,6 +454,28 @@ def test_a_killed_node_shows_offline_after_its_will(page: Any, site_stack: Conso
     assert "offline" in page.inner_text("#node-row-s2")
 
 
+def test_a_restarted_console_keeps_its_pages_logged_in_and_live_within_seconds(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    """After a console restart open pages stayed on "reconnecting" and a reload landed on the login page
+    (sessions lived in memory): a wall display needed a person after every upgrade."""
+    port = int(urlsplit(site_stack.url).port or 0)
+    site_stack.console.stop()
+    page.wait_for_function("!document.querySelector('#banner').hidden", timeout=20000)
+    site_stack.console, url = start_console(site_stack.stack, port)
+    assert url == site_stack.url
+    listening = time.monotonic()
+    page.wait_for_function("document.querySelector('#banner').hidden", timeout=20000)
+    assert time.monotonic() - listening < 6.0, "the page took long to come back"
+    assert page.url == site_stack.url + "/"
+    site_stack.node.say("blocked")
+    page.wait_for_function("document.querySelector('#zone-upper').dataset.state === 'blocked'", timeout=10000)
+    site_stack.node.say("clear")
+    page.reload()
+    page.wait_for_function("document.querySelector('#zone-upper')?.dataset.state === 'clear'", timeout=20000)
+    assert page.url == site_stack.url + "/", "a reload after the restart asked for the password again"
+
+
 def test_a_broker_outage_shows_a_banner_and_the_console_reconnects(
     page: Any, site_stack: ConsoleStack
 ) -> None:

@@ -349,9 +349,11 @@ function connect() {
   source.onerror = async () => {
     state.streamOk = false;
     renderBanner();
-    // EventSource retries by itself; a console restarted meanwhile has forgotten the session: log in again.
+    // EventSource retries by itself, but not after an answer other than 200 (a console still starting): then
+    // open a new one within a second or two. Only a session the console no longer knows goes to the login.
     const res = await fetch("/api/session").catch(() => null);
     if (res && res.status === 401) window.location.assign("/login");
+    else if (source.readyState === EventSource.CLOSED) setTimeout(connect, 1500);
   };
 }
 
