@@ -115,7 +115,8 @@ def measure(nodes: int, robots: int, seconds: float) -> dict[str, float]:
             port = free_port()
             console = subprocess.Popen(
                 [sys.executable, "-m", "wsnav.cli", "console", "--site", str(site_dir), "--broker", addr,
-                 "--credentials", str(creds / "operator.json"), "--bind", f"127.0.0.1:{port}"],
+                 "--credentials", str(creds / "operator.json"), "--bind", f"127.0.0.1:{port}",
+                 "--state-dir", str(root / "console-state")],
                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
             )  # fmt: skip
             console_ps = psutil.Process(console.pid)

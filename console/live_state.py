@@ -25,6 +25,9 @@ log = logging.getLogger(__name__)
 
 BATCH_S = 0.05
 TICK_S = 1.0
+REPLAY_S = 3.0
+"""After a reconnect, how long the broker's retained replay is awaited before an operator block it did not replay
+is taken as lost (a broker restarted without its store, a full disk) and published again."""
 MAX_PAGE_QUEUE = 200
 """A page that falls this far behind is sent a fresh snapshot instead of the backlog."""
 
@@ -133,12 +136,16 @@ class LiveState:
         fresh: dict[str, bool] = {}
         next_tick = 0.0
         flush_at: float | None = None
+        replayed: set[str] = set()
+        reconcile_at: float | None = None
         while not self._stop.is_set():
             self.bus.wait(BATCH_S)
             messages = self.bus.poll()
             with self.lock:
                 for msg in messages:
                     dirty |= self.view.apply(msg.topic, msg.payload, msg.received_at, msg.retain)
+                    if msg.retain and msg.payload and (t := topics.parse(msg.topic)) and t.block_id:
+                        replayed.add(t.block_id)
             self.messages += len(messages)
             mono = time.monotonic()
             if messages and flush_at is None:
@@ -146,6 +153,11 @@ class LiveState:
             if self.bus.connected != self.connected:
                 self.connected = self.bus.connected
                 self._broadcast({"type": "link", "broker_connected": self.connected})
+                if self.connected:  # back: see which of our blocks the broker still holds
+                    replayed, reconcile_at = set(), mono + REPLAY_S
+            if reconcile_at is not None and mono >= reconcile_at and self.bus.connected:
+                reconcile_at = None
+                self._republish_lost(replayed)
             if mono >= next_tick:
                 next_tick = mono + TICK_S
                 with self.lock:
@@ -164,6 +176,23 @@ class LiveState:
                 self._flush(dirty)
                 dirty = set()
                 flush_at = None
+
+    def _republish_lost(self, replayed: set[str]) -> None:
+        """The operator's blocks are operator intent: one the broker did not replay after a reconnect was lost by
+        it (restarted without its store, a full disk) and is published again, retained, as it was. A block lifted
+        while this console was cut off cannot be told from a lost one: it comes back, on the safe side."""
+        with self.lock:
+            now = self.clock.now()
+            lost = [
+                (block_id, view.block)
+                for block_id, view in self.view.blocks.items()
+                if block_id not in replayed and (view.block.expires_at is None or view.block.expires_at > now)
+            ]
+        for block_id, block in lost:
+            log.warning("operator block %s was lost by the broker: published again", block_id)
+            self.bus.publish(
+                topics.operator_block(self.view.site.name, block_id), block.to_payload(), qos=1, retain=True
+            )
 
     def _forget_expired(self, expired: set[Key]) -> None:
         """An expired block is cleared from the broker's retained store too, so it is not replayed forever."""

@@ -5,6 +5,7 @@ answers without a traceback, and a console whose reading thread dies says so at 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import subprocess
 import threading
@@ -14,12 +15,13 @@ from pathlib import Path
 
 import pytest
 
-from tests.broker_fixtures import Endpoint, client
+from tests.broker_fixtures import Endpoint, client, wait_listening
 from tests.conftest import require_tool
 from tests.stack_fixtures import SITE, WSNAV, make_site
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.broker.credentials import write_credentials
-from wsnav.broker.mosquitto.process import mosquitto_process
+from wsnav.broker.mosquitto.config import CONF, MosquittoOptions, write_mosquitto_config
+from wsnav.broker.mosquitto.process import free_port, mosquitto_process
 from wsnav.console.live_state import LiveState
 from wsnav.console.site_view import Key, SiteView
 from wsnav.console.terminal import SETTLE_MAX_S
@@ -247,3 +249,60 @@ def test_a_console_whose_reading_thread_dies_says_so_at_once(endpoint: Endpoint,
         live.bus.close()
         loop.call_soon_threadsafe(loop.stop)
         pages.join(5)
+
+
+@contextlib.contextmanager
+def broker_on(kind: str, site_dir: Path, creds: Path, port: int, root: Path) -> Iterator[None]:
+    """A broker of `kind` on a fixed port with an empty store under `root` (a restart that lost everything)."""
+    if kind == "amqtt":
+        with BrokerThread(site_dir, creds, port=port, data_dir=root / "amqtt"):
+            yield
+        return
+    exe = require_tool("mosquitto")
+    options = MosquittoOptions(bind=("127.0.0.1", port), data_dir=root / "mq-data", user="root")
+    (root / "mq-data").mkdir(parents=True)
+    write_mosquitto_config(load_site(site_dir).spec, creds, root / "mq", options)
+    proc = subprocess.Popen([exe, "-c", str(root / "mq" / CONF)], stderr=subprocess.DEVNULL)
+    try:
+        wait_listening("127.0.0.1", port, proc)
+        yield
+    finally:
+        proc.kill()  # kill -9: nothing is saved
+        proc.wait(20)
+
+
+@pytest.mark.parametrize("kind", ["amqtt", "mosquitto"])
+def test_an_operator_block_the_broker_lost_is_published_again_by_the_running_console(
+    kind: str, site_dir: Path, creds_dir: Path, tmp_path: Path
+) -> None:
+    """Mosquitto lost blocks acknowledged before a kill -9 (and a full disk wiped them all): while a console
+    runs, it publishes every block in force again once the broker is back without it; a lifted one stays lifted."""
+    port = free_port()
+    endpoint = Endpoint(kind, "127.0.0.1", port, creds_dir)
+    kept = topics.operator_block(SITE, "op-kept")
+    lifted = topics.operator_block(SITE, "op-lifted")
+    with broker_on(kind, site_dir, creds_dir, port, tmp_path / "first"):
+        live = console(endpoint, site_dir)
+        publish(endpoint, [("operator", kept, b'{"v":1,"zone":"upper","reason":"spill"}')])
+        publish(endpoint, [("operator", lifted, b'{"v":1,"zone":"lower"}'), ("operator", lifted, b"")])
+        wait_for("the block in the console", lambda: "op-kept" in live.view.blocks)
+        assert "op-lifted" not in live.view.blocks
+    try:
+        wait_for("the console to see the broker gone", lambda: not live.snapshot()["broker_connected"])
+        with broker_on(kind, site_dir, creds_dir, port, tmp_path / "second"):
+            wait_for("the console back", lambda: live.snapshot()["broker_connected"], 30)
+            # read as a robot does (on Mosquitto a second operator connection would knock the console off)
+            with client(endpoint, "robot1", f"robot1-check-{time.monotonic_ns()}") as check:
+                check.subscribe(topics.all_operator_blocks(SITE))
+                got = check.wait_for(kept, timeout=15)
+                assert json.loads(got.payload) == {"v": 1, "zone": "upper", "reason": "spill"}
+                time.sleep(1.0)
+                assert lifted not in check.topics(), "a lifted block came back"
+            with client(endpoint, "robot1", f"robot1-late-{time.monotonic_ns()}") as late:
+                late.subscribe(topics.all_operator_blocks(SITE))
+                assert late.wait_for(kept, timeout=10).retain, (
+                    "published again retained, for robots joining later"
+                )
+    finally:
+        live.stop()
+        live.bus.close()
