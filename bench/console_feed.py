@@ -89,9 +89,18 @@ def drive_robots(host: str, port: int, creds: Path, robots: int, stop: threading
         bus.close()
 
 
+def commit() -> str:
+    """The commit measured (with `+dirty` when the tree has changes), for BENCHMARKS.md."""
+    here = Path(__file__).resolve().parent
+    rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True, text=True)
+    dirty = subprocess.run(["git", "status", "--porcelain"], cwd=here, capture_output=True, text=True)
+    return rev.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+
+
 def measure(nodes: int, robots: int, seconds: float) -> dict[str, float]:
     from playwright.sync_api import sync_playwright
 
+    load_start = os.getloadavg()[0]
     wall_minus_mono = time.time() - time.monotonic()
     with tempfile.TemporaryDirectory(prefix="wsnav-console-") as tmp:
         root = Path(tmp)
@@ -191,6 +200,7 @@ def measure(nodes: int, robots: int, seconds: float) -> dict[str, float]:
         "reached_pct": 100 * len(reached) / max(1, sent_in_window),
         "slow_seconds": slow_seconds,
         "measured_seconds": len(per_second),
+        "load_start": load_start, "load_end": os.getloadavg()[0],
     }  # fmt: skip
 
 
@@ -227,7 +237,9 @@ def main(argv: list[str] | None = None) -> int:
             "full statuses at 2 Hz, Mosquitto (from `wsnav broker mosquitto-config`), `wsnav console` and Chromium with the page open, for a\n"
             f'{r["seconds"]:.0f} s window. "message -> browser": simulator socket write to the page\'s event handler; the\n'
             "baseline is a plain MQTT subscriber on the same broker at the same time (what the broker alone costs).\n"
-            '"console intake": from the console\'s MQTT callback to the page. Target: 0.5 s from the MQTT message.\n\n'
+            '"console intake": from the console\'s MQTT callback to the page. Target (issue 32): p99 <= 250 ms from\n'
+            "the MQTT message, every state change shown (heartbeats may be coalesced).\n"
+            f"Commit {commit()}; load over the run {r['load_start']:.1f} -> {r['load_end']:.1f} (1-minute average).\n\n"
             f"{table}\n"
         )
         write_section(SECTION, body)
