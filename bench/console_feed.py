@@ -53,7 +53,9 @@ window.EventSource = function (url) {
   const es = new Native(url);
   es.addEventListener("message", (e) => {
     const at = performance.timeOrigin + performance.now();
-    for (const n of JSON.parse(e.data).nodes || []) if (n.seq != null) window.__arrivals.push([n.id, n.seq, n.heard_at, at]);
+    const ev = JSON.parse(e.data);
+    for (const n of ev.nodes || []) if (n.seq != null) window.__arrivals.push([n.id, n.seq, n.heard_at, at]);
+    for (const [id, [seq, heard]] of Object.entries(ev.heard || {})) window.__arrivals.push([id, seq, heard, at]);
   });
   return es;
 };

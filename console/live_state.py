@@ -69,6 +69,8 @@ class LiveState:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="console-mqtt", daemon=True)
         self.connected = bus.connected
+        self._sent: dict[Key, object] = {}
+        """What the pages were last sent of each zone and node (its look, without times)."""
         self.failed: str | None = None
         """Why the bus thread stopped, if it did: the page then says the console is blind."""
         self.messages = 0
@@ -201,6 +203,9 @@ class LiveState:
                 self.bus.publish(topics.operator_block(self.view.site.name, ident), b"", qos=1, retain=True)
 
     def _flush(self, dirty: set[Key]) -> None:
+        """One event of the entries whose look changed; a node heartbeat that changes nothing but its time and
+        seq goes in `heard` ({node: [seq, heard_at]}) rather than as a whole entry: a thousand nodes' heartbeats
+        coalesce into a small map, while every change of a state, link or staleness is sent as an entry."""
         event: dict[str, Any] = {
             "type": "update",
             "zones": [],
@@ -208,11 +213,24 @@ class LiveState:
             "robots": [],
             "blocks": [],
             "gone": [],
+            "heard": {},
         }
         with self.lock:
             now = self.clock.now()
             event["now"] = now
             for kind, ident in sorted(dirty):
+                if kind == "zone":
+                    look = self.view.zone_look(ident, now)
+                    if self._sent.get((kind, ident)) == look:
+                        continue
+                    self._sent[(kind, ident)] = look
+                elif kind == "node":
+                    node = self.view.nodes[ident]
+                    look = (node.state, node.online, self.view.node_fresh(node, now), node.info_at)
+                    if self._sent.get((kind, ident)) == look:
+                        event["heard"][ident] = [node.seq, node.heard_at]
+                        continue
+                    self._sent[(kind, ident)] = look
                 entry = self.view.entry((kind, ident), now)
                 if entry is None:
                     event["gone"].append(ident)

@@ -245,6 +245,12 @@ class SiteView:
         self.rule.refresh(now)
         return {z: (self.rule.zone_word(z), tuple(self.rule.stale_nodes(z))) for z in self.zones}
 
+    def zone_look(self, zone_id: str, now: float) -> tuple[str, tuple[str, ...], tuple[str, ...]]:
+        """One zone's look: word, stale nodes and operator blocks on it."""
+        self.rule.refresh(now)
+        blocks = tuple(sorted(b for b, v in self.blocks.items() if v.block.zone == zone_id))
+        return self.rule.zone_word(zone_id), tuple(self.rule.stale_nodes(zone_id)), blocks
+
     # -- rendering -----------------------------------------------------------------------------------------
 
     def entry(self, key: Key, now: float) -> dict[str, Any] | None:

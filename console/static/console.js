@@ -333,6 +333,10 @@ function apply(ev) {
   }
   (ev.zones || []).forEach(renderZone);
   (ev.nodes || []).forEach(renderNode);
+  for (const [id, [seq, heardAt]] of Object.entries(ev.heard || {})) {
+    const n = state.nodes[id]; // a heartbeat that changed nothing else: its age is redrawn once a second
+    if (n) Object.assign(n, { seq, heard_at: heardAt });
+  }
   (ev.robots || []).forEach(renderRobot);
   (ev.blocks || []).forEach(renderBlock);
   (ev.gone || []).forEach(dropBlock);
