@@ -23,6 +23,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import psutil
@@ -52,8 +53,9 @@ const Native = window.EventSource;
 window.EventSource = function (url) {
   const es = new Native(url);
   es.addEventListener("message", (e) => {
-    const at = performance.timeOrigin + performance.now();
+    const at = Date.now(); // the system wall clock, as Python's time.time() on this machine
     const ev = JSON.parse(e.data);
+    if (ev.type !== "update") return; // a snapshot (page opened, or fell behind) repeats what was already due
     for (const n of ev.nodes || []) if (n.seq != null) window.__arrivals.push([n.id, n.seq, n.heard_at, at]);
     for (const [id, [seq, heard]] of Object.entries(ev.heard || {})) window.__arrivals.push([id, seq, heard, at]);
   });
@@ -173,6 +175,10 @@ def measure(nodes: int, robots: int, seconds: float) -> dict[str, float]:
     open_to = t2 + wall_minus_mono
     index = {n.id: i for i, n in enumerate(spec.nodes)}
     sent_at = {(int(n), int(q)): t + wall_minus_mono for n, q, t in sent}
+    first: dict[tuple[str, int], list[Any]] = {}
+    for a in arrivals:  # the first time each (node, seq) reached the page
+        first.setdefault((a[0], a[1]), a)
+    arrivals = list(first.values())
     to_browser = [at / 1000 - sent_at[(index[i], q)] for i, q, _h, at in arrivals if (index[i], q) in sent_at]
     console_to_browser = [at / 1000 - heard for _i, _q, heard, at in arrivals if heard is not None]
     baseline = [
