@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from wsnav.console.event_log import EventLog
 from wsnav.console.site_view import Key, SiteView
 from wsnav.runtime.bus import Bus
 from wsnav.runtime.clock import Clock
@@ -59,7 +60,7 @@ class PageFeed:
 
 
 class LiveState:
-    def __init__(self, view: SiteView, bus: Bus, clock: Clock) -> None:
+    def __init__(self, view: SiteView, bus: Bus, clock: Clock, events: EventLog | None = None) -> None:
         self.view = view
         self.bus = bus
         self.clock = clock
@@ -69,6 +70,7 @@ class LiveState:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="console-mqtt", daemon=True)
         self.connected = bus.connected
+        self.events = events
         self._sent: dict[Key, object] = {}
         """What the pages were last sent of each zone and node (its look, without times)."""
         self.failed: str | None = None
@@ -96,6 +98,7 @@ class LiveState:
         with self.lock:
             snap = self.view.snapshot(self.clock.now())
         snap["broker_connected"] = self.link_up
+        snap["events"] = self.recent_events()
         if self.failed is not None:
             snap["link_error"] = self.failed
         return snap
@@ -174,7 +177,9 @@ class LiveState:
                 dirty |= {("node", n) for n, f in now_fresh.items() if fresh.get(n) != f}
                 zone_states, fresh = states, now_fresh
                 flush_at = mono
-            if dirty and flush_at is not None and mono >= flush_at:
+            if self.view.events and flush_at is None:
+                flush_at = mono
+            if (dirty or self.view.events) and flush_at is not None and mono >= flush_at:
                 self._flush(dirty)
                 dirty = set()
                 flush_at = None
@@ -202,6 +207,25 @@ class LiveState:
             if kind == "block" and self.bus.connected:
                 self.bus.publish(topics.operator_block(self.view.site.name, ident), b"", qos=1, retain=True)
 
+    def _take_events(self) -> list[dict[str, Any]]:
+        """What happened since the last flush: written to the log, and sent to the pages."""
+        with self.lock:
+            happened, self.view.events = self.view.events, []
+        if happened and self.events is not None:
+            try:
+                self.events.add(happened)
+            except Exception as exc:  # a full disk must not stop the console's intake
+                log.warning("event log not written: %s", exc)
+        return [{"t": e.t, "kind": e.kind, "subject": e.subject, "text": e.text} for e in happened]
+
+    def recent_events(self, limit: int = 50) -> list[dict[str, Any]]:
+        if self.events is None:
+            return []
+        return [
+            {"t": e.t, "kind": e.kind, "subject": e.subject, "text": e.text}
+            for e in self.events.recent(limit)
+        ]
+
     def _flush(self, dirty: set[Key]) -> None:
         """One event of the entries whose look changed; a node heartbeat that changes nothing but its time and
         seq goes in `heard` ({node: [seq, heard_at]}) rather than as a whole entry: a thousand nodes' heartbeats
@@ -214,6 +238,7 @@ class LiveState:
             "blocks": [],
             "gone": [],
             "heard": {},
+            "events": self._take_events(),
         }
         with self.lock:
             now = self.clock.now()

@@ -13,6 +13,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from wsnav.console.event_log import Event
 from wsnav.schemas import topics
 from wsnav.schemas.messages import (
     MAX_OPERATOR_PAYLOAD_BYTES,
@@ -84,6 +85,8 @@ class SiteView:
         self.blocks: dict[str, BlockView] = {}
         self.rule = ZoneLayer(spec, GridFrame.of_grid(site.grid))
         """The robots' own zone layer, fed the same messages: a zone's state is what the robots make of it."""
+        self.events: list[Event] = []
+        """What happened (live messages only, never a broker's replay), for the event log; its reader empties it."""
         self.dropped: collections.Counter[str] = collections.Counter()
         self.last_drop: str | None = None
         self._logged_at: dict[str, float] = {}
@@ -115,13 +118,17 @@ class SiteView:
         if parsed.kind == "zone_state" and parsed.node is not None:
             return self._zone_state(parsed.node, parse_payload(ZoneState, payload), received_at, retained)
         if parsed.kind == "node_status" and parsed.node is not None:
-            return self._node_status(parsed.node, payload, received_at)
+            return self._node_status(parsed.node, payload, received_at, retained)
         if parsed.kind == "robot_status" and parsed.robot is not None:
             status = parse_payload(RobotStatus, payload, max_bytes=MAX_OPERATOR_PAYLOAD_BYTES)
-            return self._robot_status(parsed.robot, status, received_at)
+            return self._robot_status(parsed.robot, status, received_at, retained)
         if parsed.kind == "operator_block" and parsed.block_id is not None:
-            return self._block(parsed.block_id, payload, received_at)
+            return self._block(parsed.block_id, payload, received_at, retained)
         return set()
+
+    def _event(self, at: float, kind: str, subject: str, text: str) -> None:
+        self.events.append(Event(at, kind, subject, text))
+        del self.events[:-1000]  # nobody reading: keep the newest
 
     def _drop(self, reason: str, why: str, at: float) -> set[Key]:
         """Count a dropped message by reason; log the first of a reason at once, then at most one line per
@@ -154,14 +161,17 @@ class SiteView:
             node.online = True  # a node that speaks is connected, even before its retained birth arrives
         return {("node", node_id), ("zone", node.zone)}
 
-    def _node_status(self, node_id: str, payload: bytes, at: float) -> set[Key]:
+    def _node_status(self, node_id: str, payload: bytes, at: float, retained: bool) -> set[Key]:
         node = self.nodes.get(node_id)
         if node is None:
             return self._drop("unknown_node", f"status of unknown node: {node_id}", at)
         msg = parse_payload(NodeStatus, payload)
         if msg.node != node_id:
             return self._drop("mismatch", f"status of {msg.node} on {node_id}'s topic", at)
-        node.online, node.status_at = msg.status == "online", at
+        online = msg.status == "online"
+        if not retained and node.online is not None and online != node.online:
+            self._event(at, f"node_{msg.status}", node_id, f"node {node_id} ({node.zone}) {msg.status}")
+        node.online, node.status_at = online, at
         self.rule.on_node_status(msg, at)
         return {("node", node_id), ("zone", node.zone)}
 
@@ -179,10 +189,14 @@ class SiteView:
         node.info, node.info_at = msg.model_dump(exclude={"v", "node"}, exclude_none=True), at
         return {("node", node_id)}
 
-    def _robot_status(self, robot_id: str, msg: RobotStatus, at: float) -> set[Key]:
+    def _robot_status(self, robot_id: str, msg: RobotStatus, at: float, retained: bool) -> set[Key]:
         robot = self.robots.setdefault(robot_id, RobotView())
         if msg.robot != robot_id:
             return self._drop("mismatch", f"status of {msg.robot} on {robot_id}'s topic", at)
+        before = robot.status.state if robot.status is not None else None
+        if not retained and msg.state != before and msg.state in ("waiting", "arrived", "cancelled"):
+            why = f": {msg.reason}" if msg.reason else ""
+            self._event(at, f"robot_{msg.state}", robot_id, f"robot {robot_id} {msg.state}{why}")
         robot.status, robot.heard_at = msg, at
         x, y, _ = msg.pose
         trail = robot.trail  # by the console's own receipt time: a status's `t` is the sender's word
@@ -192,7 +206,7 @@ class SiteView:
             trail.popleft()
         return {("robot", robot_id)}
 
-    def _block(self, block_id: str, payload: bytes, at: float) -> set[Key]:
+    def _block(self, block_id: str, payload: bytes, at: float, retained: bool = False) -> set[Key]:
         msg = parse_payload(OperatorBlock, payload, max_bytes=MAX_OPERATOR_PAYLOAD_BYTES) if payload else None
         if msg is not None and msg.zone is not None and msg.zone not in self.zones:
             # the robots' intake drops it too (zones.intake): a zone removed from the site, or a typo
@@ -207,6 +221,10 @@ class SiteView:
             self.blocks[block_id] = BlockView(msg, at)
             if msg.zone is not None:
                 keys.add(("zone", msg.zone))
+            if not retained and (before is None or before.block != msg):
+                self._event(at, "block_set", block_id, f"block {block_id} set: {_where(msg)}")
+        elif before is not None and not retained:
+            self._event(at, "block_lifted", block_id, f"block {block_id} lifted: {_where(before.block)}")
         self.rule.on_operator_block(block_id, msg, at)
         return keys
 
@@ -219,6 +237,7 @@ class SiteView:
             if view.block.expires_at is not None and now >= view.block.expires_at:
                 del self.blocks[block_id]
                 keys.add(("block", block_id))
+                self._event(now, "block_expired", block_id, f"block {block_id} expired: {_where(view.block)}")
                 if view.block.zone is not None:
                     keys.add(("zone", view.block.zone))
         return keys
@@ -321,3 +340,10 @@ class SiteView:
             "robots": robots,
             "blocks": [self.entry(("block", b), now) for b in sorted(self.blocks)],
         }
+
+
+def _where(block: OperatorBlock) -> str:
+    where = (
+        f"zone {block.zone}" if block.zone is not None else f"a polygon of {len(block.polygon or [])} corners"
+    )
+    return where + (f" ({block.reason})" if block.reason else "")

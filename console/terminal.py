@@ -6,17 +6,20 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sqlite3
 import sys
 import time
 from collections.abc import Callable
 from typing import Any
 
 from wsnav.console import operator_commands as commands
+from wsnav.console.event_log import log_path, open_for_reading
 from wsnav.console.live_state import subscriptions
 from wsnav.console.operator_commands import CommandError, Publication
 from wsnav.console.operator_link import OperatorLink, connect
 from wsnav.console.site_view import SiteView
 from wsnav.runtime.cli_support import CliError
+from wsnav.schemas.site import SiteError, load_site
 
 SETTLE_QUIET_S = 0.5
 """`wsnav status` answers once no retained message came for this long (the broker's replay is over)."""
@@ -317,4 +320,30 @@ def node_command_command(args: argparse.Namespace) -> int:
         args, "node-command", lambda link: commands.node_command(link.site, args.node, action, heartbeat_s)
     )
     print(f"{args.action} sent to {args.node}" + (f" ({heartbeat_s:g} s)" if heartbeat_s is not None else ""))
+    return 0
+
+
+def log_command(args: argparse.Namespace) -> int:
+    """`wsnav log`: the newest events the console kept, oldest first (no broker needed)."""
+    if args.last < 1:
+        raise CliError(f"--last {args.last}: expected at least 1")
+    try:
+        site = load_site(args.site)
+    except SiteError as exc:
+        raise CliError(str(exc)) from None
+    path = log_path(args.state_dir, site.name)
+    try:
+        events = open_for_reading(path)
+    except sqlite3.Error as exc:
+        raise CliError(f"{path}: not an event log ({exc})") from None
+    if events is None:
+        raise CliError(f"no event log at {path} (`wsnav console` writes it; give its --state-dir)")
+    try:
+        for e in events.recent(args.last):
+            if args.json:
+                print(json.dumps({"t": e.t, "kind": e.kind, "subject": e.subject, "text": e.text}))
+            else:
+                print(f"{time.strftime('%Y-%m-%d %H:%M:%S', time.localtime(e.t))}  {e.text}")
+    finally:
+        events.close()
     return 0

@@ -400,6 +400,43 @@ def test_the_page_follows_a_node_going_stale_not_only_a_new_state_word(
     )
 
 
+def test_blocks_set_and_lifted_reach_the_pages_event_list_and_wsnav_log(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    auth = ("operator", site_stack.password)
+    code, made = site_stack.request(
+        "POST", "/api/blocks", {"zone": "lower", "for_s": 60, "reason": "mop"}, basic=auth
+    )
+    assert code == 201, made
+    page.wait_for_function(
+        f"document.querySelector('#events').textContent.includes('block {made['id']} set')"
+    )
+    code, _ = site_stack.request("DELETE", f"/api/blocks/{made['id']}", basic=auth)
+    assert code == 200
+    page.wait_for_function(
+        f"document.querySelector('#events').textContent.includes('block {made['id']} lifted')"
+    )
+    stack = site_stack.stack
+    out = subprocess.run(
+        [
+            *WSNAV,
+            "log",
+            "--site",
+            str(stack.site),
+            "--state-dir",
+            str(stack.work / "console-state"),
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 0, out.stderr
+    mine = [e for e in map(json.loads, out.stdout.splitlines()) if e["subject"] == made["id"]]
+    assert [e["kind"] for e in mine] == ["block_set", "block_lifted"]
+    assert mine[0]["text"] == f"block {made['id']} set: zone lower (mop)"
+
+
 def test_a_phone_lays_the_page_out_at_its_own_width(browser: Any, site_stack: ConsoleStack) -> None:
     """Without a viewport meta a phone laid the page out at 980 px and cut the buttons off."""
     context = browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True, has_touch=True)

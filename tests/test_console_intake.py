@@ -240,10 +240,15 @@ def test_a_console_whose_reading_thread_dies_says_so_at_once(endpoint: Endpoint,
         snap = live.snapshot()
         assert snap["broker_connected"] is False
         assert "restart" in snap["link_error"]
-        events = []
-        while not feed.queue.empty():
-            events.append(json.loads(feed.queue.get_nowait()))
-        assert {"type": "link", "broker_connected": False, "link_error": snap["link_error"]} in events
+        events: list[dict[str, object]] = []
+        link = {"type": "link", "broker_connected": False, "link_error": snap["link_error"]}
+
+        def page_told() -> bool:  # the push runs on the pages' loop: it may come a moment after the snapshot
+            while not feed.queue.empty():
+                events.append(json.loads(feed.queue.get_nowait()))
+            return link in events
+
+        wait_for("the page told", page_told, 5)
     finally:
         live.stop()
         live.bus.close()

@@ -271,3 +271,33 @@ def test_last_heard_counts_live_messages_only_not_the_brokers_replay(site: Site)
     view.apply(*zone_msg("n1", "z1", "blocked", seq=2), 502.0)
     node = view.entry(("node", "n1"), 503.0)
     assert node is not None and (node["age_s"], node["fresh"]) == (1.0, True)
+
+
+def test_events_come_from_live_messages_only(site: Site) -> None:
+    """The event log's entries: blocks set, lifted and expired, a node offline and back, a robot arrived; a
+    broker's replay of retained messages (console start, reconnect) is no event."""
+    view = SiteView(site)
+    block = OperatorBlock(zone="z1", expires_at=150.0, reason="spill").to_payload()
+    view.apply(topics.operator_block("tiny", "old"), block, 99.0, retained=True)
+    view.apply(
+        topics.node_status("tiny", "n1"), NodeStatus(node="n1", status="online").to_payload(), 99.0, True
+    )
+    assert view.events == []
+    view.apply(topics.operator_block("tiny", "b1"), block, 100.0)
+    view.apply(topics.operator_block("tiny", "b1"), block, 100.5)  # the same again: no new event
+    view.apply(topics.operator_block("tiny", "old"), b"", 101.0)
+    view.apply(topics.node_status("tiny", "n1"), NodeStatus(node="n1", status="offline").to_payload(), 102.0)
+    view.apply(topics.node_status("tiny", "n1"), NodeStatus(node="n1", status="online").to_payload(), 103.0)
+    arrived = RobotStatus(robot="robot1", state="arrived", pose=(1.0, 1.0, 0.0), goal="A")
+    view.apply(topics.robot_status("tiny", "robot1"), arrived.to_payload(), 104.0)
+    view.apply(topics.robot_status("tiny", "robot1"), arrived.to_payload(), 104.5)
+    view.expire(150.0)
+    assert [(e.t, e.kind, e.subject) for e in view.events] == [
+        (100.0, "block_set", "b1"),
+        (101.0, "block_lifted", "old"),
+        (102.0, "node_offline", "n1"),
+        (103.0, "node_online", "n1"),
+        (104.0, "robot_arrived", "robot1"),
+        (150.0, "block_expired", "b1"),
+    ]
+    assert view.events[0].text == "block b1 set: zone z1 (spill)"

@@ -170,6 +170,17 @@ function renderBlock(b) {
   shape.setAttribute("points", poly ? pts(poly) : "");
 }
 
+const MAX_EVENTS_SHOWN = 50;
+function renderEvent(e) {
+  const list = $("events");
+  const li = document.createElement("li");
+  li.className = `event ${e.kind}`;
+  li.textContent = `${new Date(e.t * 1000).toLocaleTimeString()}  ${e.text}`;
+  list.appendChild(li);
+  while (list.children.length > MAX_EVENTS_SHOWN) list.firstElementChild.remove();
+  list.scrollTop = list.scrollHeight;
+}
+
 function dropBlock(id) {
   delete state.blocks[id];
   dirty.blocks.add(id);
@@ -340,6 +351,8 @@ function apply(ev) {
   (ev.robots || []).forEach(renderRobot);
   (ev.blocks || []).forEach(renderBlock);
   (ev.gone || []).forEach(dropBlock);
+  if (ev.type === "snapshot") $("events").replaceChildren();
+  (ev.events || []).forEach(renderEvent);
   renderBanner();
   scheduleTables();
 }
