@@ -437,6 +437,20 @@ def test_blocks_set_and_lifted_reach_the_pages_event_list_and_wsnav_log(
     assert mine[0]["text"] == f"block {made['id']} set: zone lower (mop)"
 
 
+def test_the_map_and_the_zone_and_node_lists_are_reached_by_keyboard(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    """axe-core's one serious finding: the scrolling nodes list could not be reached by keyboard (nor the map)."""
+    page.focus("#logout")
+    reached: list[str] = []
+    for _ in range(60):
+        page.keyboard.press("Tab")
+        reached.append(page.evaluate("document.activeElement.id"))
+    assert {"map", "zones-list", "nodes-list"} <= set(reached), reached
+    page.focus("#nodes-list")
+    page.keyboard.press("End")  # a focused list scrolls by keyboard
+
+
 def test_a_phone_lays_the_page_out_at_its_own_width(browser: Any, site_stack: ConsoleStack) -> None:
     """Without a viewport meta a phone laid the page out at 980 px and cut the buttons off."""
     context = browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True, has_touch=True)
