@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shutil
 import sqlite3
 import sys
 import time
@@ -156,6 +157,17 @@ def render(snapshot: dict[str, Any]) -> str:
     return "\n".join(out)
 
 
+def fit(text: str, rows: int, columns: int) -> str:
+    """The screen's worth of `text`: lines cut at the width, and when too long, the top (the site, the time and
+    any outage line stay in view) and one line saying how much was left out, instead of scrolling them away."""
+    lines = [line[:columns] for line in text.splitlines()]
+    if len(lines) < rows:
+        return "\n".join(lines)
+    keep = max(1, rows - 2)
+    more = f"... {len(lines) - keep} more lines (a taller window, or wsnav status)"
+    return "\n".join([*lines[:keep], more[:columns]])
+
+
 def status_command(args: argparse.Namespace) -> int:
     link, view = _subscribed(args, "status")
     try:
@@ -179,7 +191,8 @@ def watch_command(args: argparse.Namespace) -> int:
             view.expire(link.clock.now())
             snapshot = view.snapshot(link.clock.now())
             snapshot["broker_connected"] = link.bus.connected
-            sys.stdout.write("\x1b[H\x1b[2J" + render(snapshot) + "\n")
+            size = shutil.get_terminal_size()
+            sys.stdout.write("\x1b[H\x1b[2J" + fit(render(snapshot), size.lines, size.columns) + "\n")
             sys.stdout.flush()
     finally:
         link.bus.close()

@@ -301,3 +301,18 @@ def test_events_come_from_live_messages_only(site: Site) -> None:
         (150.0, "block_expired", "b1"),
     ]
     assert view.events[0].text == "block b1 set: zone z1 (spill)"
+
+
+def test_watch_fits_an_80_by_24_terminal_keeping_the_header_and_outage_line(site: Site) -> None:
+    """`wsnav watch` in 80x24 scrolled its header and the outage line away."""
+    from wsnav.console.terminal import fit
+
+    view = SiteView(site)
+    snap = view.snapshot(10.0)
+    snap["broker_connected"] = False
+    long = render(snap) + "\n" + "\n".join(f"row {i} " + "x" * 120 for i in range(40))
+    shown = fit(long, 24, 80).splitlines()
+    assert len(shown) <= 23 and all(len(line) <= 80 for line in shown)
+    assert shown[0].startswith("site tiny") and "not reachable" in shown[1]
+    assert shown[-1].startswith("... ") and "more lines" in shown[-1]
+    assert fit("a\nb", 24, 80) == "a\nb"
