@@ -451,6 +451,32 @@ def test_the_map_and_the_zone_and_node_lists_are_reached_by_keyboard(
     page.keyboard.press("End")  # a focused list scrolls by keyboard
 
 
+def test_blocked_is_hatched_not_colour_alone_and_the_legend_says_what_robots_avoid(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    """Under deuteranopia a blocked zone looked like a clear one; the README said operator blocks were hatched and
+    they were not; an operator could not tell which colours robots drive through."""
+    site_stack.node.say("blocked")
+    try:
+        page.wait_for_function("document.querySelector('#zone-upper').dataset.state === 'blocked'")
+        assert "url(" in page.evaluate("getComputedStyle(document.querySelector('#zone-upper')).fill")
+        auth = ("operator", site_stack.password)
+        code, made = site_stack.request("POST", "/api/blocks", {"zone": "lower", "for_s": 30}, basic=auth)
+        assert code == 201
+        page.wait_for_selector(f"#block-{made['id']}")
+        assert "url(" in page.evaluate(
+            f"getComputedStyle(document.querySelector('#block-{made['id']}')).fill"
+        )
+        site_stack.request("DELETE", f"/api/blocks/{made['id']}", basic=auth)
+    finally:
+        site_stack.node.say("clear")
+    legend = page.text_content(".legend") or ""
+    assert "Robots avoid:" in legend and "Robots drive through:" in legend
+    avoid, through = legend.split("Robots drive through:")
+    assert "blocked" in avoid and "operator block" in avoid
+    assert "caution" in through and "unknown" in through
+
+
 def test_a_phone_lays_the_page_out_at_its_own_width(browser: Any, site_stack: ConsoleStack) -> None:
     """Without a viewport meta a phone laid the page out at 980 px and cut the buttons off."""
     context = browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True, has_touch=True)
