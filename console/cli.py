@@ -8,6 +8,7 @@ console.serve, imported only when a command runs.
 from __future__ import annotations
 
 import argparse
+import os
 import re
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -28,6 +29,11 @@ def operator_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect-timeout", type=float, default=10.0, metavar="S", help="default 10")
 
 
+def _state_dir() -> Path:
+    """Where the console keeps its sessions and event log unless told: $XDG_STATE_HOME/wsnav."""
+    return Path(os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state") / "wsnav"
+
+
 def register(sub: argparse._SubParsersAction[Parser]) -> None:
     console = sub.add_parser(
         "console", help="the operator's live web page: map, nodes, robots, blocks; steering"
@@ -40,7 +46,27 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         metavar="HOST:PORT",
         help="default 127.0.0.1:8080",
     )
+    console.add_argument(
+        "--state-dir",
+        type=Path,
+        default=_state_dir(),
+        metavar="DIR",
+        help="where login sessions are kept, so a restart keeps pages logged in (default ~/.local/state/wsnav)",
+    )
     console.set_defaults(func=_run("serve", "console_command"))
+
+    log = sub.add_parser(
+        "log", help="the console's event log: blocks, nodes offline/online, robots arrived or waiting"
+    )
+    log.add_argument("--site", type=Path, required=True, help="site directory or site.yaml")
+    log.add_argument(
+        "--state-dir", type=Path, default=_state_dir(), metavar="DIR", help="the console's --state-dir"
+    )
+    log.add_argument(
+        "--last", type=int, default=50, metavar="N", help="how many of the newest events (default 50)"
+    )
+    log.add_argument("--json", action="store_true", help="one JSON object per line")
+    log.set_defaults(func=_run("terminal", "log_command"))
 
     status = sub.add_parser("status", help="one table of the site's nodes, zones, robots and operator blocks")
     operator_arguments(status)

@@ -10,18 +10,25 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
+from wsnav.console.event_log import EventLog
 from wsnav.console.site_view import Key, SiteView
 from wsnav.runtime.bus import Bus
 from wsnav.runtime.clock import Clock
 from wsnav.schemas import topics
 
+log = logging.getLogger(__name__)
+
 BATCH_S = 0.05
 TICK_S = 1.0
+REPLAY_S = 3.0
+"""After a reconnect, how long the broker's retained replay is awaited before an operator block it did not replay
+is taken as lost (a broker restarted without its store, a full disk) and published again."""
 MAX_PAGE_QUEUE = 200
 """A page that falls this far behind is sent a fresh snapshot instead of the backlog."""
 
@@ -53,7 +60,7 @@ class PageFeed:
 
 
 class LiveState:
-    def __init__(self, view: SiteView, bus: Bus, clock: Clock) -> None:
+    def __init__(self, view: SiteView, bus: Bus, clock: Clock, events: EventLog | None = None) -> None:
         self.view = view
         self.bus = bus
         self.clock = clock
@@ -63,6 +70,11 @@ class LiveState:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="console-mqtt", daemon=True)
         self.connected = bus.connected
+        self.events = events
+        self._sent: dict[Key, object] = {}
+        """What the pages were last sent of each zone and node (its look, without times)."""
+        self.failed: str | None = None
+        """Why the bus thread stopped, if it did: the page then says the console is blind."""
         self.messages = 0
         for flt in subscriptions(view.site.name):
             bus.subscribe(flt)
@@ -76,10 +88,19 @@ class LiveState:
 
     # -- pages ---------------------------------------------------------------------------------------------
 
+    @property
+    def link_up(self) -> bool:
+        """The broker is connected and the thread that reads it still runs: what the page's banner shows."""
+        started = self._thread.ident is not None
+        return self.connected and self.failed is None and (not started or self._thread.is_alive())
+
     def snapshot(self) -> dict[str, Any]:
         with self.lock:
             snap = self.view.snapshot(self.clock.now())
-        snap["broker_connected"] = self.connected
+        snap["broker_connected"] = self.link_up
+        snap["events"] = self.recent_events()
+        if self.failed is not None:
+            snap["link_error"] = self.failed
         return snap
 
     def open_feed(self, loop: asyncio.AbstractEventLoop) -> PageFeed:
@@ -105,17 +126,31 @@ class LiveState:
     # -- the bus thread ------------------------------------------------------------------------------------
 
     def _run(self) -> None:
+        try:
+            self._loop()
+        except (
+            BaseException
+        ) as exc:  # a bug of ours: say so on every page at once rather than freeze silently
+            self.failed = f"the console stopped reading the broker ({type(exc).__name__}: {exc}); restart it"
+            log.exception("console-mqtt: %s", self.failed)
+            self._broadcast({"type": "link", "broker_connected": False, "link_error": self.failed})
+
+    def _loop(self) -> None:
         dirty: set[Key] = set()
-        zone_states: dict[str, str] = {}
+        zone_states: dict[str, tuple[str, tuple[str, ...]]] = {}
         fresh: dict[str, bool] = {}
         next_tick = 0.0
         flush_at: float | None = None
+        replayed: set[str] = set()
+        reconcile_at: float | None = None
         while not self._stop.is_set():
             self.bus.wait(BATCH_S)
             messages = self.bus.poll()
             with self.lock:
                 for msg in messages:
-                    dirty |= self.view.apply(msg.topic, msg.payload, msg.received_at)
+                    dirty |= self.view.apply(msg.topic, msg.payload, msg.received_at, msg.retain)
+                    if msg.retain and msg.payload and (t := topics.parse(msg.topic)) and t.block_id:
+                        replayed.add(t.block_id)
             self.messages += len(messages)
             mono = time.monotonic()
             if messages and flush_at is None:
@@ -123,6 +158,11 @@ class LiveState:
             if self.bus.connected != self.connected:
                 self.connected = self.bus.connected
                 self._broadcast({"type": "link", "broker_connected": self.connected})
+                if self.connected:  # back: see which of our blocks the broker still holds
+                    replayed, reconcile_at = set(), mono + REPLAY_S
+            if reconcile_at is not None and mono >= reconcile_at and self.bus.connected:
+                reconcile_at = None
+                self._republish_lost(replayed)
             if mono >= next_tick:
                 next_tick = mono + TICK_S
                 with self.lock:
@@ -131,16 +171,35 @@ class LiveState:
                 dirty |= expired
                 self._forget_expired(expired)
                 with self.lock:
-                    states = self.view.zone_states(now)
+                    states = self.view.zone_looks(now)
                     now_fresh = {n: self.view.node_fresh(v, now) for n, v in self.view.nodes.items()}
                 dirty |= {("zone", z) for z, s in states.items() if zone_states.get(z) != s}
                 dirty |= {("node", n) for n, f in now_fresh.items() if fresh.get(n) != f}
                 zone_states, fresh = states, now_fresh
                 flush_at = mono
-            if dirty and flush_at is not None and mono >= flush_at:
+            if self.view.events and flush_at is None:
+                flush_at = mono
+            if (dirty or self.view.events) and flush_at is not None and mono >= flush_at:
                 self._flush(dirty)
                 dirty = set()
                 flush_at = None
+
+    def _republish_lost(self, replayed: set[str]) -> None:
+        """The operator's blocks are operator intent: one the broker did not replay after a reconnect was lost by
+        it (restarted without its store, a full disk) and is published again, retained, as it was. A block lifted
+        while this console was cut off cannot be told from a lost one: it comes back, on the safe side."""
+        with self.lock:
+            now = self.clock.now()
+            lost = [
+                (block_id, view.block)
+                for block_id, view in self.view.blocks.items()
+                if block_id not in replayed and (view.block.expires_at is None or view.block.expires_at > now)
+            ]
+        for block_id, block in lost:
+            log.warning("operator block %s was lost by the broker: published again", block_id)
+            self.bus.publish(
+                topics.operator_block(self.view.site.name, block_id), block.to_payload(), qos=1, retain=True
+            )
 
     def _forget_expired(self, expired: set[Key]) -> None:
         """An expired block is cleared from the broker's retained store too, so it is not replayed forever."""
@@ -148,7 +207,29 @@ class LiveState:
             if kind == "block" and self.bus.connected:
                 self.bus.publish(topics.operator_block(self.view.site.name, ident), b"", qos=1, retain=True)
 
+    def _take_events(self) -> list[dict[str, Any]]:
+        """What happened since the last flush: written to the log, and sent to the pages."""
+        with self.lock:
+            happened, self.view.events = self.view.events, []
+        if happened and self.events is not None:
+            try:
+                self.events.add(happened)
+            except Exception as exc:  # a full disk must not stop the console's intake
+                log.warning("event log not written: %s", exc)
+        return [{"t": e.t, "kind": e.kind, "subject": e.subject, "text": e.text} for e in happened]
+
+    def recent_events(self, limit: int = 50) -> list[dict[str, Any]]:
+        if self.events is None:
+            return []
+        return [
+            {"t": e.t, "kind": e.kind, "subject": e.subject, "text": e.text}
+            for e in self.events.recent(limit)
+        ]
+
     def _flush(self, dirty: set[Key]) -> None:
+        """One event of the entries whose look changed; a node heartbeat that changes nothing but its time and
+        seq goes in `heard` ({node: [seq, heard_at]}) rather than as a whole entry: a thousand nodes' heartbeats
+        coalesce into a small map, while every change of a state, link or staleness is sent as an entry."""
         event: dict[str, Any] = {
             "type": "update",
             "zones": [],
@@ -156,11 +237,25 @@ class LiveState:
             "robots": [],
             "blocks": [],
             "gone": [],
+            "heard": {},
+            "events": self._take_events(),
         }
         with self.lock:
             now = self.clock.now()
             event["now"] = now
             for kind, ident in sorted(dirty):
+                if kind == "zone":
+                    look = self.view.zone_look(ident, now)
+                    if self._sent.get((kind, ident)) == look:
+                        continue
+                    self._sent[(kind, ident)] = look
+                elif kind == "node":
+                    node = self.view.nodes[ident]
+                    look = (node.state, node.online, self.view.node_fresh(node, now), node.info_at)
+                    if self._sent.get((kind, ident)) == look:
+                        event["heard"][ident] = [node.seq, node.heard_at]
+                        continue
+                    self._sent[(kind, ident)] = look
                 entry = self.view.entry((kind, ident), now)
                 if entry is None:
                     event["gone"].append(ident)

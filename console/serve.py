@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import sqlite3
 import sys
+from pathlib import Path
 
 import uvicorn
 
-from wsnav.console.auth import Authenticator
+from wsnav.console.auth import Authenticator, open_store
+from wsnav.console.event_log import EventLog, log_path
 from wsnav.console.live_state import LiveState
 from wsnav.console.operator_link import connect
 from wsnav.console.site_view import SiteView
@@ -15,16 +18,30 @@ from wsnav.console.web_app import ConsoleApp
 from wsnav.runtime.cli_support import CliError
 
 
+def open_event_log(state_dir: Path, site: str) -> EventLog | None:
+    try:
+        return EventLog(log_path(state_dir, site))
+    except (OSError, sqlite3.Error) as exc:
+        print(f"console: no event log ({exc}): events are shown, not kept", file=sys.stderr, flush=True)
+        return None
+
+
 def console_command(args: argparse.Namespace) -> int:
     host, port = args.bind
     link = connect(args, "console")
-    live = LiveState(SiteView(link.site), link.bus, link.clock)
+    live = LiveState(
+        SiteView(link.site), link.bus, link.clock, open_event_log(args.state_dir, link.site.name)
+    )
     app = ConsoleApp(
         link.site,
         live,
         link.bus,
         link.clock,
-        Authenticator(link.credentials.username, link.credentials.password),
+        Authenticator(
+            link.credentials.username,
+            link.credentials.password,
+            open_store(args.state_dir / f"console-{link.site.name}.sqlite", link.credentials.password),
+        ),
     )
     live.start()
     config = uvicorn.Config(

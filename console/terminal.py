@@ -6,32 +6,48 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shutil
+import sqlite3
 import sys
 import time
 from collections.abc import Callable
 from typing import Any
 
 from wsnav.console import operator_commands as commands
+from wsnav.console.event_log import log_path, open_for_reading
 from wsnav.console.live_state import subscriptions
 from wsnav.console.operator_commands import CommandError, Publication
 from wsnav.console.operator_link import OperatorLink, connect
 from wsnav.console.site_view import SiteView
 from wsnav.runtime.cli_support import CliError
+from wsnav.schemas.site import SiteError, load_site
 
 SETTLE_QUIET_S = 0.5
+"""`wsnav status` answers once no retained message came for this long (the broker's replay is over)."""
 SETTLE_MAX_S = 5.0
+UNBLOCK_LOOKUP_S = 2.0
+"""How long `wsnav unblock` waits for the broker's retained copy of the block before calling the id unknown."""
 
 
-def _gather(link: OperatorLink, view: SiteView, quiet_s: float, max_s: float) -> None:
-    """Take in what arrives until the bus has been quiet for `quiet_s` (the retained messages come first)."""
-    deadline = time.monotonic() + max_s
-    while time.monotonic() < deadline:
-        if not link.bus.wait(min(quiet_s, max(0.0, deadline - time.monotonic()))):
+def _gather(
+    link: OperatorLink, view: SiteView, quiet_s: float, max_s: float, *, replay: bool = False
+) -> None:
+    """Take in what arrives for `max_s`, or with `replay` until the broker's retained replay is over: no retained
+    message for `quiet_s` (a 2 Hz robot's live statuses never make the bus quiet, so they do not count)."""
+    start = time.monotonic()
+    deadline = start + max_s
+    last_replayed = start + quiet_s  # the first retained message may take a round trip more
+    while (now := time.monotonic()) < deadline:
+        if replay and now - last_replayed >= quiet_s:
             break
+        wait = deadline - now if not replay else min(deadline, last_replayed + quiet_s) - now
+        link.bus.wait(max(0.0, wait))
         for msg in link.bus.poll():
-            view.apply(msg.topic, msg.payload, msg.received_at)
+            view.apply(msg.topic, msg.payload, msg.received_at, msg.retain)
+            if msg.retain:
+                last_replayed = time.monotonic()
     for msg in link.bus.poll():
-        view.apply(msg.topic, msg.payload, msg.received_at)
+        view.apply(msg.topic, msg.payload, msg.received_at, msg.retain)
 
 
 def _subscribed(args: argparse.Namespace, purpose: str) -> tuple[OperatorLink, SiteView]:
@@ -62,7 +78,13 @@ def render(snapshot: dict[str, Any]) -> str:
     if snapshot.get("broker_connected") is False:
         out.append("!! the MQTT broker is not reachable: what follows may be out of date")
     nodes = snapshot["nodes"]
-    link = lambda n: "offline" if n["online"] is False else ("online" if n["fresh"] else "silent")  # noqa: E731
+
+    def link(n: dict[str, Any]) -> str:
+        """A node known only from the broker's replay has said nothing live yet: not "silent", not "online"."""
+        if n["online"] is False:
+            return "offline"
+        return "online" if n["fresh"] else ("silent" if n["age_s"] is not None else "no live word yet")
+
     out += [
         "",
         f"NODES ({sum(1 for n in nodes if n['online'] is not False and n['fresh'])}/{len(nodes)} reporting)",
@@ -135,10 +157,21 @@ def render(snapshot: dict[str, Any]) -> str:
     return "\n".join(out)
 
 
+def fit(text: str, rows: int, columns: int) -> str:
+    """The screen's worth of `text`: lines cut at the width, and when too long, the top (the site, the time and
+    any outage line stay in view) and one line saying how much was left out, instead of scrolling them away."""
+    lines = [line[:columns] for line in text.splitlines()]
+    if len(lines) < rows:
+        return "\n".join(lines)
+    keep = max(1, rows - 2)
+    more = f"... {len(lines) - keep} more lines (a taller window, or wsnav status)"
+    return "\n".join([*lines[:keep], more[:columns]])
+
+
 def status_command(args: argparse.Namespace) -> int:
     link, view = _subscribed(args, "status")
     try:
-        _gather(link, view, SETTLE_QUIET_S, SETTLE_MAX_S)
+        _gather(link, view, SETTLE_QUIET_S, SETTLE_MAX_S, replay=True)
         view.expire(link.clock.now())
         snapshot = view.snapshot(link.clock.now())
     finally:
@@ -158,7 +191,8 @@ def watch_command(args: argparse.Namespace) -> int:
             view.expire(link.clock.now())
             snapshot = view.snapshot(link.clock.now())
             snapshot["broker_connected"] = link.bus.connected
-            sys.stdout.write("\x1b[H\x1b[2J" + render(snapshot) + "\n")
+            size = shutil.get_terminal_size()
+            sys.stdout.write("\x1b[H\x1b[2J" + fit(render(snapshot), size.lines, size.columns) + "\n")
             sys.stdout.flush()
     finally:
         link.bus.close()
@@ -229,7 +263,24 @@ def block_command(args: argparse.Namespace) -> int:
 
 
 def unblock_command(args: argparse.Namespace) -> int:
-    _publish(args, "unblock", lambda link: commands.unblock(link.site, args.block_id))
+    """Lift a block the broker holds; an id it does not hold (a typo, a block already lifted or expired) is one
+    line and exit 2, as the console's API answers 404, rather than "lifted"."""
+    link = connect(args, "unblock")
+    try:
+        pub = commands.unblock(link.site, args.block_id)
+    except CommandError as exc:
+        link.bus.close()
+        raise CliError(str(exc)) from None
+    link.bus.subscribe(pub.topic)
+    held = False  # any retained word on the topic, even one the view would drop (a block on a removed zone)
+    deadline = time.monotonic() + UNBLOCK_LOOKUP_S
+    while not held and (left := deadline - time.monotonic()) > 0:
+        if link.bus.wait(left):
+            held = any(msg.topic == pub.topic and msg.payload for msg in link.bus.poll())
+    if not held:
+        link.bus.close()
+        raise CliError(f"no active block {args.block_id!r} (`wsnav status` lists the blocks in force)")
+    _send(link, pub)
     print(f"lifted: {args.block_id}")
     return 0
 
@@ -282,4 +333,30 @@ def node_command_command(args: argparse.Namespace) -> int:
         args, "node-command", lambda link: commands.node_command(link.site, args.node, action, heartbeat_s)
     )
     print(f"{args.action} sent to {args.node}" + (f" ({heartbeat_s:g} s)" if heartbeat_s is not None else ""))
+    return 0
+
+
+def log_command(args: argparse.Namespace) -> int:
+    """`wsnav log`: the newest events the console kept, oldest first (no broker needed)."""
+    if args.last < 1:
+        raise CliError(f"--last {args.last}: expected at least 1")
+    try:
+        site = load_site(args.site)
+    except SiteError as exc:
+        raise CliError(str(exc)) from None
+    path = log_path(args.state_dir, site.name)
+    try:
+        events = open_for_reading(path)
+    except sqlite3.Error as exc:
+        raise CliError(f"{path}: not an event log ({exc})") from None
+    if events is None:
+        raise CliError(f"no event log at {path} (`wsnav console` writes it; give its --state-dir)")
+    try:
+        for e in events.recent(args.last):
+            if args.json:
+                print(json.dumps({"t": e.t, "kind": e.kind, "subject": e.subject, "text": e.text}))
+            else:
+                print(f"{time.strftime('%Y-%m-%d %H:%M:%S', time.localtime(e.t))}  {e.text}")
+    finally:
+        events.close()
     return 0

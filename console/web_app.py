@@ -40,6 +40,7 @@ from wsnav.console.live_state import LiveState, resync_event
 from wsnav.console.operator_commands import CommandError, Publication
 from wsnav.runtime.bus import Bus
 from wsnav.runtime.clock import Clock
+from wsnav.schemas.messages import PayloadError, parse_json
 from wsnav.schemas.site import Site
 
 STATIC = Path(__file__).parent / "static"
@@ -193,15 +194,15 @@ class ConsoleApp:
             raise Refused(415, "send JSON (Content-Type: application/json)")
 
     async def _json(self, request: Request) -> dict[str, Any]:
-        body = await request.body()
-        if len(body) > MAX_BODY:
-            raise Refused(413, f"request body of {len(body)} bytes exceeds {MAX_BODY}")
+        """The body as a JSON object, read only up to MAX_BODY bytes (a declared or streamed larger body is
+        refused before it is read) and parsed by the message contract's rules (no key twice)."""
+        body = await read_bounded(request, MAX_BODY)
         if not body:
             return {}
         try:
-            data = json.loads(body)
-        except ValueError:
-            raise Refused(400, "the body is not valid JSON") from None
+            data = parse_json(body)
+        except PayloadError as exc:
+            raise Refused(400, f"the body is not accepted: {exc}") from None
         if not isinstance(data, dict):
             raise Refused(400, "the body must be a JSON object")
         return data
@@ -357,6 +358,25 @@ class ConsoleApp:
         return JSONResponse({"robot": robot, "cancelled": True}, status_code=202)
 
 
+async def read_bounded(request: Request, limit: int) -> bytes:
+    """At most `limit` bytes of the body: a Content-Length above it is refused unread, a streamed body as soon
+    as it passes it (a 300 MB login used to be read whole before it was refused)."""
+    declared = request.headers.get("content-length")
+    if declared is not None:
+        if not declared.isdigit():
+            raise Refused(400, "Content-Length is not a number")
+        if int(declared) > limit:
+            raise Refused(413, f"request body of {int(declared)} bytes exceeds {limit}")
+    chunks: list[bytes] = []
+    size = 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limit:
+            raise Refused(413, f"request body exceeds {limit} bytes")
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
 def _text(value: object, name: str) -> str | None:
     if value is None or isinstance(value, str):
         return value
@@ -366,9 +386,15 @@ def _text(value: object, name: str) -> str | None:
 def _number(value: object, name: str, *, optional: bool = False) -> float | None:
     if value is None and optional:
         return None
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+    if isinstance(value, bool) or not isinstance(value, int | float):
         raise Refused(400, f"'{name}' must be a finite number")
-    return float(value)
+    try:
+        number = float(value)  # an int of 400 digits is valid JSON and no float
+    except OverflowError:
+        raise Refused(400, f"'{name}' must be a finite number") from None
+    if not math.isfinite(number):
+        raise Refused(400, f"'{name}' must be a finite number")
+    return number
 
 
 def _polygon(value: object) -> list[tuple[float, float]] | None:

@@ -324,6 +324,10 @@ class PayloadError(ValueError):
     """A payload that must be dropped: the message says why, in one line."""
 
 
+class NotJson(PayloadError):
+    """Text that is not JSON at all (as opposed to JSON the contract refuses)."""
+
+
 def refuse_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     """`{"state": "clear", "state": "blocked"}` means two things; JSON parsers keep the last, so refuse it."""
     keys = [key for key, _ in pairs]
@@ -333,13 +337,26 @@ def refuse_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return dict(pairs)
 
 
+def parse_json(raw: bytes | str) -> Any:
+    """JSON text as the contract reads it: one key twice or nesting Python cannot parse is a PayloadError, as is
+    text that is not JSON; nothing else is raised."""
+    try:
+        return json.loads(raw, object_pairs_hook=refuse_duplicate_keys)
+    except PayloadError:
+        raise
+    except (ValueError, UnicodeDecodeError):  # JSONDecodeError, and ints over Python's digit limit
+        raise NotJson("not valid JSON") from None
+    except RecursionError:  # `[` x 4000: Python's parser gives up on depth, a reader must not
+        raise PayloadError("JSON nested too deeply") from None
+
+
 def parse_payload(model: type[M], payload: bytes | str, *, max_bytes: int = MAX_PAYLOAD_BYTES) -> M:
     """Validate raw bytes against a model; raises PayloadError with a one-line reason, never anything else."""
     raw = payload.encode() if isinstance(payload, str) else payload
     if len(raw) > max_bytes:
         raise PayloadError(f"payload of {len(raw)} bytes exceeds {max_bytes}")
-    with contextlib.suppress(json.JSONDecodeError, UnicodeDecodeError):  # pydantic below says where
-        json.loads(raw, object_pairs_hook=refuse_duplicate_keys)
+    with contextlib.suppress(NotJson):  # pydantic below says where
+        parse_json(raw)
     try:
         return model.model_validate_json(raw)
     except ValidationError as exc:

@@ -37,6 +37,8 @@ def school() -> Site:
 
 SLOW_MODULES = {
     "test_console_browser.py",
+    "test_console_intake.py",
+    "test_console_log_cli.py",
     "test_compose_stack.py",
     "test_stack_processes.py",
     "test_ros_robot.py",

@@ -54,6 +54,8 @@ class NodeS1:
         self.state = "clear"
         self._lock = threading.Lock()
         self._stop = threading.Event()
+        self.silent = threading.Event()
+        """Set: the node stays connected but says nothing (hung firmware): it turns stale."""
         self._beat = threading.Thread(target=self._heartbeat, daemon=True)
         self._beat.start()
 
@@ -67,7 +69,8 @@ class NodeS1:
     def _heartbeat(self) -> None:
         """As the firmware does: the current state again every heartbeat (1 s on this site)."""
         while not self._stop.wait(HEARTBEAT_S):
-            self.say(self.state)
+            if not self.silent.is_set():
+                self.say(self.state)
 
     def close(self) -> None:
         self._stop.set()
@@ -119,8 +122,9 @@ class ConsoleStack:
         return next(r for r in self.state()["robots"] if r["id"] == "robot1")
 
 
-def start_console(stack: Stack) -> tuple[Proc, str]:
-    port = free_port()
+def start_console(stack: Stack, port: int | None = None) -> tuple[Proc, str]:
+    """`wsnav console` on `port` (a free one by default), its sessions under the stack's work directory."""
+    port = port if port is not None else free_port()
     proc = stack.start(
         "console",
         [
@@ -134,6 +138,8 @@ def start_console(stack: Stack) -> tuple[Proc, str]:
             str(stack.creds / "operator.json"),
             "--bind",
             f"127.0.0.1:{port}",
+            "--state-dir",
+            str(stack.work / "console-state"),
         ],
     )
     wait_listening("127.0.0.1", port, proc.popen)

@@ -8,11 +8,15 @@ The tests share one stack and run in order: the broker outage comes last.
 from __future__ import annotations
 
 import json
+import select
 import signal
+import socket
 import subprocess
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import pytest
 
@@ -136,6 +140,11 @@ def test_malformed_requests_get_a_clear_4xx_and_change_nothing(page: Any, site_s
         ("POST", "/api/robots/robot1/goal", {"pose": [0.0, 0.0]}, 400, "in a wall"),
         ("POST", "/api/robots/robot1/goal", {"pose": [1, "a"]}, 400, "finite number"),
         ("POST", "/api/robots/robot1/goal", {}, 400, "give 'point'"),
+        ("POST", "/api/login", b"[" * 5000 + b"]" * 5000, 400, "nested too deeply"),
+        ("POST", "/api/blocks", b'{"zone": "upper", "for_s": 1%s}' % (b"0" * 400), 400, "finite number"),
+        ("POST", "/api/robots/robot1/goal", b'{"pose": [1%s, 0]}' % (b"0" * 400), 400, "finite number"),
+        ("POST", "/api/blocks", b'{"zone": "lower", "zone": "upper"}', 400, "duplicate key 'zone'"),
+        ("POST", "/api/robots/robot1/goal", b'{"point": "P1", "point": "P2"}', 400, "duplicate key"),
     ]
     for method, path, body, code, words in cases:
         headers = {"Content-Type": "application/json"} if isinstance(body, bytes) else None
@@ -167,6 +176,48 @@ def test_malformed_requests_get_a_clear_4xx_and_change_nothing(page: Any, site_s
     assert bus.poll() == [], "a refused request published something"
     assert site_stack.state()["blocks"] == before
     bus.close()
+
+
+def _raw_post(url: str, head: str) -> socket.socket:
+    host, port = urlsplit(url).netloc.split(":")
+    sock = socket.create_connection((host, int(port)), timeout=10)
+    sock.sendall(
+        f"POST /api/login HTTP/1.1\r\nHost: {host}:{port}\r\nContent-Type: application/json\r\n{head}\r\n".encode()
+    )
+    return sock
+
+
+def _rss_kb(pid: int) -> int:
+    status = Path(f"/proc/{pid}/status").read_text()
+    return int(next(line.split()[1] for line in status.splitlines() if line.startswith("VmRSS:")))
+
+
+def test_a_huge_body_is_refused_before_it_is_read(site_stack: ConsoleStack) -> None:
+    """`POST /api/login` read a body of any size before refusing it (300 MB: +315 MB in the console). A declared
+    Content-Length over the limit is refused unread; a streamed (chunked) body as soon as it passes the limit."""
+    pid = site_stack.console.popen.pid
+    before = _rss_kb(pid)
+    with _raw_post(site_stack.url, "Content-Length: 300000000\r\n") as sock:
+        sock.sendall(b'{"username": "operator", "password": "')
+        assert sock.recv(200).startswith(b"HTTP/1.1 413"), "refused at once, without the 300 MB"
+    chunk = b"%x\r\n%s\r\n" % (65536, b"x" * 65536)
+    sent = 0
+    with _raw_post(site_stack.url, "Transfer-Encoding: chunked\r\n") as sock:
+        answer = b""
+        while sent < 300_000_000:
+            readable, _, _ = select.select([sock], [], [], 0)
+            if readable:
+                answer = sock.recv(200)
+                break
+            try:
+                sock.sendall(chunk)
+            except OSError:  # the console closed the connection: its answer is waiting
+                answer = sock.recv(200)
+                break
+            sent += len(chunk)
+    assert answer.startswith(b"HTTP/1.1 413"), answer
+    assert sent < 8_000_000, f"the console took {sent} bytes of a body it refuses at 16 KB"
+    assert _rss_kb(pid) - before < 30_000, "the console's memory grew with a refused body"
 
 
 def test_a_node_saying_blocked_turns_its_zone_blocked_on_the_page_within_1s(
@@ -210,12 +261,14 @@ def test_terminal_block_expires_on_time_and_status_age_is_right_in_another_proce
         bus.wait(0.2)
         for msg in bus.poll():
             status = parse_payload(RobotStatus, msg.payload)
+            # times of receipt (the bus's wall clock), not of this loop: `wsnav block` above may take seconds
+            # on a loaded machine while statuses queue here
             if status.t is not None and not msg.retain:
-                ages.append(time.time() - status.t)
+                ages.append(msg.received_at - status.t)
             if "lower" in status.blocked_zones and applied is None:
-                applied = time.time()
+                applied = msg.received_at
             if applied is not None and "lower" not in status.blocked_zones and lifted is None:
-                lifted = time.time()
+                lifted = msg.received_at
     bus.close()
     assert applied is not None, "the robot never applied the block"
     assert lifted is not None, "the block never expired at the robot"
@@ -273,6 +326,179 @@ def test_a_goal_clicked_is_reached_and_a_drawn_block_makes_the_robot_replan_then
     )
 
 
+def test_a_point_chosen_by_keyboard_moves_nothing_until_go_and_errors_show_next_to_the_action(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    """ArrowDown on a robot's "go to..." list sent the robot to a point on every press; an error after an action
+    landed 1116 px down in a 900 px window."""
+    bus = observer(site_stack.stack, f"{topics.ROOT}/{SITE}/robots/+/goal")
+    page.set_viewport_size({"width": 1400, "height": 700})
+    pick = page.locator("#robot-row-robot1 select")
+    pick.focus()
+    page.keyboard.press("ArrowDown")
+    page.keyboard.press("ArrowDown")
+    time.sleep(1.0)
+    assert bus.poll() == [], "choosing a point by keyboard sent a goal"
+    assert pick.input_value() == "P2"
+    page.click("#robot-row-robot1 button.go")
+    goals: list[bytes] = []
+    until(
+        "the confirmed goal on the bus",
+        lambda: (bus.wait(0.2) and goals.extend(m.payload for m in bus.poll())) or goals,
+        10,
+    )
+    time.sleep(0.5)
+    goals.extend(m.payload for m in bus.poll())
+    assert len(goals) == 1 and json.loads(goals[0])["goal"] == "P2", goals
+    page.click("#robot-row-robot1 .cancel")
+    bus.close()
+
+    def in_view(selector: str) -> bool:
+        box = page.locator(selector).bounding_box()
+        return box is not None and box["height"] > 0 and box["y"] >= 0 and box["y"] + box["height"] <= 700
+
+    page.fill("#block-for", "soon")
+    page.click("#block-zone-btn")
+    page.wait_for_function("document.querySelector('#action-error').textContent.includes('not a duration')")
+    assert in_view("#action-error"), "the error is not in view"
+    assert page.evaluate("document.querySelector('#block-form').nextElementSibling.id") == "action-error"
+    page.fill("#block-for", "10m")
+    page.click("#robot-row-robot1 .click-goal")
+    click_world(page, 0.0, 0.0)  # the sandbox's centre pillar
+    page.wait_for_function("document.querySelector('#action-error').textContent.includes('wall')")
+    assert in_view("#action-error")
+    assert page.evaluate("document.querySelector('#mode-line').nextElementSibling.id") == "action-error"
+
+
+def test_the_page_follows_a_node_going_stale_not_only_a_new_state_word(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    """Under `stale: keep` a hung node's blocked zone was drawn plain "blocked" for 30 s while /api/state
+    already named it stale."""
+    node = site_stack.node
+    node.say("blocked")
+    page.wait_for_function("document.querySelector('#zone-upper').dataset.state === 'blocked'")
+    node.silent.set()
+    try:
+        until(
+            "the API naming s1 stale",
+            lambda: (
+                next(z for z in site_stack.state()["zones"] if z["id"] == "upper")["stale_nodes"] == ["s1"]
+            ),
+            20,
+            0.1,
+        )
+        named = time.monotonic()
+        page.wait_for_function("document.querySelector('#zone-upper').dataset.stale === 's1'", timeout=10000)
+        assert time.monotonic() - named < 2.5, "the page followed the staleness late"
+        assert page.get_attribute("#zone-upper", "data-state") == "blocked"
+    finally:
+        node.silent.clear()
+        node.say("clear")
+    page.wait_for_function(
+        "document.querySelector('#zone-upper').dataset.state === 'clear' && !document.querySelector('#zone-upper').dataset.stale"
+    )
+
+
+def test_blocks_set_and_lifted_reach_the_pages_event_list_and_wsnav_log(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    auth = ("operator", site_stack.password)
+    code, made = site_stack.request(
+        "POST", "/api/blocks", {"zone": "lower", "for_s": 60, "reason": "mop"}, basic=auth
+    )
+    assert code == 201, made
+    page.wait_for_function(
+        f"document.querySelector('#events').textContent.includes('block {made['id']} set')"
+    )
+    code, _ = site_stack.request("DELETE", f"/api/blocks/{made['id']}", basic=auth)
+    assert code == 200
+    page.wait_for_function(
+        f"document.querySelector('#events').textContent.includes('block {made['id']} lifted')"
+    )
+    stack = site_stack.stack
+    out = subprocess.run(
+        [
+            *WSNAV,
+            "log",
+            "--site",
+            str(stack.site),
+            "--state-dir",
+            str(stack.work / "console-state"),
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 0, out.stderr
+    mine = [e for e in map(json.loads, out.stdout.splitlines()) if e["subject"] == made["id"]]
+    assert [e["kind"] for e in mine] == ["block_set", "block_lifted"]
+    assert mine[0]["text"] == f"block {made['id']} set: zone lower (mop)"
+
+
+def test_the_map_and_the_zone_and_node_lists_are_reached_by_keyboard(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    """axe-core's one serious finding: the scrolling nodes list could not be reached by keyboard (nor the map)."""
+    page.focus("#logout")
+    reached: list[str] = []
+    for _ in range(60):
+        page.keyboard.press("Tab")
+        reached.append(page.evaluate("document.activeElement.id"))
+    assert {"map", "zones-list", "nodes-list"} <= set(reached), reached
+    page.focus("#nodes-list")
+    page.keyboard.press("End")  # a focused list scrolls by keyboard
+
+
+def test_blocked_is_hatched_not_colour_alone_and_the_legend_says_what_robots_avoid(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    """Under deuteranopia a blocked zone looked like a clear one; the README said operator blocks were hatched and
+    they were not; an operator could not tell which colours robots drive through."""
+    site_stack.node.say("blocked")
+    try:
+        page.wait_for_function("document.querySelector('#zone-upper').dataset.state === 'blocked'")
+        assert "url(" in page.evaluate("getComputedStyle(document.querySelector('#zone-upper')).fill")
+        auth = ("operator", site_stack.password)
+        code, made = site_stack.request("POST", "/api/blocks", {"zone": "lower", "for_s": 30}, basic=auth)
+        assert code == 201
+        page.wait_for_selector(f"#block-{made['id']}")
+        assert "url(" in page.evaluate(
+            f"getComputedStyle(document.querySelector('#block-{made['id']}')).fill"
+        )
+        site_stack.request("DELETE", f"/api/blocks/{made['id']}", basic=auth)
+    finally:
+        site_stack.node.say("clear")
+    legend = page.text_content(".legend") or ""
+    assert "Robots avoid:" in legend and "Robots drive through:" in legend
+    avoid, through = legend.split("Robots drive through:")
+    assert "blocked" in avoid and "operator block" in avoid
+    assert "caution" in through and "unknown" in through
+
+
+def test_a_phone_lays_the_page_out_at_its_own_width(browser: Any, site_stack: ConsoleStack) -> None:
+    """Without a viewport meta a phone laid the page out at 980 px and cut the buttons off."""
+    context = browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True, has_touch=True)
+    try:
+        phone = context.new_page()
+        phone.goto(site_stack.url + "/")
+        assert phone.evaluate("window.innerWidth") == 390, "the login page is laid out wider than the phone"
+        phone.fill("input[name=password]", site_stack.password)
+        phone.click("button[type=submit]")
+        phone.wait_for_url(site_stack.url + "/")
+        phone.wait_for_selector("#robot-row-robot1 .cancel")
+        assert phone.evaluate("window.innerWidth") == 390
+        assert phone.evaluate("document.documentElement.scrollWidth") <= 390 + 1, (
+            "the page is wider than the phone"
+        )
+        for button in ("#block-zone-btn", "#robot-row-robot1 .cancel", "#logout"):
+            box = phone.locator(button).bounding_box()
+            assert box is not None and box["x"] >= 0 and box["x"] + box["width"] <= 390, button
+    finally:
+        context.close()
+
+
 def test_a_zone_block_and_a_drawn_polygon_from_the_page_are_lifted_from_the_page(
     page: Any, site_stack: ConsoleStack
 ) -> None:
@@ -305,6 +531,28 @@ def test_a_killed_node_shows_offline_after_its_will(page: Any, site_stack: Conso
     site_stack.zones.popen.wait(10)
     page.wait_for_function("document.querySelector('#node-s2').dataset.online === 'false'", timeout=15000)
     assert "offline" in page.inner_text("#node-row-s2")
+
+
+def test_a_restarted_console_keeps_its_pages_logged_in_and_live_within_seconds(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    """After a console restart open pages stayed on "reconnecting" and a reload landed on the login page
+    (sessions lived in memory): a wall display needed a person after every upgrade."""
+    port = int(urlsplit(site_stack.url).port or 0)
+    site_stack.console.stop()
+    page.wait_for_function("!document.querySelector('#banner').hidden", timeout=20000)
+    site_stack.console, url = start_console(site_stack.stack, port)
+    assert url == site_stack.url
+    listening = time.monotonic()
+    page.wait_for_function("document.querySelector('#banner').hidden", timeout=20000)
+    assert time.monotonic() - listening < 6.0, "the page took long to come back"
+    assert page.url == site_stack.url + "/"
+    site_stack.node.say("blocked")
+    page.wait_for_function("document.querySelector('#zone-upper').dataset.state === 'blocked'", timeout=10000)
+    site_stack.node.say("clear")
+    page.reload()
+    page.wait_for_function("document.querySelector('#zone-upper')?.dataset.state === 'clear'", timeout=20000)
+    assert page.url == site_stack.url + "/", "a reload after the restart asked for the password again"
 
 
 def test_a_broker_outage_shows_a_banner_and_the_console_reconnects(

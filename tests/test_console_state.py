@@ -11,7 +11,7 @@ import pytest
 from tests.site_fixtures import tiny_site
 from wsnav.console import operator_commands as commands
 from wsnav.console.operator_commands import CommandError
-from wsnav.console.site_view import SiteView
+from wsnav.console.site_view import TRAIL_POINTS, TRAIL_S, SiteView
 from wsnav.console.terminal import render
 from wsnav.schemas import topics
 from wsnav.schemas.messages import (
@@ -177,6 +177,22 @@ def test_robot_trail_keeps_the_last_minutes(site: Site) -> None:
     assert view.entry(("robot", "robot1"), 1000.0 + 699)["age_s"] == 1.0  # type: ignore[index]
 
 
+def test_a_robot_credential_cannot_grow_its_trail_without_limit(site: Site) -> None:
+    """20,000 statuses with a fixed `t` grew /api/state from 2.7 KB to 188 KB: the trail is aged by the console's
+    own receipt time and capped in points."""
+    import json
+
+    view = SiteView(site)
+    for i in range(20_000):
+        status = RobotStatus(robot="robot1", state="navigating", pose=((i % 2) * 1.0, 1.0, 0.0), t=5.0)
+        view.apply(topics.robot_status("tiny", "robot1"), status.to_payload(), 1000.0 + i * 0.01)
+    assert len(view.robot_trail("robot1")) <= TRAIL_POINTS
+    assert len(json.dumps(view.snapshot(1200.0))) < 40_000
+    quiet = RobotStatus(robot="robot1", state="idle", pose=(3.0, 1.0, 0.0), t=5.0)
+    view.apply(topics.robot_status("tiny", "robot1"), quiet.to_payload(), 1200.0 + TRAIL_S + 1)
+    assert len(view.robot_trail("robot1")) == 1, "points older than TRAIL_S by the console's clock are gone"
+
+
 def test_a_full_robot_status_with_its_path_fits_the_payload_limit() -> None:
     status = RobotStatus(
         robot="robot-with-a-long-name",
@@ -240,3 +256,63 @@ def test_numbers_no_json_can_carry_or_no_map_can_hold_are_refused_and_the_state_
     ):
         with pytest.raises(CommandError, match=why):
             commands.goal(site, "robot1", target)
+
+
+def test_last_heard_counts_live_messages_only_not_the_brokers_replay(site: Site) -> None:
+    """A node hung for minutes read "last heard 2 s" because the broker replayed its retained state to the
+    console; after a broker restart every node read as heard just now. Age comes from live messages only, while
+    the replayed word still shows what the node last said."""
+    view = SiteView(site)
+    topic, payload = zone_msg("n1", "z1", "blocked")
+    view.apply(topic, payload, 500.0, retained=True)
+    node = view.entry(("node", "n1"), 501.0)
+    assert node is not None
+    assert (node["state"], node["heard_at"], node["age_s"], node["fresh"]) == ("blocked", None, None, False)
+    view.apply(*zone_msg("n1", "z1", "blocked", seq=2), 502.0)
+    node = view.entry(("node", "n1"), 503.0)
+    assert node is not None and (node["age_s"], node["fresh"]) == (1.0, True)
+
+
+def test_events_come_from_live_messages_only(site: Site) -> None:
+    """The event log's entries: blocks set, lifted and expired, a node offline and back, a robot arrived; a
+    broker's replay of retained messages (console start, reconnect) is no event."""
+    view = SiteView(site)
+    block = OperatorBlock(zone="z1", expires_at=150.0, reason="spill").to_payload()
+    view.apply(topics.operator_block("tiny", "old"), block, 99.0, retained=True)
+    view.apply(
+        topics.node_status("tiny", "n1"), NodeStatus(node="n1", status="online").to_payload(), 99.0, True
+    )
+    assert view.events == []
+    view.apply(topics.operator_block("tiny", "b1"), block, 100.0)
+    view.apply(topics.operator_block("tiny", "b1"), block, 100.5)  # the same again: no new event
+    view.apply(topics.operator_block("tiny", "old"), b"", 101.0)
+    view.apply(topics.node_status("tiny", "n1"), NodeStatus(node="n1", status="offline").to_payload(), 102.0)
+    view.apply(topics.node_status("tiny", "n1"), NodeStatus(node="n1", status="online").to_payload(), 103.0)
+    arrived = RobotStatus(robot="robot1", state="arrived", pose=(1.0, 1.0, 0.0), goal="A")
+    view.apply(topics.robot_status("tiny", "robot1"), arrived.to_payload(), 104.0)
+    view.apply(topics.robot_status("tiny", "robot1"), arrived.to_payload(), 104.5)
+    view.expire(150.0)
+    assert [(e.t, e.kind, e.subject) for e in view.events] == [
+        (100.0, "block_set", "b1"),
+        (101.0, "block_lifted", "old"),
+        (102.0, "node_offline", "n1"),
+        (103.0, "node_online", "n1"),
+        (104.0, "robot_arrived", "robot1"),
+        (150.0, "block_expired", "b1"),
+    ]
+    assert view.events[0].text == "block b1 set: zone z1 (spill)"
+
+
+def test_watch_fits_an_80_by_24_terminal_keeping_the_header_and_outage_line(site: Site) -> None:
+    """`wsnav watch` in 80x24 scrolled its header and the outage line away."""
+    from wsnav.console.terminal import fit
+
+    view = SiteView(site)
+    snap = view.snapshot(10.0)
+    snap["broker_connected"] = False
+    long = render(snap) + "\n" + "\n".join(f"row {i} " + "x" * 120 for i in range(40))
+    shown = fit(long, 24, 80).splitlines()
+    assert len(shown) <= 23 and all(len(line) <= 80 for line in shown)
+    assert shown[0].startswith("site tiny") and "not reachable" in shown[1]
+    assert shown[-1].startswith("... ") and "more lines" in shown[-1]
+    assert fit("a\nb", 24, 80) == "a\nb"

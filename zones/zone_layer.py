@@ -10,6 +10,7 @@ they expire or are removed.
 
 from __future__ import annotations
 
+import heapq
 from collections.abc import Collection
 from dataclasses import dataclass
 from typing import Literal
@@ -81,6 +82,10 @@ class ZoneLayer:
         self._costs: dict[str, int] = dict.fromkeys(self._zone_ids, FREE_SPACE)
         self._polys: dict[str, CellWindow] = {}
         self._pending: dict[AreaKey, Bounds] = {}
+        self._due: dict[str, float] = {}
+        """Per node: the time after which it turns stale if nothing is heard (its zone is looked at then)."""
+        self._deadlines: list[tuple[float, str]] = []
+        """A heap of (deadline, node); an entry no longer in `_due` is outdated and skipped."""
 
     # -- inputs ---------------------------------------------------------------------------------------------
 
@@ -93,6 +98,7 @@ class ZoneLayer:
         view.state = msg.state
         view.heard_at = received_at
         view.online = True
+        self._arm(msg.node, view)
         return self._reevaluate(view.zone)
 
     def on_node_status(self, msg: NodeStatus, received_at: float) -> bool:
@@ -104,6 +110,9 @@ class ZoneLayer:
         view.online = msg.status == "online"
         if view.online:
             view.heard_at = received_at
+            self._arm(msg.node, view)
+        else:
+            self._due.pop(msg.node, None)  # stale at once; nothing to wait for
         return self._reevaluate(view.zone)
 
     def on_operator_block(self, block_id: str, msg: OperatorBlock | None, received_at: float) -> bool:
@@ -122,9 +131,28 @@ class ZoneLayer:
         return self._reevaluate()
 
     def refresh(self, now: float) -> bool:
-        """Age the nodes (staleness) and expire operator blocks at `now`; True if zone costs changed."""
+        """Age the nodes (staleness) and expire operator blocks at `now`; True if zone costs changed.
+
+        Incremental: only the zones of nodes whose staleness deadline passed are evaluated again (a heap of
+        deadlines), and every zone only when an operator block expired; the result is what evaluating every
+        zone would give, at O(changes) instead of O(zones), so the console can ask it for each message."""
         self._tick(now)
-        return self._reevaluate()
+        if any(b.expires_at is not None and now >= b.expires_at for b in self._blocks.values()):
+            return self._reevaluate()
+        zones: set[str] = set()
+        heap = self._deadlines
+        while heap and heap[0][0] < now:
+            deadline, node = heapq.heappop(heap)
+            if self._due.get(node) == deadline:
+                del self._due[node]
+                zones.add(self._nodes[node].zone)
+        if not zones:
+            return False
+        zone_blocked = {b.zone for b in self._blocks.values()}
+        changed = False
+        for zone in zones:
+            changed |= self._update_zone(zone, zone_blocked)
+        return changed
 
     # -- outputs --------------------------------------------------------------------------------------------
 
@@ -215,7 +243,20 @@ class ZoneLayer:
     def _tick(self, t: float) -> None:
         if self._started is None:
             self._started = t
+            for node, view in self._nodes.items():  # a node never heard turns stale counting from here
+                self._arm(node, view)
         self._now = t if self._now is None else max(self._now, t)
+
+    def _arm(self, node: str, view: _NodeView) -> None:
+        """Remember when `node` turns stale if it says nothing more (`_stale`'s rule, as a point in time)."""
+        deadline = self._stale_at(view)
+        if deadline is None or not view.online:
+            return
+        self._due[node] = deadline
+        heapq.heappush(self._deadlines, (deadline, node))
+        if len(self._deadlines) > 4 * len(self._nodes) + 64:  # outdated entries: rebuild from the live ones
+            self._deadlines = [(d, n) for n, d in self._due.items()]
+            heapq.heapify(self._deadlines)
 
     def _mark(self, key: AreaKey, window: CellWindow) -> None:
         bounds = Bounds.of_window(window)
@@ -224,11 +265,14 @@ class ZoneLayer:
     def _stale(self, view: _NodeView) -> bool:
         if not view.online:
             return True
-        if self._now is None:
-            return False
+        deadline = self._stale_at(view)
+        return self._now is not None and deadline is not None and self._now > deadline
+
+    def _stale_at(self, view: _NodeView) -> float | None:
+        """When an online node turns stale if it says nothing more: one expression for `_stale` and the heap,
+        so both round alike."""
         since = view.heard_at if view.heard_at is not None else self._started
-        assert since is not None
-        return self._now - since > self.policy.stale_after_heartbeats * view.heartbeat_s
+        return None if since is None else since + self.policy.stale_after_heartbeats * view.heartbeat_s
 
     def _word(self, view: _NodeView) -> Word:
         fresh: Word = "clear" if view.state is None else _as_word(view.state)

@@ -38,16 +38,25 @@ window.worldToClient = function (x, y) {
   return [s.x, s.y];
 };
 
-async function api(method, path, body) {
+// An action's error is shown next to the control that acted (`near`), in view: the one error line moves there.
+function showError(text, near) {
+  const box = $("action-error");
+  if (near && near.tagName === "TD") near.appendChild(box);
+  else if (near && box.previousElementSibling !== near) near.insertAdjacentElement("afterend", box);
+  box.textContent = text;
+  if (text) box.scrollIntoView({ block: "nearest" });
+}
+
+async function api(method, path, body, near) {
   const res = await fetch(path, {
     method,
     headers: { "Content-Type": "application/json", "X-CSRF-Token": csrf || "" },
     body: body === undefined ? undefined : JSON.stringify(body),
-  });
-  const data = await res.json().catch(() => ({}));
-  $("action-error").textContent = res.ok ? "" : data.error || `${method} ${path}: ${res.status}`;
-  if (res.status === 401) window.location.assign("/login");
-  return res.ok ? data : null;
+  }).catch(() => null);
+  const data = res ? await res.json().catch(() => ({})) : {};
+  showError(res && res.ok ? "" : data.error || (res ? `${method} ${path}: ${res.status}` : "the console is not reachable"), near);
+  if (res && res.status === 401) window.location.assign("/login");
+  return res && res.ok ? data : null;
 }
 
 // -- drawing --------------------------------------------------------------------------------------------
@@ -161,6 +170,17 @@ function renderBlock(b) {
   shape.setAttribute("points", poly ? pts(poly) : "");
 }
 
+const MAX_EVENTS_SHOWN = 50;
+function renderEvent(e) {
+  const list = $("events");
+  const li = document.createElement("li");
+  li.className = `event ${e.kind}`;
+  li.textContent = `${new Date(e.t * 1000).toLocaleTimeString()}  ${e.text}`;
+  list.appendChild(li);
+  while (list.children.length > MAX_EVENTS_SHOWN) list.firstElementChild.remove();
+  list.scrollTop = list.scrollHeight;
+}
+
 function dropBlock(id) {
   delete state.blocks[id];
   dirty.blocks.add(id);
@@ -205,13 +225,19 @@ function robotRow(r) {
     pick.setAttribute("aria-label", `goal for ${r.id}`);
     pick.add(new Option("go to...", ""));
     for (const name of Object.keys(geo.points)) pick.add(new Option(name, name));
-    pick.addEventListener("change", () => {
-      if (pick.value) api("POST", `/api/robots/${r.id}/goal`, { point: pick.value });
-      pick.value = "";
-    });
     actions.appendChild(pick);
+    // Choosing a point (arrow keys included) sends nothing: the operator confirms with "Go".
+    const go = button(actions, "Go", "go", async () => {
+      if (!pick.value) return;
+      const sent = await api("POST", `/api/robots/${r.id}/goal`, { point: pick.value }, actions);
+      if (sent) pick.value = "";
+      go.disabled = !pick.value;
+    });
+    go.disabled = true;
+    go.setAttribute("aria-label", `send ${r.id} to the chosen point`);
+    pick.addEventListener("change", () => (go.disabled = !pick.value));
     button(actions, "Click goal", "click-goal", () => setMode({ kind: "goal", robot: r.id }));
-    button(actions, "Cancel", "cancel", () => api("POST", `/api/robots/${r.id}/cancel`));
+    button(actions, "Cancel", "cancel", () => api("POST", `/api/robots/${r.id}/cancel`, undefined, actions));
   }
   const c = tr.cells;
   setText(c[0], r.id);
@@ -224,7 +250,7 @@ function robotRow(r) {
 function blockRow(b) {
   const isNew = !document.getElementById(`block-row-${b.id}`);
   const tr = row($("blocks"), `block-row-${b.id}`, 5);
-  if (isNew) button(tr.cells[4], "Lift", "lift", () => api("DELETE", `/api/blocks/${b.id}`));
+  if (isNew) button(tr.cells[4], "Lift", "lift", () => api("DELETE", `/api/blocks/${b.id}`, undefined, $("blocks")));
   setText(tr.cells[0], b.id);
   setText(tr.cells[1], b.zone || `polygon of ${b.polygon.length}`);
   setText(tr.cells[3], b.reason || "");
@@ -301,7 +327,7 @@ function scheduleTables() {
 
 function renderBanner() {
   const banner = $("banner");
-  const why = !state.streamOk ? "Lost the console server: reconnecting..." : !state.connected ? "The MQTT broker is not reachable: the console reconnects by itself; what you see may be out of date." : "";
+  const why = !state.streamOk ? "Lost the console server: reconnecting..." : state.linkError ? `The console is blind: ${state.linkError}` : !state.connected ? "The MQTT broker is not reachable: the console reconnects by itself; what you see may be out of date." : "";
   banner.hidden = !why;
   banner.textContent = why;
 }
@@ -311,15 +337,22 @@ function renderBanner() {
 function apply(ev) {
   if (ev.now) state.offset = ev.now - Date.now() / 1000;
   if (ev.broker_connected !== undefined) state.connected = ev.broker_connected;
+  if (ev.type === "snapshot" || ev.type === "link") state.linkError = ev.link_error || null;
   if (ev.type === "snapshot") {
     for (const id of Object.keys(state.blocks)) dropBlock(id);
     state.trails = {};
   }
   (ev.zones || []).forEach(renderZone);
   (ev.nodes || []).forEach(renderNode);
+  for (const [id, [seq, heardAt]] of Object.entries(ev.heard || {})) {
+    const n = state.nodes[id]; // a heartbeat that changed nothing else: its age is redrawn once a second
+    if (n) Object.assign(n, { seq, heard_at: heardAt });
+  }
   (ev.robots || []).forEach(renderRobot);
   (ev.blocks || []).forEach(renderBlock);
   (ev.gone || []).forEach(dropBlock);
+  if (ev.type === "snapshot") $("events").replaceChildren();
+  (ev.events || []).forEach(renderEvent);
   renderBanner();
   scheduleTables();
 }
@@ -333,9 +366,11 @@ function connect() {
   source.onerror = async () => {
     state.streamOk = false;
     renderBanner();
-    // EventSource retries by itself; a console restarted meanwhile has forgotten the session: log in again.
+    // EventSource retries by itself, but not after an answer other than 200 (a console still starting): then
+    // open a new one within a second or two. Only a session the console no longer knows goes to the login.
     const res = await fetch("/api/session").catch(() => null);
     if (res && res.status === 401) window.location.assign("/login");
+    else if (source.readyState === EventSource.CLOSED) setTimeout(connect, 1500);
   };
 }
 
@@ -352,7 +387,7 @@ function blockBody(extra) {
   const text = $("block-for").value.trim();
   const m = /^(\d+(?:\.\d+)?)\s*([smhd]?)$/.exec(text);
   if (!m) {
-    $("action-error").textContent = `not a duration: ${text} (e.g. 90s, 10m, 2h)`;
+    showError(`not a duration: ${text} (e.g. 90s, 10m, 2h)`, $("block-form"));
     return null;
   }
   body.for_s = parseFloat(m[1]) * { "": 1, s: 1, m: 60, h: 3600, d: 86400 }[m[2]];
@@ -364,7 +399,7 @@ function setupSteering() {
   $("block-form").addEventListener("submit", (ev) => {
     ev.preventDefault();
     const body = blockBody({ zone: $("block-zone").value });
-    if (body) api("POST", "/api/blocks", body);
+    if (body) api("POST", "/api/blocks", body, $("block-form"));
   });
   $("draw-rect").addEventListener("click", () => setMode({ kind: "rect" }));
   $("draw-poly").addEventListener("click", () => setMode({ kind: "poly", points: [] }));
@@ -391,7 +426,7 @@ function setupSteering() {
     setMode(null);
     if (Math.abs(a[0] - b[0]) < 0.05 || Math.abs(a[1] - b[1]) < 0.05) return;
     const body = blockBody({ polygon: [a, [b[0], a[1]], b, [a[0], b[1]]] });
-    if (body) api("POST", "/api/blocks", body);
+    if (body) api("POST", "/api/blocks", body, $("mode-line"));
   });
   svg.addEventListener("click", (ev) => {
     if (!mode) return;
@@ -399,7 +434,7 @@ function setupSteering() {
     if (mode.kind === "goal") {
       const robot = mode.robot;
       setMode(null);
-      api("POST", `/api/robots/${robot}/goal`, { pose: [p[0], p[1], 0] });
+      api("POST", `/api/robots/${robot}/goal`, { pose: [p[0], p[1], 0] }, $("mode-line"));
     } else if (mode.kind === "poly") {
       mode.points.push(p);
     }
@@ -410,11 +445,11 @@ function setupSteering() {
     const points = mode.points.filter((p, i, a) => i === 0 || p[0] !== a[i - 1][0] || p[1] !== a[i - 1][1]);
     setMode(null);
     if (points.length < 3) {
-      $("action-error").textContent = "a polygon needs at least 3 corners";
+      showError("a polygon needs at least 3 corners", $("mode-line"));
       return;
     }
     const body = blockBody({ polygon: points });
-    if (body) api("POST", "/api/blocks", body);
+    if (body) api("POST", "/api/blocks", body, $("mode-line"));
   });
   $("filter").addEventListener("input", applyFilter);
   $("logout").addEventListener("click", async () => {
