@@ -168,6 +168,7 @@ class ZoneBridgeNode:
         self.update_pub = rospy.Publisher(f"{ns}/zone_grid_updates", OccupancyGridUpdate, queue_size=20)
         if self.supervisor is not None:
             self._wire_move_base(rospy)
+            self._read_planner_frequency(uri)
         say(
             f"zone bridge for site {self.site.name}: {ns}/zone_grid ({self.frame.width}x{self.frame.height} cells, "
             f"frame {self.options.frame_id})"
@@ -196,8 +197,10 @@ class ZoneBridgeNode:
                         if m.topic == goal_topic:
                             self._mqtt_goal(m.payload)
                     waits = self._master_updates.get_num_connections() > 0
-                    self._act(self.supervisor.on_zones_changed(changes, now, wait_for_master=waits))
-                    self._act(self.supervisor.tick(now))
+                    self._act(
+                        self.supervisor.on_zones_changed(changes, now, wait_for_master=waits, pose=self._pose)
+                    )
+                    self._act(self.supervisor.tick(now, wait_for_master=waits))
                     self._flush_outbox()
             if self.supervisor is not None and (now >= next_status or changes):
                 self._publish_status()
@@ -210,7 +213,32 @@ class ZoneBridgeNode:
                     rospy.signal_shutdown("master lost")
                     wait_for_master(uri)
                     return True
+                if self.supervisor is not None:
+                    self._read_planner_frequency(uri)
         return False
+
+    def _read_planner_frequency(self, uri: str) -> None:
+        """Whether move_base replans on its own timer (planner_frequency > 0, its default 0): only where it does
+        not is a zone change re-sent as a goal, which preempts whoever sent it (read again, as move_base may load
+        its parameters after the bridge starts)."""
+        assert self.supervisor is not None
+        key = f"{self.options.move_base}/planner_frequency"
+        try:
+            value = master_param(uri, key)
+        except OSError:
+            return  # the master check says so
+        itself = isinstance(value, int | float) and not isinstance(value, bool) and value > 0
+        if itself != self.supervisor.replans_itself:
+            with self._lock:
+                self.supervisor.replans_itself = itself
+            say(
+                f"{key} = {value}: "
+                + (
+                    "move_base replans by itself, zone changes re-send no goal"
+                    if itself
+                    else "zone changes re-send the goal"
+                )
+            )
 
     def _check_map(self, rospy: Any, occupancy_grid: Any) -> None:
         """Refuse, in one line, a site whose map is not the map the robot navigates on (if one is published)."""
