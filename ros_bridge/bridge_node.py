@@ -11,6 +11,7 @@ with backoff and then re-executes itself; the MQTT side reconnects by itself and
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import math
 import os
@@ -26,7 +27,7 @@ from numpy.typing import NDArray
 from wsnav.ros_bridge.costmap_params import check_global_costmap
 from wsnav.ros_bridge.move_base_supervisor import Action, Cancel, Goal, MoveBaseSupervisor, Resend
 from wsnav.ros_bridge.ros_env import master_alive, master_param, master_uri, require_rospy, wait_for_master
-from wsnav.ros_bridge.zone_feed import ESCAPE_COST, ZoneFeed, exit_point
+from wsnav.ros_bridge.zone_feed import ESCAPE_COST, ZoneFeed
 from wsnav.ros_bridge.zone_grid import UpdateWindow, ZoneGridCodec
 from wsnav.ros_bridge.zone_source import LinkWatch, load_bridge_site, refuse_bad_login, start_broker_link
 from wsnav.runtime.bus import Bus
@@ -174,6 +175,10 @@ class ZoneBridgeNode:
             f"frame {self.options.frame_id})"
             + (f", supervising {self.options.move_base} for {self.options.robot}" if self.supervisor else "")
         )
+        if self.supervisor is not None:
+            # The exit finder (navigation.behaviors.escape, with the planner and numba: about 2 s of CPU) loads
+            # once the grid is out, so move_base's costmap does not wait for it.
+            importlib.import_module("wsnav.navigation.behaviors.escape")
         next_status = 0.0
         next_master_check = time.monotonic() + MASTER_CHECK_PERIOD_S
         link = LinkWatch(self.site.spec.policy.stale, time.monotonic())
@@ -479,7 +484,9 @@ class ZoneBridgeNode:
 
     def _exit_of(self, areas: list[BlockedArea]) -> tuple[float, float] | None:
         assert self._pose is not None
-        return exit_point(self.frame, self.feed.blocked_mask(areas), self._walls, self._pose[:2])
+        from wsnav.navigation.behaviors.escape import exit_beside  # loaded after the grid is out (see `run`)
+
+        return exit_beside(self.frame, self._walls, self.feed.blocked_mask(areas), self._pose[:2])
 
     def _publish_status(self) -> None:
         import rospy

@@ -13,8 +13,9 @@ import pytest
 
 from tests.conftest import SCHOOL
 from tests.robot_agent_rig import Rig
+from wsnav.navigation.behaviors.escape import exit_beside
 from wsnav.ros_bridge.move_base_supervisor import ACTIVE, PREEMPTED, Action, Goal, MoveBaseSupervisor, Resend
-from wsnav.ros_bridge.zone_feed import ZoneChange, ZoneFeed, exit_point
+from wsnav.ros_bridge.zone_feed import ZoneChange, ZoneFeed
 from wsnav.runtime.bus import Message
 from wsnav.schemas import topics
 from wsnav.schemas.messages import ZoneState
@@ -170,7 +171,7 @@ def test_a_zone_that_becomes_blocked_around_the_robot_sends_one_goal_out_not_a_r
     pose = (18.0, 7.2, 0.0)  # inside z1
 
     def exit_of(areas: list) -> tuple[float, float] | None:  # type: ignore[type-arg]
-        return exit_point(feed.frame, feed.blocked_mask(areas), walls, pose[:2])
+        return exit_beside(feed.frame, walls, feed.blocked_mask(areas), pose[:2])
 
     sup.on_goal(Goal("g1", (29.0, 22.8, 0.0), "B"))
     sup.on_statuses([("g1", ACTIVE)])
