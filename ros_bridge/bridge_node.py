@@ -62,6 +62,8 @@ class BridgeOptions:
     plan_topic: str
     base_frame: str
     master_costmap: str = "/move_base/global_costmap/costmap"
+    relay: str | None = None
+    """An action name where the bridge serves MoveBaseAction and relays to move_base (`_on_relay_goal`)."""
 
 
 def bridge_command(args: argparse.Namespace) -> int:
@@ -81,7 +83,10 @@ def bridge_command(args: argparse.Namespace) -> int:
         plan_topic=args.plan_topic,
         base_frame=args.base_frame,
         master_costmap=args.master_costmap,
+        relay=args.relay.rstrip("/") if args.relay else None,
     )
+    if options.relay and not options.robot:
+        raise CliError("--relay needs --robot (the move_base it relays to)")
     uri = master_uri()
     wait_for_master(uri)
     if args.robot is not None and not args.no_costmap_check:
@@ -142,6 +147,9 @@ class ZoneBridgeNode:
         self._held_since: float | None = None
         """Since when the outbox has waited for move_base (monotonic seconds)."""
         self._told_unconnected = False
+        self._relayed: tuple[Any, str] | None = None
+        """The relay's goal in progress: (its actionlib ServerGoalHandle, the goal id it has at move_base)."""
+        self._relays = 0
         for topic_filter in self.feed.subscriptions():
             bus.subscribe(topic_filter, qos=1)
         if options.robot:
@@ -207,6 +215,8 @@ class ZoneBridgeNode:
                     )
                     self._act(self.supervisor.tick(now, wait_for_master=waits))
                     self._flush_outbox()
+            if self.supervisor is not None and self.options.relay:
+                self._finish_relayed()
             if self.supervisor is not None and (now >= next_status or changes):
                 self._publish_status()
                 self._check_escape(now, OccupancyGridUpdate)
@@ -316,6 +326,19 @@ class ZoneBridgeNode:
         )
         self.tf_buffer = tf2_ros.Buffer()
         self._tf_listener = tf2_ros.TransformListener(self.tf_buffer)
+        if self.options.relay:
+            import actionlib
+            from move_base_msgs.msg import MoveBaseAction, MoveBaseResult
+
+            self._result_type = MoveBaseResult
+            self._relay = actionlib.ActionServer(
+                self.options.relay,
+                MoveBaseAction,
+                self._on_relay_goal,
+                self._on_relay_cancel,
+                auto_start=False,
+            )
+            self._relay.start()
 
     def _on_ros_goal(self, msg: Any) -> None:
         p = msg.goal.target_pose.pose
@@ -464,6 +487,61 @@ class ZoneBridgeNode:
             self._outbox.pop(0)
         self._told_unconnected = False
         self._held_since = None
+
+    # -- the relay: move_base's action interface for scripts, kept through re-sends -------------------------
+
+    def _on_relay_goal(self, handle: Any) -> None:
+        """A script's goal on the relay: sent to move_base as the bridge's own, followed through every re-send;
+        the script's goal ends as the supervisor's goal ends (`_finish_relayed`)."""
+        assert self.supervisor is not None
+        target = handle.get_goal().target_pose
+        p = target.pose
+        yaw = 2 * math.atan2(p.orientation.z, p.orientation.w)
+        pose = self._in_map_frame(target.header.frame_id, (p.position.x, p.position.y, yaw))
+        with self._lock:
+            if self._relayed is not None:
+                self._relayed[0].set_canceled(self._result_type(), "another goal was received on the relay")
+                self._relayed = None
+            handle.set_accepted("relayed to move_base")
+            self._relays += 1
+            goal = Goal(f"wsnav-relay-{self._relays}-{time.time():.3f}", pose, pose)
+            say(f"relay goal -> {goal.goal_id}: {pose}")
+            cancel = self.supervisor.sending(goal)
+            if cancel:
+                handle.set_aborted(self._result_type(), cancel[0].reason)
+                return
+            self._relayed = (handle, goal.goal_id)
+            self._send_goal(goal)
+            self._flush_outbox()
+
+    def _on_relay_cancel(self, handle: Any) -> None:
+        assert self.supervisor is not None
+        with self._lock:
+            relayed = self._relayed
+            if relayed is not None and relayed[0].get_goal_id().id == handle.get_goal_id().id:
+                self._relayed = None
+                self._act(self.supervisor.cancel("cancelled on the relay"))
+                self._flush_outbox()
+            handle.set_canceled(self._result_type(), "cancelled")
+
+    def _finish_relayed(self) -> None:
+        """End the relay's goal as the supervisor's ends: arrived, cancelled (with the reason), or replaced by a
+        goal someone else sent move_base."""
+        assert self.supervisor is not None
+        with self._lock:
+            if self._relayed is None:
+                return
+            handle, goal_id = self._relayed
+            current = self.supervisor.goal
+            if current is None or current.goal_id.split("#wsnav")[0] != goal_id:
+                handle.set_aborted(self._result_type(), "move_base was given another goal")
+            elif self.supervisor.state == "arrived":
+                handle.set_succeeded(self._result_type(), "arrived")
+            elif self.supervisor.state == "cancelled":
+                handle.set_aborted(self._result_type(), self.supervisor.reason or "cancelled")
+            else:
+                return
+            self._relayed = None
 
     def _check_escape(self, now: float, update_type: Any) -> None:
         """Drive out of a blocked area the robot stands in (MoveBaseSupervisor.on_pose): the grid sends those
