@@ -19,7 +19,7 @@ from wsnav.runtime.cli_support import CliError, host_port
 
 if TYPE_CHECKING:
     from wsnav.runtime.cli_support import Parser
-    from wsnav.schemas.site import Site
+    from wsnav.schemas.site_file import SiteFile
 
 # The broker modules (and amqtt) are imported inside the commands: every `wsnav` call builds this parser.
 
@@ -186,11 +186,12 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     ha.set_defaults(func=ha_discovery_command)
 
 
-def _site(path: Path) -> Site:
-    from wsnav.schemas.site import SiteError, load_site
+def _site(path: Path) -> SiteFile:
+    """The site file alone: the broker needs no map (nor numpy and Pillow to read one)."""
+    from wsnav.schemas.site import SiteError, load_site_file
 
     try:
-        return load_site(path)
+        return load_site_file(path)
     except SiteError as exc:
         raise CliError(str(exc)) from None
 
@@ -199,7 +200,7 @@ def run_command(args: argparse.Namespace) -> int:
     from wsnav.broker.amqtt.config import BrokerOptions, TlsListener
     from wsnav.broker.amqtt.server import BrokerStartError, RunningBroker, serve
 
-    site = _site(args.site)
+    spec = _site(args.site)
     tls = None
     if args.tls_bind is not None:
         if args.certfile is None or args.keyfile is None:
@@ -245,7 +246,7 @@ def run_command(args: argparse.Namespace) -> int:
 
     def ready(running: RunningBroker) -> None:
         print(running.ready_line(), flush=True)
-        missing = _ids_without_password(site, args.credentials)
+        missing = _ids_without_password(spec, args.credentials)
         if missing:
             print(
                 f"wsnav: note: no password for {', '.join(missing)} in {args.credentials}: they cannot log in "
@@ -256,14 +257,14 @@ def run_command(args: argparse.Namespace) -> int:
             print("wsnav: note: no --data folder: retained messages are kept in memory only", file=sys.stderr)
 
     try:
-        asyncio.run(serve(site.spec, args.credentials, options, ready))
+        asyncio.run(serve(spec, args.credentials, options, ready))
     except BrokerStartError as exc:
         raise CliError(str(exc)) from None
     print("broker stopped", flush=True)
     return 0
 
 
-def _ids_without_password(site: Site, credentials: Path) -> list[str]:
+def _ids_without_password(spec: SiteFile, credentials: Path) -> list[str]:
     from wsnav.broker.credentials import PASSWORD_FILE, read_password_file, site_ids
     from wsnav.schemas.credentials import CredentialsError
 
@@ -271,21 +272,21 @@ def _ids_without_password(site: Site, credentials: Path) -> list[str]:
         users = read_password_file(credentials / PASSWORD_FILE)
     except CredentialsError:
         return []
-    return [ident for ident in site_ids(site.spec) if ident not in users]
+    return [ident for ident in site_ids(spec) if ident not in users]
 
 
 def credentials_command(args: argparse.Namespace) -> int:
     from wsnav.broker.credentials import write_credentials
     from wsnav.schemas.credentials import CredentialsError
 
-    site = _site(args.site)
+    spec = _site(args.site)
     wifi_password = args.wifi_password
     if wifi_password == "-":
         wifi_password = sys.stdin.readline().rstrip("\r\n")
         if not wifi_password:
             raise CliError("--wifi-password -: stdin gave no password (one line expected)")
     try:
-        report = write_credentials(site.spec, args.out, args.broker, args.wifi_ssid, wifi_password)
+        report = write_credentials(spec, args.out, args.broker, args.wifi_ssid, wifi_password)
     except CredentialsError as exc:
         raise CliError(str(exc)) from None
     for ident in report.created:
@@ -304,7 +305,7 @@ def mosquitto_command(args: argparse.Namespace) -> int:
     from wsnav.broker.mosquitto.config import MosquittoOptions, MosquittoTls, write_mosquitto_config
     from wsnav.schemas.credentials import CredentialsError
 
-    site = _site(args.site)
+    spec = _site(args.site)
     tls = None
     if args.tls_bind is not None or args.certfile is not None or args.keyfile is not None:
         if args.tls_bind is None or args.certfile is None or args.keyfile is None:
@@ -321,7 +322,7 @@ def mosquitto_command(args: argparse.Namespace) -> int:
         tls=tls,
     )
     try:
-        files = write_mosquitto_config(site.spec, args.credentials, args.out, options)
+        files = write_mosquitto_config(spec, args.credentials, args.out, options)
     except CredentialsError as exc:
         raise CliError(str(exc)) from None
     for path in files:
@@ -336,20 +337,20 @@ def revoke_command(args: argparse.Namespace) -> int:
     from wsnav.broker.revocation import clear_retained
     from wsnav.schemas.credentials import CredentialsError, load_credentials
 
-    site = _site(args.site)
-    unknown = sorted(set(args.ids) - set(site_ids(site.spec)))
+    spec = _site(args.site)
+    unknown = sorted(set(args.ids) - set(site_ids(spec)))
     if unknown:
-        raise CliError(f"not ids of site {site.name}: {', '.join(unknown)}")
+        raise CliError(f"not ids of site {spec.name}: {', '.join(unknown)}")
     if not 0 < args.wait <= 3600:
         raise CliError("--wait must be > 0 and <= 3600 seconds")
     try:
         old = {ident: load_credentials(args.credentials / f"{ident}.json") for ident in args.ids}
-        write_credentials(site.spec, args.credentials, renew=frozenset(args.ids))
+        write_credentials(spec, args.credentials, renew=frozenset(args.ids))
         new = {ident: load_credentials(args.credentials / f"{ident}.json") for ident in args.ids}
         for ident in args.ids:
             print(f"{ident}: new password in {args.credentials / (ident + '.json')} (give it to the device)")
         if args.mosquitto_config is not None:
-            path = rewrite_passwords(site.spec, args.credentials, args.mosquitto_config)
+            path = rewrite_passwords(spec, args.credentials, args.mosquitto_config)
             print(f"wrote {path}: reload Mosquitto now (sudo systemctl reload mosquitto)", flush=True)
     except CredentialsError as exc:
         raise CliError(str(exc)) from None
@@ -358,7 +359,7 @@ def revoke_command(args: argparse.Namespace) -> int:
         return 0
     failed = False
     for ident in args.ids:
-        done = clear_retained(site.spec, args.broker, new[ident], old[ident], args.wait, args.tls_ca)
+        done = clear_retained(spec, args.broker, new[ident], old[ident], args.wait, args.tls_ca)
         if done.error is not None:
             print(f"{ident}: {done.error}", file=sys.stderr)
             failed = True
@@ -374,10 +375,10 @@ def revoke_command(args: argparse.Namespace) -> int:
 def ha_discovery_command(args: argparse.Namespace) -> int:
     from wsnav.broker.ha_discovery import discovery_messages
 
-    site = _site(args.site)
+    spec = _site(args.site)
     if not args.prefix or any(c in args.prefix for c in "+#") or args.prefix.strip("/") != args.prefix:
         raise CliError(f"--prefix {args.prefix!r}: a topic prefix without wildcards or outer slashes")
-    messages = discovery_messages(site.spec, args.prefix)
+    messages = discovery_messages(spec, args.prefix)
     if args.dry_run:
         for topic, payload in messages:
             print(topic, payload.decode())
@@ -396,7 +397,7 @@ def ha_discovery_command(args: argparse.Namespace) -> int:
     # Read them back: a broker drops a publish its ACL refuses without telling the publisher.
     missing = dict(messages)
     try:
-        bus.subscribe(f"{args.prefix}/binary_sensor/wsnav_{site.name}/#")
+        bus.subscribe(f"{args.prefix}/binary_sensor/wsnav_{spec.name}/#")
         for topic, payload in messages:
             bus.publish(topic, payload, retain=True)
         deadline = time.monotonic() + 10.0

@@ -42,6 +42,11 @@ LOGIN_RATE = 2.0
 
 LOGIN_BURST = 20
 
+MAX_PACKET_BYTES = 32 * 1024
+"""Cap on a packet's remaining length, on amqtt (its packet gate) and Mosquitto alike: 4x the largest valid payload
+of the contract (8 KiB operator blocks and simulated worlds, schemas.messages) plus topic and headers, and far
+below a megabyte."""
+
 
 @dataclass(frozen=True)
 class IdentityLimits:

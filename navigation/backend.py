@@ -40,6 +40,10 @@ class DriveLimits:
     angular_accel: float = 3.2
 
 
+BURGER_RADIUS_M = 0.105
+"""TurtleBot3 Burger's footprint radius (m), for a backend that is not told its robot's."""
+
+
 @dataclass(frozen=True)
 class Velocity:
     linear: float

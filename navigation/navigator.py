@@ -3,8 +3,10 @@
 Pure logic over the costmap, planner, controller and robot backend, driven by `step(now)` and by
 `on_zones_changed(now)`; it never reads a clock or the bus, so lock-step simulation is deterministic.
 
-- A zone-layer change: if the goal lies in a blocked zone, stop and cancel naming the zone; else replan at once
-  (a path that appeared may be shorter, one that vanished must be replaced); no path: stop and wait.
+- A zone-layer change, decided by the one Algorithm 3 rule (wsnav.navigation.replan_policy, shared with
+  move_base's supervisor): if the goal lies in a blocked zone, stop and cancel naming the zone; else replan
+  (a path that appeared may be shorter, one that vanished must be replaced), at most once per interval with the
+  last change always planned; no path: stop and wait.
 - Waiting resumes by itself: every later zone change retries, and so (configurably) does a timer.
 - The robot's footprint touches a blocked zone (it was inside when the zone was reported): leave it by the
   shortest way out over the escape view (wsnav.navigation.behaviors.escape) (the zone passable, walls and lidar marks not; the controller
@@ -44,6 +46,7 @@ from wsnav.navigation.behaviors.recovery import (
 )
 from wsnav.navigation.planning.costmap_planner import GlobalPlanner, PlanningCostmap
 from wsnav.navigation.planning.global_planner import Plan
+from wsnav.navigation.replan_policy import ZONE_REPLAN_INTERVAL_S, ReplanPolicy, Verdict
 from wsnav.runtime.timers import Every
 from wsnav.zones.geometry import Bounds, GridFrame
 from wsnav.zones.zone_layer import BlockedArea
@@ -155,7 +158,7 @@ class NavigatorParams:
     waiting_retry_s: float = 2.0
     """0: while waiting, retry only when a zone changes."""
     blocked_replan_interval_s: float = 0.5
-    zone_replan_interval_s: float = 0.5
+    zone_replan_interval_s: float = ZONE_REPLAN_INTERVAL_S
     """At most one replan for zone changes per this interval; changes within it are planned for at its end
     (a node flipping its zone caused 4,077 replans in 41 s). A goal that became blocked is cancelled at once."""
     local_costmap_size_m: float = 3.0
@@ -215,9 +218,8 @@ class Navigator:
         self._periodic = Every(self.params.replan_rate_hz)
         self._retry = Every(1.0 / self.params.waiting_retry_s if self.params.waiting_retry_s > 0 else 0.0)
         self._last_blocked_replan = -math.inf
-        self._last_zone_replan = -math.inf
-        self._zone_replan_due: float | None = None
-        """When zone changes held back by `zone_replan_interval_s` are planned for."""
+        self.replan_policy = ReplanPolicy(self.params.zone_replan_interval_s)
+        """Algorithm 3's decision on zone changes, and their replan rate limit."""
         self.leaving: Leaving | None = None
         """The blocked areas the robot is driving out of, and whether a route goes on (None: in none)."""
         self.recovery = MoveBaseRecovery(self.params.recovery) if self.params.recovery is not None else None
@@ -239,7 +241,7 @@ class Navigator:
 
     def next_due(self) -> float:
         """The earliest time `step` has work to do (for a real-time loop's sleep)."""
-        due = self._zone_replan_due if self._zone_replan_due is not None else math.inf
+        due = self.replan_policy.due if self.replan_policy.due is not None else math.inf
         if self.state == "navigating":
             return min(self._control.next, self._periodic.next, due)
         if self.mode is Mode.WAITING:
@@ -249,7 +251,7 @@ class Navigator:
     def set_goal(self, goal: Pose, label: GoalLabel, now: float) -> None:
         """A new goal replaces the old one; planned at once."""
         self.goal, self.goal_label = goal, label
-        self._zone_replan_due = None
+        self.replan_policy.drop()
         self.replans = 0
         self.replans_by.clear()
         self.reason = None
@@ -300,35 +302,31 @@ class Navigator:
         if not self.active or self.goal is None:
             return
         zone = self._goal_blocked_zone()
-        if zone is not None:
-            self._cancel(now, zone)
-            return
-        if self.mode is Mode.HELD:
-            return  # planned when released, over the costmap as it is then
         x, y, _ = self.backend.pose()
-        if (
-            self.state == "navigating"
-            and math.hypot(self.goal[0] - x, self.goal[1] - y) <= self.params.settle_m
-        ):
-            return
-        next_allowed = self._last_zone_replan + self.params.zone_replan_interval_s
-        if now < next_allowed:
-            self._zone_replan_due = next_allowed
-            return
-        self._zone_replan(now)
-
-    def _zone_replan(self, now: float) -> None:
-        self._zone_replan_due = None
-        self._last_zone_replan = now
-        self._plan(now, "zone")
+        verdict = self.replan_policy.on_zones_changed(
+            now,
+            goal_blocked=zone is not None,
+            # The navigator does not know which cells changed: every change may touch its plan.
+            relevant=True,
+            holding=self.mode is Mode.HELD,  # planned when released, over the costmap as it is then
+            settled=self.state == "navigating"
+            and math.hypot(self.goal[0] - x, self.goal[1] - y) <= self.params.settle_m,
+            # A robot standing in a blocked area is not told apart here: `_plan` finds the way out first.
+        )
+        if verdict is Verdict.CANCEL:
+            assert zone is not None
+            self._cancel(now, zone)
+        elif verdict is Verdict.REPLAN:
+            self._plan(now, "zone")
 
     def step(self, now: float) -> None:
         """Timers: periodic replanning, retries while waiting, and the controller at its rate."""
-        if self._zone_replan_due is not None and now >= self._zone_replan_due:
+        if self.replan_policy.is_due(now):
             if self.mode in (Mode.CONTROLLING, Mode.WAITING):
-                self._zone_replan(now)
+                self.replan_policy.planned(now)
+                self._plan(now, "zone")
             else:
-                self._zone_replan_due = None
+                self.replan_policy.drop()
         if self.mode is Mode.WAITING:
             if self._retry.due(now):
                 self._plan(now, "retry")

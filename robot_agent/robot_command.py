@@ -15,7 +15,6 @@ import sys
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from types import FrameType
 
 from wsnav.navigation.backend import Pose, RobotBackend
@@ -24,10 +23,10 @@ from wsnav.robot_agent.agent import RobotAgent, SimWorldSink
 from wsnav.robot_agent.agent_config import AgentConfig, AgentConfigError, load_agent_config
 from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
 from wsnav.robot_agent.sim.world_grid import SimWorldGrid
-from wsnav.runtime.cli_support import CliError
+from wsnav.runtime.cli_support import CliError, read_robot_credentials
 from wsnav.runtime.clock import WallClock
 from wsnav.runtime.mqtt_bus import BusError, connect_with_credentials
-from wsnav.schemas.credentials import Credentials, CredentialsError, credentials_for
+from wsnav.schemas.credentials import Credentials
 from wsnav.schemas.messages import RobotStatus
 from wsnav.schemas.site import Site, SiteError, load_site
 
@@ -70,7 +69,7 @@ def robot_command(args: argparse.Namespace) -> int:
         config = load_agent_config(args.config)
     except AgentConfigError as exc:
         raise CliError(str(exc)) from None
-    creds = read_credentials(args.credentials, site)
+    creds = read_robot_credentials(args.credentials, site)
     if args.sim and args.start is None:
         raise CliError("--sim needs --start: where the simulated robot stands")
     start = parse_point(site, args.start, "--start") if args.start is not None else None
@@ -159,14 +158,6 @@ def _drive(
         bus.close()
     state = agent.navigator.state
     return 0 if state == "arrived" or not args.exit_on_arrival else 1
-
-
-def read_credentials(path: Path, site: Site) -> Credentials:
-    """The robot's credentials file (from `wsnav broker credentials`), checked against the site."""
-    try:
-        return credentials_for(path, role="robot", site=site.name, ids=[r.id for r in site.spec.robots])
-    except CredentialsError as exc:
-        raise CliError(str(exc)) from None
 
 
 class StatusPrinter:

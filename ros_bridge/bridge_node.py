@@ -11,6 +11,7 @@ with backoff and then re-executes itself; the MQTT side reconnects by itself and
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import math
 import os
@@ -26,7 +27,7 @@ from numpy.typing import NDArray
 from wsnav.ros_bridge.costmap_params import check_global_costmap
 from wsnav.ros_bridge.move_base_supervisor import Action, Cancel, Goal, MoveBaseSupervisor, Resend
 from wsnav.ros_bridge.ros_env import master_alive, master_param, master_uri, require_rospy, wait_for_master
-from wsnav.ros_bridge.zone_feed import ESCAPE_COST, ZoneFeed, exit_point
+from wsnav.ros_bridge.zone_feed import ESCAPE_COST, ZoneFeed
 from wsnav.ros_bridge.zone_grid import UpdateWindow, ZoneGridCodec
 from wsnav.ros_bridge.zone_source import LinkWatch, load_bridge_site, refuse_bad_login, start_broker_link
 from wsnav.runtime.bus import Bus
@@ -61,6 +62,8 @@ class BridgeOptions:
     plan_topic: str
     base_frame: str
     master_costmap: str = "/move_base/global_costmap/costmap"
+    relay: str | None = None
+    """An action name where the bridge serves MoveBaseAction and relays to move_base (`_on_relay_goal`)."""
 
 
 def bridge_command(args: argparse.Namespace) -> int:
@@ -80,7 +83,10 @@ def bridge_command(args: argparse.Namespace) -> int:
         plan_topic=args.plan_topic,
         base_frame=args.base_frame,
         master_costmap=args.master_costmap,
+        relay=args.relay.rstrip("/") if args.relay else None,
     )
+    if options.relay and not options.robot:
+        raise CliError("--relay needs --robot (the move_base it relays to)")
     uri = master_uri()
     wait_for_master(uri)
     if args.robot is not None and not args.no_costmap_check:
@@ -141,6 +147,9 @@ class ZoneBridgeNode:
         self._held_since: float | None = None
         """Since when the outbox has waited for move_base (monotonic seconds)."""
         self._told_unconnected = False
+        self._relayed: tuple[Any, str] | None = None
+        """The relay's goal in progress: (its actionlib ServerGoalHandle, the goal id it has at move_base)."""
+        self._relays = 0
         for topic_filter in self.feed.subscriptions():
             bus.subscribe(topic_filter, qos=1)
         if options.robot:
@@ -168,11 +177,16 @@ class ZoneBridgeNode:
         self.update_pub = rospy.Publisher(f"{ns}/zone_grid_updates", OccupancyGridUpdate, queue_size=20)
         if self.supervisor is not None:
             self._wire_move_base(rospy)
+            self._read_planner_frequency(uri)
         say(
             f"zone bridge for site {self.site.name}: {ns}/zone_grid ({self.frame.width}x{self.frame.height} cells, "
             f"frame {self.options.frame_id})"
             + (f", supervising {self.options.move_base} for {self.options.robot}" if self.supervisor else "")
         )
+        if self.supervisor is not None:
+            # The exit finder (navigation.behaviors.escape, with the planner and numba: about 2 s of CPU) loads
+            # once the grid is out, so move_base's costmap does not wait for it.
+            importlib.import_module("wsnav.navigation.behaviors.escape")
         next_status = 0.0
         next_master_check = time.monotonic() + MASTER_CHECK_PERIOD_S
         link = LinkWatch(self.site.spec.policy.stale, time.monotonic())
@@ -196,9 +210,13 @@ class ZoneBridgeNode:
                         if m.topic == goal_topic:
                             self._mqtt_goal(m.payload)
                     waits = self._master_updates.get_num_connections() > 0
-                    self._act(self.supervisor.on_zones_changed(changes, now, wait_for_master=waits))
-                    self._act(self.supervisor.tick(now))
+                    self._act(
+                        self.supervisor.on_zones_changed(changes, now, wait_for_master=waits, pose=self._pose)
+                    )
+                    self._act(self.supervisor.tick(now, wait_for_master=waits))
                     self._flush_outbox()
+            if self.supervisor is not None and self.options.relay:
+                self._finish_relayed()
             if self.supervisor is not None and (now >= next_status or changes):
                 self._publish_status()
                 self._check_escape(now, OccupancyGridUpdate)
@@ -210,7 +228,32 @@ class ZoneBridgeNode:
                     rospy.signal_shutdown("master lost")
                     wait_for_master(uri)
                     return True
+                if self.supervisor is not None:
+                    self._read_planner_frequency(uri)
         return False
+
+    def _read_planner_frequency(self, uri: str) -> None:
+        """Whether move_base replans on its own timer (planner_frequency > 0, its default 0): only where it does
+        not is a zone change re-sent as a goal, which preempts whoever sent it (read again, as move_base may load
+        its parameters after the bridge starts)."""
+        assert self.supervisor is not None
+        key = f"{self.options.move_base}/planner_frequency"
+        try:
+            value = master_param(uri, key)
+        except OSError:
+            return  # the master check says so
+        itself = isinstance(value, int | float) and not isinstance(value, bool) and value > 0
+        if itself != self.supervisor.replans_itself:
+            with self._lock:
+                self.supervisor.replans_itself = itself
+            say(
+                f"{key} = {value}: "
+                + (
+                    "move_base replans by itself, zone changes re-send no goal"
+                    if itself
+                    else "zone changes re-send the goal"
+                )
+            )
 
     def _check_map(self, rospy: Any, occupancy_grid: Any) -> None:
         """Refuse, in one line, a site whose map is not the map the robot navigates on (if one is published)."""
@@ -283,6 +326,19 @@ class ZoneBridgeNode:
         )
         self.tf_buffer = tf2_ros.Buffer()
         self._tf_listener = tf2_ros.TransformListener(self.tf_buffer)
+        if self.options.relay:
+            import actionlib
+            from move_base_msgs.msg import MoveBaseAction, MoveBaseResult
+
+            self._result_type = MoveBaseResult
+            self._relay = actionlib.ActionServer(
+                self.options.relay,
+                MoveBaseAction,
+                self._on_relay_goal,
+                self._on_relay_cancel,
+                auto_start=False,
+            )
+            self._relay.start()
 
     def _on_ros_goal(self, msg: Any) -> None:
         p = msg.goal.target_pose.pose
@@ -432,6 +488,61 @@ class ZoneBridgeNode:
         self._told_unconnected = False
         self._held_since = None
 
+    # -- the relay: move_base's action interface for scripts, kept through re-sends -------------------------
+
+    def _on_relay_goal(self, handle: Any) -> None:
+        """A script's goal on the relay: sent to move_base as the bridge's own, followed through every re-send;
+        the script's goal ends as the supervisor's goal ends (`_finish_relayed`)."""
+        assert self.supervisor is not None
+        target = handle.get_goal().target_pose
+        p = target.pose
+        yaw = 2 * math.atan2(p.orientation.z, p.orientation.w)
+        pose = self._in_map_frame(target.header.frame_id, (p.position.x, p.position.y, yaw))
+        with self._lock:
+            if self._relayed is not None:
+                self._relayed[0].set_canceled(self._result_type(), "another goal was received on the relay")
+                self._relayed = None
+            handle.set_accepted("relayed to move_base")
+            self._relays += 1
+            goal = Goal(f"wsnav-relay-{self._relays}-{time.time():.3f}", pose, pose)
+            say(f"relay goal -> {goal.goal_id}: {pose}")
+            cancel = self.supervisor.sending(goal)
+            if cancel:
+                handle.set_aborted(self._result_type(), cancel[0].reason)
+                return
+            self._relayed = (handle, goal.goal_id)
+            self._send_goal(goal)
+            self._flush_outbox()
+
+    def _on_relay_cancel(self, handle: Any) -> None:
+        assert self.supervisor is not None
+        with self._lock:
+            relayed = self._relayed
+            if relayed is not None and relayed[0].get_goal_id().id == handle.get_goal_id().id:
+                self._relayed = None
+                self._act(self.supervisor.cancel("cancelled on the relay"))
+                self._flush_outbox()
+            handle.set_canceled(self._result_type(), "cancelled")
+
+    def _finish_relayed(self) -> None:
+        """End the relay's goal as the supervisor's ends: arrived, cancelled (with the reason), or replaced by a
+        goal someone else sent move_base."""
+        assert self.supervisor is not None
+        with self._lock:
+            if self._relayed is None:
+                return
+            handle, goal_id = self._relayed
+            current = self.supervisor.goal
+            if current is None or current.goal_id.split("#wsnav")[0] != goal_id:
+                handle.set_aborted(self._result_type(), "move_base was given another goal")
+            elif self.supervisor.state == "arrived":
+                handle.set_succeeded(self._result_type(), "arrived")
+            elif self.supervisor.state == "cancelled":
+                handle.set_aborted(self._result_type(), self.supervisor.reason or "cancelled")
+            else:
+                return
+            self._relayed = None
+
     def _check_escape(self, now: float, update_type: Any) -> None:
         """Drive out of a blocked area the robot stands in (MoveBaseSupervisor.on_pose): the grid sends those
         areas passable but dear until it is out, then lethal again."""
@@ -451,7 +562,9 @@ class ZoneBridgeNode:
 
     def _exit_of(self, areas: list[BlockedArea]) -> tuple[float, float] | None:
         assert self._pose is not None
-        return exit_point(self.frame, self.feed.blocked_mask(areas), self._walls, self._pose[:2])
+        from wsnav.navigation.behaviors.escape import exit_beside  # loaded after the grid is out (see `run`)
+
+        return exit_beside(self.frame, self._walls, self.feed.blocked_mask(areas), self._pose[:2])
 
     def _publish_status(self) -> None:
         import rospy

@@ -58,6 +58,12 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         default="/move_base/global_costmap/costmap",
         help="move_base's global costmap (and its _updates): a replan waits until it shows the zone change",
     )
+    bridge.add_argument(
+        "--relay",
+        metavar="ACTION",
+        help="with --robot: serve move_base's action interface here (e.g. /wsnav/move_base) and relay to move_base, "
+        "so a script's goal survives the bridge's re-sends and ends as the robot's drive ends",
+    )
     bridge.add_argument("--connect-timeout", type=float, default=10.0, metavar="S", help="MQTT, default 10")
     bridge.set_defaults(func=bridge_command)
 

@@ -1,11 +1,15 @@
-"""Algorithm 3 on move_base: cancel a goal that lies in a blocked zone, replan at once when a zone on the plan
-changes, and say so on MQTT, from what move_base's action topics show.
+"""Algorithm 3 on move_base: cancel a goal that lies in a blocked zone, replan when a zone on the plan changes or
+one got cheaper (at most once per interval, the last change always planned), drive out of a blocked area the
+robot stands in, and say so on MQTT, from what move_base's action topics show. The decision is the agent's own
+(wsnav.navigation.replan_policy); this module carries it out on move_base.
 
 Pure logic (no rospy): the ROS node feeds it the goals it sees on `move_base/goal` (whoever sent them: RViz, a
 script, the MQTT goal topic), the goal statuses, the global plan and the zone changes, and carries out the
 actions it returns. A re-sent goal (same target, new goal id) is how move_base is told to plan now rather than
 at its next `planner_frequency` tick; the re-sent goal becomes the one followed at once, so the PREEMPTED of the
-goal it replaces is not taken for a cancel.
+goal it replaces is not taken for a cancel. A re-send preempts the goal of whoever sent it (a script's
+SimpleActionClient sees PREEMPTED), so it is made only where move_base will not replan by itself
+(`replans_itself`: its planner_frequency is above 0; then move_base's own timer picks the change up).
 
 RViz's goals (`/move_base_simple/goal`) reach `move_base/goal` with an EMPTY goal id: move_base relays them to its
 own action server, which makes up an id. The supervisor follows such a goal without an id until a new id shows
@@ -21,6 +25,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from wsnav.navigation.replan_policy import ReplanPolicy, Verdict
 from wsnav.ros_bridge.zone_feed import ZoneChange, ZoneFeed
 from wsnav.schemas.messages import RobotStateValue, RobotStatus
 from wsnav.zones.geometry import Bounds
@@ -112,6 +117,14 @@ class MoveBaseSupervisor:
     """move_base has listed the current goal in its status: once it stops listing it, the goal is gone."""
     leaving: Leaving | None = None
     _exit_reached: bool = False
+    replans_itself: bool = False
+    """move_base replans on its own timer (planner_frequency > 0): a zone change re-sends no goal (it would only
+    preempt the sender's goal); cancels and the way out of a blocked area still go out."""
+    policy: ReplanPolicy = field(default_factory=ReplanPolicy)
+    """Algorithm 3's decision on zone changes, and their replan rate limit (the agent's own rule)."""
+    _due_why: str = ""
+    _due_window: Bounds | None = None
+    """The cells of zone changes held back by the policy's interval, planned for at its end."""
 
     # -- what move_base shows ------------------------------------------------------------------------------
 
@@ -215,9 +228,10 @@ class MoveBaseSupervisor:
             )
             self.reason = None
             cancel = self._cancel_if_blocked()
-            return cancel or self._replan(
-                "out of the blocked area: on to the goal", areas, now, wait_for_master
-            )
+            if cancel:
+                return cancel
+            self.policy.planned(now)
+            return self._replan("out of the blocked area: on to the goal", areas, now, wait_for_master)
         if self.goal is None or self.state != "navigating" or not inside:
             return []
         names = ", ".join(a.name for a in inside)
@@ -231,6 +245,7 @@ class MoveBaseSupervisor:
         # At once, not after the master shows the zone passable: move_base, still on the old goal, would plan
         # through the zone the moment it became passable (seen on the real move_base); its planner retries the
         # exit until the grid is in.
+        self.policy.planned(now)
         return self._resend(f"the robot stands in blocked {names}: driving out first")
 
     def _replan(
@@ -253,30 +268,59 @@ class MoveBaseSupervisor:
     # -- what the zones say --------------------------------------------------------------------------------
 
     def on_zones_changed(
-        self, changes: list[ZoneChange], now: float = 0.0, *, wait_for_master: bool = False
+        self,
+        changes: list[ZoneChange],
+        now: float = 0.0,
+        *,
+        wait_for_master: bool = False,
+        pose: Pose | None = None,
     ) -> list[Action]:
-        """Cancel if the goal now lies in a blocked zone; else replan when a change touches the plan or opens
-        a way (a zone cleared); nothing while no goal is being navigated. With `wait_for_master`, the replan
-        waits (`waiting`) until `master_caught_up` or `tick` past MASTER_WAIT_S."""
+        """Algorithm 3 (wsnav.navigation.replan_policy): cancel if the goal now lies in a blocked zone; nothing
+        if the robot (at `pose`) stands in a blocked area (`on_pose` sends the one goal out of it); else replan
+        when a change touches the plan or opens a way (a zone cleared), at most once per the policy's interval
+        (changes within it are re-sent by `tick` at its end); nothing while no goal is being navigated. With
+        `wait_for_master`, the replan waits (`waiting`) until `master_caught_up` or `tick` past MASTER_WAIT_S."""
         if self.goal is None or self.state != "navigating" or not changes:
             return []
-        cancel = self._cancel_if_blocked()
-        if cancel:
-            self.waiting = None
-            return cancel
         on_plan = [c for c in changes if self._crosses(c)]
-        if not on_plan and not any(c.cheaper for c in changes):
+        inside = (
+            pose is not None and self.leaving is None and bool(self.feed.blocked_areas_at(pose[0], pose[1]))
+        )
+        verdict = self.policy.on_zones_changed(
+            now,
+            goal_blocked=bool(self._goal_zones()),
+            robot_blocked=inside,
+            relevant=bool(on_plan) or any(c.cheaper for c in changes),
+        )
+        if verdict is Verdict.CANCEL:
+            self.waiting = None
+            self._due_window = None
+            return self._cancel_if_blocked()
+        if verdict not in (Verdict.REPLAN, Verdict.LATER):
             return []
         why = "a zone on the plan changed" if on_plan else "a zone cleared"
-        if wait_for_master:
-            window: Bounds | None = self.waiting.window if self.waiting is not None else None
-            for c in changes:
-                window = c.window.union(window)
-            assert window is not None
-            deadline = self.waiting.deadline if self.waiting is not None else now + MASTER_WAIT_S
-            self.waiting = WaitingReplan(window, why, deadline)
+        window = self._due_window
+        for c in changes:
+            window = c.window.union(window)
+        assert window is not None
+        if verdict is Verdict.LATER:
+            self._due_why, self._due_window = why, window
             return []
-        return self._resend(why)
+        self._due_window = None
+        return self._replan_over(why, window, now, wait_for_master)
+
+    def _replan_over(self, why: str, window: Bounds, now: float, wait_for_master: bool) -> list[Action]:
+        """Replan for zone changes in `window`: re-send the goal at once, or once the master costmap shows them;
+        nothing where move_base replans by itself."""
+        if self.replans_itself:
+            return []
+        if not wait_for_master:
+            return self._resend(why)
+        if self.waiting is not None:
+            window = window.union(self.waiting.window)
+        deadline = self.waiting.deadline if self.waiting is not None else now + MASTER_WAIT_S
+        self.waiting = WaitingReplan(window, why, deadline)
+        return []
 
     def master_caught_up(self) -> list[Action]:
         """move_base's master costmap now shows the changes the waiting replan is for: re-send now."""
@@ -287,8 +331,16 @@ class MoveBaseSupervisor:
             return []
         return self._resend(why)
 
-    def tick(self, now: float) -> list[Action]:
-        """Re-send a waiting replan whose master costmap did not show the change in time."""
+    def tick(self, now: float, *, wait_for_master: bool = False) -> list[Action]:
+        """Replan for zone changes the policy held back, once their interval is over; re-send a waiting replan
+        whose master costmap did not show the change in time."""
+        if self.policy.is_due(now):
+            window, self._due_window = self._due_window, None
+            if self.goal is None or self.state != "navigating" or window is None:
+                self.policy.drop()
+            else:
+                self.policy.planned(now)
+                return self._replan_over(self._due_why, window, now, wait_for_master)
         if self.waiting is None or now < self.waiting.deadline:
             return []
         why = f"{self.waiting.why}; the master costmap did not show it within {MASTER_WAIT_S:g} s"
@@ -358,6 +410,8 @@ class MoveBaseSupervisor:
         self.goal = goal
         self.replans = 0  # per goal, as the agent counts them
         self.waiting = None
+        self.policy.drop()
+        self._due_window = None
         self._listed_current = False
         self._cancel_waiting = None
         self.state, self.reason = "navigating", None
@@ -372,15 +426,21 @@ class MoveBaseSupervisor:
             return []
         return [Cancel(self.goal.goal_id, reason)]
 
-    def _cancel_if_blocked(self) -> list[Action]:
+    def _goal_zones(self) -> list[str]:
+        """The blocked zones the current goal lies in."""
         if self.goal is None:
             return []
         x, y, _ = self.goal.pose
         if not (math.isfinite(x) and math.isfinite(y)):
             return []
-        zones = self.feed.blocked_zones_at(x, y)
-        if not zones:
+        return self.feed.blocked_zones_at(x, y)
+
+    def _cancel_if_blocked(self) -> list[Action]:
+        zones = self._goal_zones()
+        if not zones or self.goal is None:
             return []
+        self.policy.drop()
+        x, y, _ = self.goal.pose
         label = self.goal.label if isinstance(self.goal.label, str) else f"[{x:.2f}, {y:.2f}]"
         self.state, self.reason = "cancelled", f"goal {label} lies in blocked zone {', '.join(zones)}"
         return self._cancel_current(self.reason)

@@ -22,9 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from wsnav.navigation.backend import LaserScan, Pose, Velocity
+from wsnav.navigation.backend import BURGER_RADIUS_M, DriveLimits, LaserScan, Pose, Velocity
 from wsnav.robot_agent.robot_command import RobotSession
-from wsnav.robot_agent.sim.turtlebot3 import TurtleBot3Params
 from wsnav.ros_bridge.ros_env import master_uri, require_rospy, wait_for_master
 from wsnav.runtime.cli_support import CliError
 from wsnav.schemas.site import Site
@@ -65,10 +64,12 @@ class RosRobotBackend:
         topics: RosRobotTopics | None = None,
         *,
         map_to_odom: Pose = (0.0, 0.0, 0.0),
-        limits: TurtleBot3Params | None = None,
+        limits: DriveLimits | None = None,
+        radius: float = BURGER_RADIUS_M,
         say: Any = print,
     ) -> None:
-        """`map_to_odom`: where the odometry frame lies on the map while tf has no map frame."""
+        """`map_to_odom`: where the odometry frame lies on the map while tf has no map frame; `limits` and
+        `radius`: the robot's (a TurtleBot3 Burger's by default)."""
         import rospy
         import tf2_ros
         from geometry_msgs.msg import Twist
@@ -77,7 +78,8 @@ class RosRobotBackend:
 
         self._id = robot_id
         self.topics = topics or RosRobotTopics()
-        self.limits = limits or TurtleBot3Params()
+        self.limits = limits or DriveLimits()
+        self._radius = radius
         self._say = say
         self._rospy = rospy
         self._twist = Twist
@@ -108,7 +110,7 @@ class RosRobotBackend:
 
     @property
     def radius(self) -> float:
-        return self.limits.radius
+        return self._radius
 
     def pose(self) -> Pose:
         with self._lock:  # the agent's loop and the scan callback both ask

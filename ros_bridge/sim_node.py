@@ -23,12 +23,11 @@ from typing import Any
 
 from wsnav.navigation.backend import LaserScan, Velocity
 from wsnav.navigation.planning.offline_plan import parse_point
-from wsnav.robot_agent.robot_command import read_credentials
 from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
 from wsnav.robot_agent.sim.world_grid import SimWorldGrid
 from wsnav.ros_bridge.ros_env import master_uri, require_rospy, wait_for_master
 from wsnav.runtime.bus import Bus
-from wsnav.runtime.cli_support import CliError
+from wsnav.runtime.cli_support import CliError, read_robot_credentials
 from wsnav.runtime.clock import WallClock
 from wsnav.runtime.mqtt_bus import BusError, connect_with_credentials
 from wsnav.schemas import topics
@@ -54,7 +53,7 @@ def sim_command(args: argparse.Namespace) -> int:
     if (args.broker is None) != (args.credentials is None):
         raise CliError("--broker and --credentials go together (the world's obstacles come over MQTT)")
     robot_id = site.spec.robots[0].id if site.spec.robots else "robot"
-    creds = read_credentials(args.credentials, site) if args.credentials is not None else None
+    creds = read_robot_credentials(args.credentials, site) if args.credentials is not None else None
     if creds is not None:
         robot_id = creds.username
     start = parse_point(site, args.start, "--start")

@@ -10,9 +10,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.ndimage import distance_transform_edt
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import dijkstra
 
 from wsnav.runtime.bus import Message
 from wsnav.schemas.site_file import SiteFile
@@ -103,48 +100,6 @@ class ZoneFeed:
         if not self.frame.contains_cell(row, col):
             return []
         return [area.name for area, window in self.layer.blocked_areas() if _in_window(window, row, col)]
-
-
-def exit_point(
-    frame: GridFrame,
-    blocked: NDArray[np.bool_],
-    walls: NDArray[np.bool_],
-    start: tuple[float, float],
-    margin_m: float = 0.35,
-    search_m: float = 6.0,
-) -> tuple[float, float] | None:
-    """The nearest place, by the way there (not as the crow flies: a room behind the corridor's wall is not an
-    exit), at least `margin_m` from every `blocked` cell and on no wall, within `search_m` of `start`."""
-    row, col = frame.world_to_cell(*start)
-    reach = int(search_m / frame.resolution)
-    r0, c0 = max(0, row - reach), max(0, col - reach)
-    r1, c1 = min(frame.height, row + reach + 1), min(frame.width, col + reach + 1)
-    passable = ~walls[r0:r1, c0:c1]
-    away = (
-        np.asarray(distance_transform_edt(~blocked[r0:r1, c0:c1]), dtype=float) * frame.resolution >= margin_m
-    )
-    height, width = passable.shape
-    index = np.arange(height * width).reshape(height, width)
-    rows_a: list[NDArray[np.int64]] = []
-    rows_b: list[NDArray[np.int64]] = []
-    weights: list[NDArray[np.float64]] = []
-    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):  # each 8-neighbour pair once (the graph is undirected)
-        ra, ca = slice(0, height - dr), slice(max(0, -dc), width - max(0, dc))
-        rb, cb = slice(dr, height), slice(max(0, dc), width - max(0, -dc))
-        both = passable[ra, ca] & passable[rb, cb]
-        rows_a.append(index[ra, ca][both])
-        rows_b.append(index[rb, cb][both])
-        weights.append(np.full(int(both.sum()), float(np.hypot(dr, dc))))
-    graph = csr_matrix(
-        (np.concatenate(weights), (np.concatenate(rows_a), np.concatenate(rows_b))),
-        shape=(index.size, index.size),
-    )
-    way = dijkstra(graph, directed=False, indices=int(index[row - r0, col - c0])).reshape(height, width)
-    candidates = np.where(passable & away & np.isfinite(way), way, np.inf)
-    best = np.unravel_index(int(np.argmin(candidates)), candidates.shape)
-    if not np.isfinite(candidates[best]):
-        return None
-    return frame.cell_to_world(int(best[0]) + r0, int(best[1]) + c0)
 
 
 def window_bounds(window: CellWindow) -> Bounds:

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from wsnav.ros_bridge.zone_grid import UnrepresentableCost, ZoneGridCodec
-from wsnav.runtime.cli_support import CliError
+from wsnav.runtime.cli_support import CliError, read_robot_credentials
 from wsnav.runtime.clock import WallClock
 from wsnav.runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
 from wsnav.schemas.credentials import Credentials
@@ -26,13 +26,11 @@ class BridgeSite:
 def load_bridge_site(site_path: Path, credentials: Path) -> BridgeSite:
     """The site, the robot's credentials checked against it, and the codec checked against its caution cost;
     each problem a one-line CliError."""
-    from wsnav.robot_agent.robot_command import read_credentials
-
     try:
         site = load_site(site_path)
     except SiteError as exc:
         raise CliError(str(exc)) from None
-    creds = read_credentials(credentials, site)
+    creds = read_robot_credentials(credentials, site)
     codec = ZoneGridCodec()
     try:
         codec.check({site.spec.policy.caution_cost})

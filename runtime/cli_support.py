@@ -6,7 +6,11 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
+
+if TYPE_CHECKING:
+    from wsnav.schemas.credentials import Credentials
+    from wsnav.schemas.site import Site
 
 
 class CliError(Exception):
@@ -42,3 +46,14 @@ def add_broker_arguments(parser: argparse.ArgumentParser) -> None:
 def fail(message: str) -> NoReturn:
     print(f"wsnav: error: {message}", file=sys.stderr)
     raise SystemExit(2)
+
+
+def read_robot_credentials(path: Path, site: Site) -> Credentials:
+    """A robot's credentials file (from `wsnav broker credentials`), checked against the site; a problem is one
+    CliError. Here, not in the agent, so the ROS bridges check a file without loading the agent and numba."""
+    from wsnav.schemas.credentials import CredentialsError, credentials_for
+
+    try:
+        return credentials_for(path, role="robot", site=site.name, ids=[r.id for r in site.spec.robots])
+    except CredentialsError as exc:
+        raise CliError(str(exc)) from None

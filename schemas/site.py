@@ -7,12 +7,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pydantic import ValidationError
 
-from wsnav.schemas.ros_map import FREE, MapError, OccupancyGrid, load_map
 from wsnav.schemas.site_file import SiteFile
 from wsnav.schemas.yaml_file import read_yaml_mapping
+
+if TYPE_CHECKING:  # the map (numpy, Pillow) loads with `load_site` only: a broker needs the site file alone
+    from wsnav.schemas.ros_map import OccupancyGrid
 
 SITE_FILE_NAME = "site.yaml"
 
@@ -47,8 +50,16 @@ def site_file_path(location: str | Path) -> Path:
     return path / SITE_FILE_NAME if path.is_dir() else path
 
 
+def load_site_file(location: str | Path) -> SiteFile:
+    """The site file alone, validated but not against its map (what the broker needs: no numpy, no image);
+    raises SiteError (one line) on any problem."""
+    return _parse(site_file_path(location))
+
+
 def load_site(location: str | Path) -> Site:
     """Parse, validate against the map, and return the site; raises SiteError (one line) on any problem."""
+    from wsnav.schemas.ros_map import MapError, load_map
+
     path = site_file_path(location)
     spec = _parse(path)
     map_path = Path(spec.map) if Path(spec.map).is_absolute() else path.parent / spec.map
@@ -89,6 +100,8 @@ def _describe(exc: ValidationError, raw: dict[str, object]) -> str:
 
 
 def _check_against_map(path: Path, spec: SiteFile, grid: OccupancyGrid) -> None:
+    from wsnav.schemas.ros_map import FREE
+
     x0, y0, x1, y1 = grid.bounds
     extent = f"the map spans x {x0:g}..{x1:g}, y {y0:g}..{y1:g}"
     for i, zone in enumerate(spec.zones):

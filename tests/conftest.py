@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import os
 import shutil
 from pathlib import Path
@@ -113,9 +114,50 @@ SLOW_TESTS = {
 test may say `@pytest.mark.slow` itself instead."""
 
 
+STARTS_A_PROCESS = (
+    "BrokerProcess(",
+    "Popen(",
+    "subprocess.",
+    "LocalRosCore(",
+    "WsnavChild(",
+    "NodeProcess(",
+    "Board(",
+    "DaskCluster(",
+    "docker_daemon(",
+    "playwright",
+)
+"""What a fixture's own code calls when it starts a real process (a broker, roscore, MicroPython, Dask, docker, a
+browser): a test using such a fixture, directly or through other fixtures, is slow."""
+
+
+def _starts_a_process(fixture: object) -> bool:
+    try:
+        source = inspect.getsource(fixture)  # type: ignore[arg-type]
+    except (OSError, TypeError):
+        return False
+    return any(call in source for call in STARTS_A_PROCESS)
+
+
+def _slow_fixtures(item: pytest.Item) -> list[str]:
+    """The fixtures of the item's closure that start a process."""
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return []
+    return [
+        name for name, defs in info.name2fixturedefs.items() if any(_starts_a_process(d.func) for d in defs)
+    ]
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """`make test-fast` (`-m "not slow"`) runs the rest: the logic, in about a minute."""
+    """`make test-fast` (`-m "not slow"`) runs the rest: the logic. Slow: a test that starts a process itself or
+    through its fixtures (derived from their code, `STARTS_A_PROCESS`), and the hand-kept SLOW_MODULES and
+    SLOW_TESTS (processes started through helpers, or long without one)."""
     for item in items:
         module = item.path.name
-        if module in SLOW_MODULES or f"{module}::{item.originalname}" in SLOW_TESTS:  # type: ignore[attr-defined]
+        if (
+            module in SLOW_MODULES
+            or f"{module}::{item.originalname}" in SLOW_TESTS  # type: ignore[attr-defined]
+            or _slow_fixtures(item)
+            or _starts_a_process(getattr(item, "function", None))
+        ):
             item.add_marker(pytest.mark.slow)

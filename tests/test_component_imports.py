@@ -149,3 +149,28 @@ def test_commands_run_outside_the_checkout_where_only_wsnav_is_importable(tmp_pa
     )  # fmt: skip
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
     assert proc.stderr.count("\n") == 1 and "creds.json" in proc.stderr, proc.stderr
+
+
+KNOWN_TEST_MODULE_IMPORTS = {
+    "tests/test_ros2_bridge_cli.py imports tests.test_ros2_bridge",
+    "tests/test_firmware_ota.py imports tests.test_firmware_node",
+}
+"""Helpers still shared by importing another test module (their files are being changed on other branches): to be
+moved into a fixtures module, then struck from here."""
+
+
+def test_no_test_module_or_benchmark_imports_a_test_module() -> None:
+    """Importing a test module runs its module-level set-up twice and ties one test file to another's internals:
+    shared helpers live in the fixtures modules (tests/*_fixtures.py and the like)."""
+    found = set()
+    for p in [*python_files(REPO / "tests"), *python_files(REPO / "bench")]:
+        for node in ast.walk(ast.parse(p.read_text(), filename=str(p))):
+            names: list[str] = []
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module == "tests":
+                names = [f"tests.{alias.name}" for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            found |= {f"{p.relative_to(REPO)} imports {n}" for n in names if n.startswith("tests.test_")}
+    assert found == KNOWN_TEST_MODULE_IMPORTS, sorted(found ^ KNOWN_TEST_MODULE_IMPORTS)

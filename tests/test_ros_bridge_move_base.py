@@ -12,6 +12,7 @@ comes from a real tf2 static transform.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import subprocess
@@ -190,6 +191,22 @@ class Operator:
 def rig(
     tmp_path: Path, ros_node: RosMaster, move_base: FakeMoveBase
 ) -> Iterator[tuple[WsnavChild, Operator, dict[str, MqttBus]]]:
+    with bridge_rig(tmp_path, ros_node) as started:
+        yield started
+
+
+@pytest.fixture
+def relay_rig(
+    tmp_path: Path, ros_node: RosMaster, move_base: FakeMoveBase
+) -> Iterator[tuple[WsnavChild, Operator, dict[str, MqttBus]]]:
+    with bridge_rig(tmp_path, ros_node, "--relay", "/wsnav/move_base") as started:
+        yield started
+
+
+@contextlib.contextmanager
+def bridge_rig(
+    tmp_path: Path, ros_node: RosMaster, *extra: str
+) -> Iterator[tuple[WsnavChild, Operator, dict[str, MqttBus]]]:
     site_dir = slow_heartbeat_school(tmp_path)
     with BrokerThread(site_dir) as broker:
         bus = connect_with_credentials(broker.host, broker.port, broker.credentials("operator"))
@@ -199,7 +216,7 @@ def rig(
             for n in ("n1", "n2", "n7")
         }
         bridge = WsnavChild(
-            ["ros", "bridge", *bridge_args(site_dir, broker, "--robot", "robot1")], ros_node.env()
+            ["ros", "bridge", *bridge_args(site_dir, broker, "--robot", "robot1", *extra)], ros_node.env()
         )
         try:
             bridge.wait_for("supervising /move_base for robot1", 30)
@@ -496,3 +513,104 @@ def test_a_robot_standing_in_a_zone_that_becomes_blocked_is_sent_out_first_then_
         assert any("driving out first" in line for line in bridge.lines), bridge.lines
     finally:
         robot_at(move_base, *PLAN[0])
+
+
+@pytest.mark.slow
+def test_where_move_base_replans_by_itself_a_zone_change_keeps_the_scripts_goal_and_the_rviz_goal(
+    rig: tuple[WsnavChild, Operator, dict[str, MqttBus]], move_base: FakeMoveBase, ros_node: RosMaster
+) -> None:
+    """Every replan re-sent move_base's goal, so a mission script's SimpleActionClient saw its goal PREEMPTED
+    ("another goal was received") and never SUCCEEDED while the robot drove on under the bridge's goal id. With
+    planner_frequency above 0 (ROBOTIS' 5.0) move_base replans by itself: a zone change on the plan re-sends
+    nothing, and the script's goal, like an RViz goal, ends as the robot's drive ends."""
+    import actionlib
+    import rospy
+    from actionlib_msgs.msg import GoalStatus
+    from move_base_msgs.msg import MoveBaseAction, MoveBaseGoal
+
+    bridge, operator, nodes = rig
+    rospy.set_param("/move_base/planner_frequency", 5.0)
+    try:
+        bridge.wait_for("move_base replans by itself", 15)
+        client = actionlib.SimpleActionClient("/move_base", MoveBaseAction)
+        assert client.wait_for_server(rospy.Duration(10))
+        goal = MoveBaseGoal()
+        goal.target_pose.header.frame_id = "map"
+        goal.target_pose.header.stamp = rospy.Time.now()
+        goal.target_pose.pose.position.x, goal.target_pose.pose.position.y = 29.0, 22.8
+        goal.target_pose.pose.orientation.w = 1.0
+        before = len(move_base.goals)
+        client.send_goal(goal)
+        wait_until(lambda: len(move_base.goals) > before, 15, "the script's goal at move_base")
+        operator.wait_status(
+            "navigating to the script's goal",
+            lambda s: s.state == "navigating" and s.goal is not None and s.goal[0] == 29.0,  # type: ignore[index]
+        )
+        time.sleep(0.5)  # the plan reaches the bridge
+        zone_state(nodes["n1"], "z1", "n1", "blocked", 800)
+        operator.wait_status("z1 blocked", lambda s: "z1" in s.blocked_zones)
+        time.sleep(1.5)  # a re-send would have gone out by now
+        assert len(move_base.goals) == before + 1, move_base.goals[before:]
+        assert client.get_state() == GoalStatus.ACTIVE, client.get_goal_status_text()
+        move_base.arrive = True
+        assert client.wait_for_result(rospy.Duration(10))
+        assert client.get_state() == GoalStatus.SUCCEEDED, client.get_goal_status_text()
+        status = operator.wait_status("arrived", lambda s: s.state != "navigating")
+        assert status.state == "arrived", status
+
+        before = len(move_base.goals)
+        rviz_goal(ros_node, 29.0, 22.8)
+        wait_until(lambda: len(move_base.goals) > before, 15, "the RViz goal at move_base")
+        rviz_id = move_base.goals[-1][0]
+        operator.wait_status("navigating to the RViz goal", lambda s: s.state == "navigating")
+        time.sleep(0.5)
+        zone_state(nodes["n1"], "z1", "n1", "clear", 801)  # a zone on the plan got cheaper
+        operator.wait_status("z1 clear", lambda s: "z1" not in s.blocked_zones)
+        time.sleep(1.5)
+        assert len(move_base.goals) == before + 1 and rviz_id not in move_base.preempted, move_base.goals[
+            before:
+        ]
+        move_base.arrive = True
+        status = operator.wait_status("the RViz goal arrived", lambda s: s.state != "navigating")
+        assert status.state == "arrived", status
+        assert not any("replan now" in line for line in bridge.lines), bridge.lines
+    finally:
+        rospy.delete_param("/move_base/planner_frequency")
+
+
+@pytest.mark.slow
+def test_a_scripts_goal_on_the_relay_survives_the_re_sends_and_ends_succeeded(
+    relay_rig: tuple[WsnavChild, Operator, dict[str, MqttBus]], move_base: FakeMoveBase
+) -> None:
+    """With planner_frequency 0 the bridge must re-send move_base's goal to make it plan now, which preempts the
+    sender's goal. A script that sends its goal to the bridge's relay (`--relay /wsnav/move_base`, the same
+    MoveBaseAction) keeps it: PREEMPTED at move_base stays inside the bridge, and the script's goal ends
+    SUCCEEDED when the robot arrives."""
+    import actionlib
+    import rospy
+    from actionlib_msgs.msg import GoalStatus
+    from move_base_msgs.msg import MoveBaseAction, MoveBaseGoal
+
+    _bridge, operator, nodes = relay_rig
+    client = actionlib.SimpleActionClient("/wsnav/move_base", MoveBaseAction)
+    assert client.wait_for_server(rospy.Duration(15))
+    goal = MoveBaseGoal()
+    goal.target_pose.header.frame_id = "map"
+    goal.target_pose.header.stamp = rospy.Time.now()
+    goal.target_pose.pose.position.x, goal.target_pose.pose.position.y = 29.0, 22.8
+    goal.target_pose.pose.orientation.w = 1.0
+    before = len(move_base.goals)
+    client.send_goal(goal)
+    wait_until(lambda: len(move_base.goals) > before, 15, "the relayed goal at move_base")
+    first_id = move_base.goals[-1][0]
+    operator.wait_status("navigating to the relayed goal", lambda s: s.state == "navigating")
+    time.sleep(0.5)  # the plan reaches the bridge
+    zone_state(nodes["n1"], "z1", "n1", "blocked", 900)
+    wait_until(
+        lambda: first_id in move_base.preempted, 10, "move_base's goal re-sent (the old one preempted)"
+    )
+    time.sleep(1.0)
+    assert client.get_state() == GoalStatus.ACTIVE, client.get_goal_status_text()
+    move_base.arrive = True
+    assert client.wait_for_result(rospy.Duration(15))
+    assert client.get_state() == GoalStatus.SUCCEEDED, client.get_goal_status_text()

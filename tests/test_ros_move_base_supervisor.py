@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from tests.conftest import SCHOOL
+from wsnav.navigation.behaviors.escape import exit_beside
 from wsnav.ros_bridge.move_base_supervisor import (
     ACTIVE,
     PREEMPTED,
@@ -15,7 +16,7 @@ from wsnav.ros_bridge.move_base_supervisor import (
     MoveBaseSupervisor,
     Resend,
 )
-from wsnav.ros_bridge.zone_feed import ESCAPE_COST, ZoneFeed, exit_point
+from wsnav.ros_bridge.zone_feed import ESCAPE_COST, ZoneFeed
 from wsnav.runtime.bus import Message
 from wsnav.schemas import topics
 from wsnav.schemas.messages import ZoneState
@@ -114,7 +115,7 @@ def test_a_robot_standing_in_a_zone_that_becomes_blocked_drives_out_first_then_g
     walls = load_site(SCHOOL).grid.data != FREE
 
     def exit_of(areas: list) -> tuple[float, float] | None:  # type: ignore[type-arg]
-        return exit_point(feed.frame, feed.blocked_mask(areas), walls, (18.0, 7.2))
+        return exit_beside(feed.frame, walls, feed.blocked_mask(areas), (18.0, 7.2))
 
     sup.on_goal(Goal("g1", (29.0, 22.8, 0.0), "B"))
     sup.on_statuses([("g1", ACTIVE)])

@@ -21,6 +21,26 @@ from wsnav.zone_sim import cli as zone_sim_cli
 
 Registrar = Callable[["argparse._SubParsersAction[Parser]"], None]
 
+EXTRA_OF: dict[str, str] = {
+    "amqtt": "broker",
+    "argon2": "broker",
+    "numpy": "robot",
+    "scipy": "robot",
+    "numba": "robot",
+    "pyastar2d": "robot",
+    "PIL": "robot",
+    "matplotlib": "robot",
+    "starlette": "console",
+    "uvicorn": "console",
+    "pandas": "research",
+    "dask": "research",
+    "distributed": "research",
+    "psutil": "research",
+    "cyclonedds": "ros2",
+}
+"""Which install (pyproject's extras, one per role) brings a third-party module: a command run from a smaller
+install says what to add in one line instead of a traceback."""
+
 REGISTRARS: list[Registrar] = [
     site_commands.register,
     plan_command.register,
@@ -64,6 +84,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except CliError as exc:
         print(f"wsnav: error: {exc}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as exc:
+        missing = (exc.name or "").split(".")[0]
+        if missing not in EXTRA_OF:
+            raise
+        print(
+            f"wsnav: error: this command needs {missing}, which this install lacks "
+            f"(pip install 'wsnav[{EXTRA_OF[missing]}]'; docs/install.md)",
+            file=sys.stderr,
+        )
         return 2
     except KeyboardInterrupt:
         return 130

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from wsnav.runtime.cli_support import host_port
+from wsnav.site_commands import default_site
 
 if TYPE_CHECKING:
     from wsnav.runtime.cli_support import Parser
@@ -22,7 +23,10 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         "experiment", help="the paper's experiment: N runs per route and configuration, a report"
     )
     exp.add_argument(
-        "--site", type=Path, default=Path("sites/school"), help="site directory (default sites/school)"
+        "--site",
+        type=Path,
+        default=default_site(),
+        help="site directory (default sites/school, else the installed example)",
     )
     exp.add_argument(
         "--runs", type=int, default=50, metavar="N", help="runs per route and configuration (50)"
@@ -56,7 +60,10 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
 
     demo = sub.add_parser("demo", help="one `full` run of each route of the school: a table and a picture")
     demo.add_argument(
-        "--site", type=Path, default=Path("sites/school"), help="site directory (default sites/school)"
+        "--site",
+        type=Path,
+        default=default_site(),
+        help="site directory (default sites/school, else the installed example)",
     )
     demo.add_argument(
         "--out", type=Path, default=Path("out/demo"), help="output directory (default out/demo)"

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from wsnav.runtime.cli_support import host_port
+from wsnav.site_commands import default_site
 
 if TYPE_CHECKING:
     from wsnav.runtime.cli_support import Parser
@@ -20,7 +21,10 @@ if TYPE_CHECKING:
 
 def _broker_args(parser: Parser) -> None:
     parser.add_argument(
-        "--site", type=Path, default=Path("sites/school"), help="site directory (default sites/school)"
+        "--site",
+        type=Path,
+        default=default_site(),
+        help="site directory (default sites/school, else the installed example)",
     )
     parser.add_argument(
         "--broker", type=host_port, metavar="HOST:PORT", help="use this broker (default: an embedded amqtt)"

@@ -13,6 +13,16 @@ if TYPE_CHECKING:
     from wsnav.runtime.cli_support import Parser
 
 
+EXAMPLE_SITES = Path(__file__).resolve().parent / "sites"
+"""The example sites: sites/ of the checkout, or the copy an installed wheel carries (wsnav/sites links to it)."""
+
+
+def default_site() -> Path:
+    """`sites/school` where the command runs (a checkout), else the school site the install ships."""
+    local = Path("sites/school")
+    return local if local.exists() else EXAMPLE_SITES / "school"
+
+
 def register(sub: argparse._SubParsersAction[Parser]) -> None:
     site = sub.add_parser("site", help="check or draw a site")
     site_sub = site.add_subparsers(dest="site_command", required=True, parser_class=type(site))

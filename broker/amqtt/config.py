@@ -13,9 +13,8 @@ from pathlib import Path
 from typing import Any
 
 from wsnav.broker.acl import site_rules
-from wsnav.broker.amqtt.packet_gate import MAX_PACKET_BYTES
 from wsnav.broker.credentials import PASSWORD_FILE, site_ids
-from wsnav.broker.identity_limits import IdentityLimits
+from wsnav.broker.identity_limits import MAX_PACKET_BYTES, IdentityLimits
 from wsnav.schemas.site_file import SiteFile
 
 

@@ -15,9 +15,7 @@ from collections.abc import Callable
 
 from amqtt.adapters import ReaderAdapter
 
-MAX_PACKET_BYTES = 32 * 1024
-"""Default cap on a packet's remaining length: 4x the largest valid payload of the contract (8 KiB operator
-blocks and simulated worlds, schemas.messages) plus topic and headers, and far below a megabyte."""
+from wsnav.broker.identity_limits import MAX_PACKET_BYTES
 
 CONNECT, PUBLISH, PUBACK, PUBREC, PUBREL, PUBCOMP = 1, 3, 4, 5, 6, 7
 SUBSCRIBE, UNSUBSCRIBE, PINGREQ, DISCONNECT = 8, 10, 12, 14

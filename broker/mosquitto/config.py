@@ -20,9 +20,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from wsnav.broker.acl import AclRules, site_rules
-from wsnav.broker.amqtt.packet_gate import MAX_PACKET_BYTES
 from wsnav.broker.credentials import load_folder, secure_dir, write_private
-from wsnav.broker.identity_limits import SESSION_EXPIRY_S
+from wsnav.broker.identity_limits import MAX_PACKET_BYTES, SESSION_EXPIRY_S
 from wsnav.schemas.credentials import Credentials, CredentialsError
 from wsnav.schemas.site_file import SiteFile
 

@@ -4,7 +4,9 @@ Everything about it lives here: which blocked areas the robot's footprint touche
 escape view (master around those areas with their own cost passable, walls and the lidar's marks unchanged,
 computed in the areas' neighbourhood only and only while the footprint touches one), and the two-leg plan
 (`plan_escape`: the shortest way out over the view, then on from the exit over master, so the route never goes
-back through the zone). The navigator holds the state (`Leaving`) and decides when to use them.
+back through the zone). The navigator holds the state (`Leaving`) and decides when to use them. A navigator
+without wsnav's costmap (move_base, supervised by the ROS bridge) finds its exit with `exit_beside`, by the same
+search (`plan_exit`).
 """
 
 from __future__ import annotations
@@ -20,9 +22,9 @@ from scipy.ndimage import distance_transform_edt
 
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
 from wsnav.navigation.planning.costmap_planner import GlobalPlanner, PlanningCostmap
-from wsnav.navigation.planning.global_planner import XY, Plan, plan_exit
-from wsnav.zones.cost_values import INSCRIBED_INFLATED_OBSTACLE
-from wsnav.zones.geometry import Bounds, CellWindow
+from wsnav.navigation.planning.global_planner import XY, Plan, PlannerParams, plan_exit
+from wsnav.zones.cost_values import FREE_SPACE, INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE
+from wsnav.zones.geometry import Bounds, CellWindow, GridFrame
 from wsnav.zones.zone_layer import BlockedArea
 
 ESCAPE_COST = 200
@@ -192,6 +194,38 @@ def plan_escape(
     out = Plan(True, "ok", path, cells + np.array([b.row0, b.col0], dtype=np.intp), length, ms)
     exit_xy = (float(path[-1, 0]), float(path[-1, 1]))
     return EscapePlan(out, planner.plan(costmap, exit_xy, goal))
+
+
+def exit_beside(
+    frame: GridFrame,
+    walls: NDArray[np.bool_],
+    blocked: NDArray[np.bool_],
+    start: XY,
+    clear_m: float = 0.35,
+    search_m: float = 6.0,
+    params: PlannerParams | None = None,
+) -> XY | None:
+    """The nearest place by the way there (not as the crow flies: a room behind the corridor's wall is not an exit)
+    at least `clear_m` from every `blocked` cell and on no wall, within `search_m` of `start`; None if there is
+    none. For a navigator without wsnav's costmap (move_base): walls lethal, the blocked cells at ESCAPE_COST,
+    searched by `plan_exit` as the navigator's own way out is. `walls` and `blocked` are whole-map masks."""
+    row, col = frame.world_to_cell(*start)
+    if not frame.contains_cell(row, col):
+        return None
+    reach = int(search_m / frame.resolution)
+    b = Bounds(
+        max(0, row - reach),
+        max(0, col - reach),
+        min(frame.height, row + reach + 1),
+        min(frame.width, col + reach + 1),
+    )
+    wall, inside = walls[b.rows, b.cols], blocked[b.rows, b.cols]
+    costs = np.where(wall, LETHAL_OBSTACLE, np.where(inside, ESCAPE_COST, FREE_SPACE)).astype(np.uint8)
+    away = np.asarray(distance_transform_edt(~inside), dtype=np.float64) * frame.resolution >= clear_m
+    cells = plan_exit(costs, away & ~wall, (row - b.row0, col - b.col0), frame.resolution, params)
+    if cells is None:
+        return None
+    return frame.cell_to_world(int(cells[-1, 0]) + b.row0, int(cells[-1, 1]) + b.col0)
 
 
 def _touches(window: CellWindow, here: Bounds, disk: NDArray[np.bool_]) -> bool:

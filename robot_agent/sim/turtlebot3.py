@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wsnav.navigation.backend import DriveLimits, LaserScan, Pose, Velocity
+from wsnav.navigation.backend import BURGER_RADIUS_M, DriveLimits, LaserScan, Pose, Velocity
 from wsnav.robot_agent.sim.lidar import LidarParams, cast_scan
 from wsnav.robot_agent.sim.world_grid import SimWorldGrid
 
@@ -27,7 +27,7 @@ class TurtleBot3Params:
     max_angular: float = _BURGER.max_angular
     linear_accel: float = _BURGER.linear_accel
     angular_accel: float = _BURGER.angular_accel
-    radius: float = 0.105
+    radius: float = BURGER_RADIUS_M
     max_substep: float = 0.02
     """Physics substep (s): a long `step` is integrated in pieces no longer than this."""
     velocity_noise: float = 0.0
