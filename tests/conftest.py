@@ -55,6 +55,7 @@ SLOW_TESTS = {
     "test_broker_limits.py::test_one_node_parks_at_most_its_share_of_persistent_sessions",
     "test_broker_limits.py::test_a_flooding_node_is_held_to_its_rate_loses_nothing_and_the_other_node_gets_through",
     "test_broker_limits.py::test_a_parked_session_expires",
+    "test_broker_limits.py::test_a_flood_stops_within_a_second_of_the_flooder_leaving_or_being_revoked",
     "test_broker_listeners.py::test_the_agents_bus_and_the_operator_commands_work_over_tls_and_refuse_a_wrong_ca",
     "test_firmware_watchdog.py::test_a_month_across_the_wraps_of_the_boards_clock",
     "test_broker_revoke.py::test_a_revoked_node_is_cut_off_and_its_retained_word_is_gone",

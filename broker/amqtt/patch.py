@@ -15,6 +15,7 @@ is pinned to amqtt==0.12.1 (pyproject.toml) and to a test; docs/broker-amqtt.md 
 | `WsnavBroker.add_subscription`, `_del_subscription` | no limit on the filters one session holds (100,000 from one robot: node -> robot latency 7 s) | tests/test_broker_limits.py |
 | `WsnavBroker._initialize_client_session` (again) | persistent sessions of one identity never expire and have no cap (2,000 parked by one node) | tests/test_broker_limits.py |
 | `WsnavBroker.start` (a password-file watch) | a changed password file needs a restart, and a revoked identity's connections and sessions live on | tests/test_broker_revoke.py |
+| `WsnavBroker._gated` (the gate's `peer_left`, `backlog`, `closed_by_us`) | a flood held to its rate outlived its sender: megabytes unread in the socket kept its messages coming for minutes after the flooder left or was revoked | tests/test_broker_limits.py |
 | `handle_read_timeout` on each handler | keepalive never enforced: a silent client is never dropped and its will never fires | tests/test_broker_embedded.py |
 """
 
@@ -22,10 +23,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import fcntl
 import logging
 import math
+import select
+import struct
+import termios
 import time
-from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -226,19 +230,30 @@ class WsnavBroker(Broker):
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, listener_name: str
     ) -> None:
         """Every TCP/TLS connection: a slot (or none), the packet gate, and the socket closed whatever happens."""
-        transport = writer.transport
         await self._gated(
-            listener_name, StreamReaderAdapter(reader), StreamWriterAdapter(writer), transport.abort
+            listener_name, StreamReaderAdapter(reader), StreamWriterAdapter(writer), writer.transport
         )
 
     async def ws_connected(self, websocket: ServerConnection, listener_name: str) -> None:
         await self._gated(
-            listener_name, WebSocketsReader(websocket), WebSocketsWriter(websocket), websocket.transport.abort
+            listener_name, WebSocketsReader(websocket), WebSocketsWriter(websocket), websocket.transport
         )
 
     async def _gated(
-        self, listener_name: str, reader: ReaderAdapter, writer: WriterAdapter, abort: Callable[[], None]
+        self,
+        listener_name: str,
+        reader: ReaderAdapter,
+        writer: WriterAdapter,
+        transport: asyncio.WriteTransport,
     ) -> None:
+        aborted = (
+            asyncio.Event()
+        )  # closed by the broker (revoked, rejected), not by the peer (TLS closes on EOF)
+
+        def abort() -> None:
+            aborted.set()
+            transport.abort()
+
         ticket = self.admission.admit(abort)
         if ticket is None:
             abort()
@@ -254,6 +269,9 @@ class WsnavBroker(Broker):
         )
         setattr(gate, "ticket", ticket)  # noqa: B010  (read back in _initialize_client_session)
         gate.packet_delay = partial(self._packet_delay, ticket)
+        gate.closed_by_us = aborted.is_set
+        gate.peer_left = partial(_peer_left, transport)
+        gate.backlog = partial(_unread_bytes, transport)
         try:
             await self._client_connected(listener_name, gate, writer)
         finally:
@@ -468,6 +486,36 @@ def _hashes_or_none(path: Path) -> dict[str, str] | None:
         return read_password_file(path)
     except CredentialsError:
         return None
+
+
+def _peer_left(transport: asyncio.BaseTransport) -> bool:
+    """Has the client closed its side (FIN or reset received), even with bytes still unread in the socket?
+
+    poll()'s POLLRDHUP (Linux) says so at once, where reading would first drain the backlog."""
+    if transport.is_closing():
+        return True
+    sock = transport.get_extra_info("socket")
+    fd = sock.fileno() if sock is not None else -1
+    if fd < 0:
+        return True
+    poller = select.poll()
+    poller.register(fd, _HANGUP)
+    return any(events & _HANGUP for _, events in poller.poll(0))
+
+
+def _unread_bytes(transport: asyncio.BaseTransport) -> int:
+    """Bytes received on the connection's socket and not read yet (FIONREAD), 0 when that cannot be known."""
+    sock = transport.get_extra_info("socket")
+    fd = sock.fileno() if sock is not None else -1
+    if fd < 0:
+        return 0
+    try:
+        return int(struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0])
+    except OSError:
+        return 0
+
+
+_HANGUP = getattr(select, "POLLRDHUP", 0) | select.POLLHUP | select.POLLERR
 
 
 def _drop_silent_client(handler: BrokerProtocolHandler) -> None:
