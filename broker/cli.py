@@ -1,4 +1,4 @@
-"""`wsnav broker run | credentials | mosquitto-config | ha-discovery`."""
+"""`wsnav broker run | credentials | mosquitto-config | mosquitto-restore | revoke | ha-discovery`."""
 
 from __future__ import annotations
 
@@ -145,6 +145,15 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     mosq.add_argument("--certfile", type=Path, help="TLS certificate chain (PEM), with --tls-bind")
     mosq.add_argument("--keyfile", type=Path, help="TLS private key (PEM), with --tls-bind")
     mosq.set_defaults(func=mosquitto_command)
+
+    restore = bsub.add_parser(
+        "mosquitto-restore",
+        help="before Mosquitto starts (ExecStartPre): put back the last whole store if its store was cut short",
+    )
+    restore.add_argument(
+        "--data", type=Path, default=Path("/var/lib/mosquitto"), help="Mosquitto's persistence_location"
+    )
+    restore.set_defaults(func=mosquitto_restore_command)
 
     revoke = bsub.add_parser(
         "revoke",
@@ -328,6 +337,19 @@ def mosquitto_command(args: argparse.Namespace) -> int:
         print(f"wrote {path}")
     print(f"run: mosquitto -c {files[0]}")
     return 0
+
+
+def mosquitto_restore_command(args: argparse.Namespace) -> int:
+    """Never stops the start: a Mosquitto without its retained messages still serves the site (exit 1 is for
+    the log's sake; the unit's `ExecStartPre=-` ignores it)."""
+    from wsnav.broker.mosquitto.store import restore
+
+    try:
+        ok, line = restore(args.data)
+    except OSError as exc:
+        raise CliError(f"{args.data}: cannot restore the store: {exc.strerror}") from None
+    print(line, file=sys.stdout if ok and not line.startswith("ERROR") else sys.stderr)
+    return 0 if ok else 1
 
 
 def revoke_command(args: argparse.Namespace) -> int:

@@ -3,9 +3,10 @@
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the submodules load when imported, not with the package
-    from wsnav.broker.mosquitto import config, process
+    from wsnav.broker.mosquitto import config, process, store
 
 __all__ = [
     "config",
     "process",
+    "store",
 ]
