@@ -15,14 +15,12 @@ from pathlib import Path
 
 import pytest
 
-from tests.broker_fixtures import TIMEOUT, Endpoint, client, wait_listening, wait_stored, wsnav
-from tests.conftest import require_tool, unavailable
+from tests.broker_fixtures import TIMEOUT, Endpoint, client, mosquitto_on, wait_stored, wsnav
+from tests.conftest import unavailable
 from tests.site_fixtures import tiny_site
 from wsnav.broker.amqtt.embedded import BrokerProcess
 from wsnav.broker.amqtt.retained_store import DB_NAME, read_retained
 from wsnav.broker.credentials import write_credentials
-from wsnav.broker.mosquitto.config import CONF, MosquittoOptions, write_mosquitto_config
-from wsnav.broker.mosquitto.process import free_port
 from wsnav.broker.mosquitto.store import MAGIC, STORE, StoreCheck, check_store, keep_good
 from wsnav.schemas import topics
 from wsnav.schemas.site import load_site
@@ -138,6 +136,7 @@ def test_full_disk_is_loud_loses_nothing_while_running_and_counts_what_is_lost(
             wait_line(proc, "cannot store")
         assert proc.proc is not None and proc.proc.returncode == 0
         wait_line(proc, "are LOST")
+        assert "Task exception was never retrieved" not in "".join(proc.errors)  # one line, no traceback
         filler.unlink()
         with BrokerProcess(site, creds, data_dir=data) as again:
             with client(endpoint(again), "robot1") as robot:
@@ -186,23 +185,6 @@ def healthcheck(data: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run(command, capture_output=True, text=True, timeout=60)
 
 
-@contextlib.contextmanager
-def mosquitto_on(site: Path, creds: Path, conf: Path, data: Path) -> Iterator[Endpoint]:
-    """Mosquitto saving its store into `data` every second, stopped cleanly (SIGTERM: it saves once more)."""
-    mosquitto = require_tool("mosquitto")
-    port = free_port()
-    user = "root" if os.geteuid() == 0 else None
-    options = MosquittoOptions(bind=("127.0.0.1", port), data_dir=data, user=user, autosave_interval_s=1)
-    write_mosquitto_config(load_site(site).spec, creds, conf, options)
-    proc = subprocess.Popen([mosquitto, "-c", str(conf / CONF)], stderr=subprocess.DEVNULL)
-    try:
-        wait_listening("127.0.0.1", port, proc)
-        yield Endpoint("mosquitto", "127.0.0.1", port, creds)
-    finally:
-        proc.terminate()
-        assert proc.wait(30) == 0
-
-
 def test_mosquitto_full_disk_is_reported_at_once_and_the_last_whole_store_comes_back(
     setup: tuple[Path, Path], tmp_path: Path
 ) -> None:
@@ -215,7 +197,7 @@ def test_mosquitto_full_disk_is_reported_at_once_and_the_last_whole_store_comes_
     with tiny_tmpfs(tmp_path / "disk", "512k") as disk:
         data = disk / "data"
         with (
-            mosquitto_on(site, creds, tmp_path / "mq", data) as mq,
+            mosquitto_on(site, creds, tmp_path / "mq", data) as (mq, _),
             client(mq, "operator", "operator") as operator,
             client(mq, "n1") as node,
         ):
@@ -243,7 +225,7 @@ def test_mosquitto_full_disk_is_reported_at_once_and_the_last_whole_store_comes_
         restored = wsnav("broker", "mosquitto-restore", "--data", data)
         assert restored.returncode == 0 and "restored the last whole store" in restored.stderr, restored
         assert check_store(data / STORE).retained == 2
-        with mosquitto_on(site, creds, tmp_path / "mq", data) as mq, client(mq, "robot1") as robot:
+        with mosquitto_on(site, creds, tmp_path / "mq", data) as (mq, _), client(mq, "robot1") as robot:
             assert robot.subscribe(block) == [1]
             assert robot.wait_for(block).payload == b'{"marker": "block"}'
 

@@ -7,7 +7,7 @@ exits 0 (healthy) or 1 (not):
     python -m wsnav.healthcheck broker --broker HOST:PORT --credentials FILE
     python -m wsnav.healthcheck nodes --site DIR --broker HOST:PORT --credentials FILE   # operator's file
     python -m wsnav.healthcheck robot --site DIR --robot ID --broker HOST:PORT --credentials FILE
-    python -m wsnav.healthcheck mosquitto-store --data DIR [--autosave 60]
+    python -m wsnav.healthcheck mosquitto-store --data DIR [--autosave 2]
 """
 
 from __future__ import annotations
@@ -184,7 +184,12 @@ def build_parser() -> Parser:
         "mosquitto-store", help="Mosquitto saved its retained messages lately, whole, with room"
     )
     store.add_argument("--data", type=Path, required=True, help="Mosquitto's persistence_location")
-    store.add_argument("--autosave", type=float, default=60.0, help="its autosave_interval (default 60)")
+    store.add_argument(
+        "--autosave",
+        type=float,
+        default=2.0,
+        help="seconds between its saves (default 2: `autosave_interval 1`)",
+    )
     store.set_defaults(func=check_mosquitto_store)
     return parser
 
