@@ -99,6 +99,8 @@ SLOW_TESTS = {
     "test_robot_agent_cli.py::test_robot_drives_to_a_near_goal_in_real_time_and_exits_0_on_arrival",
     "test_robot_agent_e2e.py::test_every_way_blocked_waits_then_resumes_by_itself_when_a_zone_clears",
     "test_robot_agent_e2e.py::test_z4_blocked_before_the_start_the_robot_plans_around_it_and_reaches_b",
+    "test_robot_agent_e2e.py::test_forged_statuses_and_goals_are_logged_once_per_kind_then_summed_up_with_a_count",
+    "test_robot_agent_e2e.py::test_a_broker_outage_is_said_once_with_the_stale_policy_and_its_end_once",
     "test_robot_agent_e2e.py::test_z4_blocked_while_driving_replans_at_once_before_the_lidar_could_see_it",
     "test_robot_agent_escape.py::test_a_robot_in_a_zone_that_becomes_blocked_leaves_it_by_the_near_end_and_goes_round_to_its_goal",
     "test_robot_agent_escape.py::test_with_the_only_way_on_through_the_zone_the_robot_leaves_it_and_waits_outside_until_it_clears",
