@@ -1,4 +1,4 @@
-"""`wsnav broker run | credentials | mosquitto-config | mosquitto-restore | revoke | ha-discovery`."""
+"""`wsnav broker run | credentials | mosquitto-config | mosquitto-restore | firewall | revoke | ha-discovery`."""
 
 from __future__ import annotations
 
@@ -154,6 +154,19 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         "--data", type=Path, default=Path("/var/lib/mosquitto"), help="Mosquitto's persistence_location"
     )
     restore.set_defaults(func=mosquitto_restore_command)
+
+    firewall = bsub.add_parser(
+        "firewall",
+        help="an nftables file capping each node address's bytes a second to the MQTT port (Mosquitto's only "
+        "defence against a flooding node)",
+    )
+    firewall.add_argument("--nodes-subnet", required=True, help="the nodes' network, e.g. 192.168.10.0/24")
+    firewall.add_argument("--port", type=int, default=1883, help="the nodes' MQTT port (default 1883)")
+    firewall.add_argument(
+        "--rate", type=int, default=4, metavar="KBYTES", help="per node a second (default 4)"
+    )
+    firewall.add_argument("--burst", type=int, default=16, metavar="KBYTES", help="per node (default 16)")
+    firewall.set_defaults(func=firewall_command)
 
     revoke = bsub.add_parser(
         "revoke",
@@ -336,6 +349,16 @@ def mosquitto_command(args: argparse.Namespace) -> int:
     for path in files:
         print(f"wrote {path}")
     print(f"run: mosquitto -c {files[0]}")
+    return 0
+
+
+def firewall_command(args: argparse.Namespace) -> int:
+    from wsnav.broker.mosquitto.firewall import nft_rules
+
+    try:
+        print(nft_rules(args.nodes_subnet, args.port, args.rate, args.burst), end="")
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
     return 0
 
 

@@ -62,6 +62,7 @@ SLOW_TESTS = {
     "test_broker_limits.py::test_one_node_parks_at_most_its_share_of_persistent_sessions",
     "test_broker_limits.py::test_a_flooding_node_is_held_to_its_rate_loses_nothing_and_the_other_node_gets_through",
     "test_broker_limits.py::test_a_parked_session_expires",
+    "test_broker_firewall.py::test_a_flooding_node_is_held_to_its_byte_rate_and_the_other_node_gets_through",
     "test_broker_storage.py::test_mosquitto_full_disk_is_reported_at_once_and_the_last_whole_store_comes_back",
     "test_broker_limits.py::test_a_flood_stops_within_a_second_of_the_flooder_leaving_or_being_revoked",
     "test_broker_listeners.py::test_the_agents_bus_and_the_operator_commands_work_over_tls_and_refuse_a_wrong_ca",
