@@ -200,6 +200,7 @@ class RetainedStorePlugin(BasePlugin[BrokerContext]):
         self._noted = 0
         self._written = 0
         self._waiters: list[tuple[int, asyncio.Future[None]]] = []
+        self._flush_lock = asyncio.Lock()
         self._flusher: asyncio.Task[None] | None = None
         self._closed = False
 
@@ -264,7 +265,13 @@ class RetainedStorePlugin(BasePlugin[BrokerContext]):
         await self._stop()
 
     async def flush(self) -> None:
-        """Write what is pending now (the flusher does this by itself; tests and shutdown call it too)."""
+        """Write what is pending now (the flusher does this by itself; tests and shutdown call it too).
+
+        One at a time: a shutdown's flush overtaking the flusher's would count its older write as done."""
+        async with self._flush_lock:
+            await self._flush()
+
+    async def _flush(self) -> None:
         noted, durable = self._noted, self._urgent.is_set()
         self._urgent.clear()
         if not self._pending:
