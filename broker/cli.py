@@ -1,4 +1,4 @@
-"""`wsnav broker run | credentials | mosquitto-config | ha-discovery`."""
+"""`wsnav broker run | credentials | mosquitto-config | mosquitto-restore | firewall | revoke | ha-discovery`."""
 
 from __future__ import annotations
 
@@ -145,6 +145,28 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     mosq.add_argument("--certfile", type=Path, help="TLS certificate chain (PEM), with --tls-bind")
     mosq.add_argument("--keyfile", type=Path, help="TLS private key (PEM), with --tls-bind")
     mosq.set_defaults(func=mosquitto_command)
+
+    restore = bsub.add_parser(
+        "mosquitto-restore",
+        help="before Mosquitto starts (ExecStartPre): put back the last whole store if its store was cut short",
+    )
+    restore.add_argument(
+        "--data", type=Path, default=Path("/var/lib/mosquitto"), help="Mosquitto's persistence_location"
+    )
+    restore.set_defaults(func=mosquitto_restore_command)
+
+    firewall = bsub.add_parser(
+        "firewall",
+        help="an nftables file capping each node address's bytes a second to the MQTT port (Mosquitto's only "
+        "defence against a flooding node)",
+    )
+    firewall.add_argument("--nodes-subnet", required=True, help="the nodes' network, e.g. 192.168.10.0/24")
+    firewall.add_argument("--port", type=int, default=1883, help="the nodes' MQTT port (default 1883)")
+    firewall.add_argument(
+        "--rate", type=int, default=4, metavar="KBYTES", help="per node a second (default 4)"
+    )
+    firewall.add_argument("--burst", type=int, default=16, metavar="KBYTES", help="per node (default 16)")
+    firewall.set_defaults(func=firewall_command)
 
     revoke = bsub.add_parser(
         "revoke",
@@ -329,6 +351,29 @@ def mosquitto_command(args: argparse.Namespace) -> int:
         print(f"wrote {path}")
     print(f"run: mosquitto -c {files[0]}")
     return 0
+
+
+def firewall_command(args: argparse.Namespace) -> int:
+    from wsnav.broker.mosquitto.firewall import nft_rules
+
+    try:
+        print(nft_rules(args.nodes_subnet, args.port, args.rate, args.burst), end="")
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    return 0
+
+
+def mosquitto_restore_command(args: argparse.Namespace) -> int:
+    """Never stops the start: a Mosquitto without its retained messages still serves the site (exit 1 is for
+    the log's sake; the unit's `ExecStartPre=-` ignores it)."""
+    from wsnav.broker.mosquitto.store import restore
+
+    try:
+        ok, line = restore(args.data)
+    except OSError as exc:
+        raise CliError(f"{args.data}: cannot restore the store: {exc.strerror}") from None
+    print(line, file=sys.stdout if ok and not line.startswith("ERROR") else sys.stderr)
+    return 0 if ok else 1
 
 
 def revoke_command(args: argparse.Namespace) -> int:

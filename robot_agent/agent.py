@@ -36,6 +36,7 @@ from wsnav.navigation.planning.costmap_planner import GlobalPlanner
 from wsnav.robot_agent.agent_config import AgentConfig
 from wsnav.runtime.bus import Bus, Message
 from wsnav.runtime.clock import Clock
+from wsnav.runtime.drop_log import DropLog
 from wsnav.runtime.timers import Every
 from wsnav.schemas import topics
 from wsnav.schemas.goal_check import GoalRefused, read_goal
@@ -175,7 +176,10 @@ class RobotAgent:
         self.sim_world = sim_world
         self.on_status = on_status
         self.stats = AgentStats()
-        self._logged_drops: set[tuple[str, str]] = set()
+        self._drops = DropLog(log, self.robot_id, "messages", counts=self.stats.dropped)
+        """The agent's own drops (goals, other robots' statuses, the simulated world), logged rate-limited."""
+        self._link_up: bool | None = None
+        self._link_down_since = 0.0
         self._retained_poses: set[str] = set()
         """Robots whose pose held now came retained (a last word from before): the next live one replaces it."""
         self._yielding_since: dict[str, float] = {}
@@ -266,6 +270,8 @@ class RobotAgent:
         goal: tuple[Pose, GoalLabel] | None = None
         cancel = False
         zones_changed_at = math.inf
+        self._watch_link(now)
+        self._drops.flush(now)
         for message in self.bus.poll():
             self.stats.messages += 1
             if message.topic == self.goal_topic:
@@ -282,7 +288,7 @@ class RobotAgent:
                 if self.intake.handle(message):
                     zones_changed_at = min(zones_changed_at, message.received_at)
             else:
-                self.stats.dropped["unexpected_topic"] += 1
+                self._drops.drop("unexpected_topic", now, message.topic, "not a topic the agent reads")
         if self.zone_layer is not None and (zones_changed_at < math.inf or self._zone_timer.due(now)):
             self._update_zones(now, zones_changed_at, react=goal is None and not cancel)
         if cancel:
@@ -348,7 +354,7 @@ class RobotAgent:
         try:
             return read_goal(self.site, message.payload)
         except GoalRefused as refused:
-            self.stats.dropped[f"goal_{refused.kind}"] += 1
+            self._drops.drop(f"goal_{refused.kind}", message.received_at, message.topic, str(refused))
             return None
 
     def _take_robot_status(self, message: Message) -> None:
@@ -357,15 +363,17 @@ class RobotAgent:
         robot = self.fleet_topics[message.topic]
         try:
             status = parse_payload(RobotStatus, message.payload)
-        except PayloadError:
-            self.stats.dropped["robot_status_invalid"] += 1
+        except PayloadError as exc:
+            self._drops.drop("robot_status_invalid", message.received_at, message.topic, str(exc))
             return
         x, y, yaw = status.pose
         if status.robot != robot:
-            self.stats.dropped["robot_status_invalid"] += 1
+            detail = f"payload says robot {status.robot!r}"
+            self._drops.drop("robot_status_invalid", message.received_at, message.topic, detail)
             return
         if not self.site.grid.contains(x, y):
-            self._drop_status("robot_status_off_map", robot, f"pose [{x:g}, {y:g}] lies off the map")
+            detail = f"pose [{x:g}, {y:g}] lies off the map"
+            self._drops.drop("robot_status_off_map", message.received_at, message.topic, detail)
             return
         # Judged by the older of arrival and making: a retained status from a robot long gone is not kept.
         made = min(message.received_at, status.t if status.t is not None else math.inf)
@@ -375,9 +383,8 @@ class RobotAgent:
             made_before = before.expires_at - self.config.robot_pose_timeout_s
             reach = self.config.max_robot_speed_mps * max(made - made_before, 0.0) + 2 * site_radius
             if math.hypot(x - before.pose[0], y - before.pose[1]) > reach:
-                self._drop_status(
-                    "robot_status_jump", robot, f"pose [{x:g}, {y:g}] jumped farther than it can drive"
-                )
+                detail = f"pose [{x:g}, {y:g}] jumped farther than it can drive"
+                self._drops.drop("robot_status_jump", message.received_at, message.topic, detail)
                 return
         if message.retain:
             self._retained_poses.add(robot)
@@ -395,12 +402,35 @@ class RobotAgent:
         )
         self.stats.robot_statuses += 1
 
-    def _drop_status(self, reason: str, robot: str, detail: str) -> None:
-        """A status not believed: counted, and logged once per robot and reason (not once per message)."""
-        self.stats.dropped[reason] += 1
-        if (robot, reason) not in self._logged_drops:
-            self._logged_drops.add((robot, reason))
-            log.warning("%s's status dropped: %s", robot, detail)
+    def _watch_link(self, now: float) -> None:
+        """One line when the broker link goes down (with what the robot then does about zones), one when it is
+        back: the bus itself only counts the statuses it could not send."""
+        up = self.bus.connected
+        if up == self._link_up:
+            return
+        was, self._link_up = self._link_up, up
+        if not up:
+            self._link_down_since = now
+            policy = self.site.spec.policy
+            meaning = {
+                "keep": "each zone keeps its last state",
+                "unknown": "they count as unknown",
+                "lethal": "they count as blocked",
+            }[policy.stale]
+            log.warning(
+                "%s: broker link down: no zone states, goals or statuses arrive and this robot's statuses are not "
+                "sent; zones turn stale after %g heartbeats and the stale policy '%s' applies (%s)",
+                self.robot_id,
+                policy.stale_after_heartbeats,
+                policy.stale,
+                meaning,
+            )
+        elif was is not None:
+            log.warning(
+                "%s: broker link back after %.0f s: zone states and goals arrive again",
+                self.robot_id,
+                now - self._link_down_since,
+            )
 
     def _update_fleet(self, now: float) -> None:
         """Other robots: expire old poses, fold the layer's changes into the costmap, apply the right of way."""
@@ -436,8 +466,8 @@ class RobotAgent:
         assert self.sim_world is not None
         try:
             world = parse_payload(SimWorld, message.payload, max_bytes=MAX_OPERATOR_PAYLOAD_BYTES * 8)
-        except PayloadError:
-            self.stats.dropped["sim_world_invalid"] += 1
+        except PayloadError as exc:
+            self._drops.drop("sim_world_invalid", message.received_at, message.topic, str(exc))
             return
         self.sim_world.apply(world)
         self.stats.sim_worlds += 1

@@ -13,7 +13,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from wsnav.schemas.ids import Id
-from wsnav.schemas.site_file import Sensor
+from wsnav.schemas.site_file import MAX_DELAY_MS, Sensor
 
 Role = Literal["node", "robot", "operator", "dashboard"]
 
@@ -52,8 +52,8 @@ class NodeConfig(Credentials):
     zone: Id
     sensor: Sensor
     heartbeat_s: Annotated[float, Field(gt=0, le=3600)]
-    on_delay_ms: Annotated[int, Field(ge=0)]
-    off_delay_ms: Annotated[int, Field(ge=0)]
+    on_delay_ms: Annotated[int, Field(ge=0, le=MAX_DELAY_MS)]
+    off_delay_ms: Annotated[int, Field(ge=0, le=MAX_DELAY_MS)]
     keepalive_s: Annotated[int, Field(ge=5, le=3600)] = 30
     wifi: WifiConfig = WifiConfig()
 

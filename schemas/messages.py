@@ -24,6 +24,11 @@ MAX_OPERATOR_PAYLOAD_BYTES = 8192
 ROBOT_PATH_POINTS = 24
 """A robot status carries its path ahead thinned to this many points: it stays well under MAX_PAYLOAD_BYTES."""
 
+MAX_COUNT = 2**31 - 1
+"""Every count and duration on the wire fits a signed 32-bit int, what every reader (the firmware, ROS, the
+browser's JavaScript) holds without loss: a 900-digit `uptime_s` or `replans` was accepted and reached the page."""
+Count = Annotated[int, Field(ge=0, le=MAX_COUNT)]
+
 ZoneStateValue = Literal["blocked", "clear", "caution"]
 NodeStatusValue = Literal["online", "offline"]
 RobotStateValue = Literal["idle", "navigating", "waiting", "arrived", "cancelled"]
@@ -69,7 +74,7 @@ class ZoneState(_Message):
     zone: Id
     node: Id
     state: ZoneStateValue
-    seq: Annotated[int, Field(ge=0, le=2**31 - 1)]
+    seq: Count
     """Per-node, increasing; restarts from a random base on reboot are tolerated by the receiver's reset rule."""
 
 
@@ -109,18 +114,18 @@ class NodeInfo(_Message):
     """The firmware's version (firmware/device/diagnostics.py FIRMWARE_VERSION)."""
     reset: ResetCause
     """Why the board last started: a `watchdog` or `exception` after a deploy is worth a look."""
-    uptime_s: Annotated[int, Field(ge=0)]
+    uptime_s: Count
     rssi: Annotated[int, Field(ge=-127, le=0)] | None = None
     """Wi-Fi signal in dBm; below about -80 the link drops often."""
-    heap_free: Annotated[int, Field(ge=0)] | None = None
+    heap_free: Count | None = None
     """Free GC heap in bytes after a collection."""
-    reconnects: Annotated[int, Field(ge=0)]
+    reconnects: Count
     """Broker connections since boot, minus the first."""
     error: Annotated[str, Field(pattern=r'^[^"\\\x00-\x1f]*$', max_length=MAX_INFO_ERROR_CHARS)] | None = None
     """Why the broker link last went down (no quotes, backslashes or control characters), if it ever did."""
     heartbeat_ms: Annotated[int, Field(ge=0, le=MAX_HEARTBEAT_S * 1000)] | None = None
     """The heartbeat period the node runs now: its config's, or what a `set_heartbeat` command set (RAM only)."""
-    bad_commands: Annotated[int, Field(ge=0)] | None = None
+    bad_commands: Count | None = None
     """Commands ignored since boot: malformed, unknown, or out of range (a node that takes commands says 0)."""
 
 
@@ -232,7 +237,7 @@ class RobotStatus(_Message):
     pose: Pose
     goal: Id | Pose | None = None
     blocked_zones: list[Id] = Field(default_factory=list)
-    replans: Annotated[int, Field(ge=0)] = 0
+    replans: Count = 0
     plan_length_m: Annotated[float, Field(ge=0)] | None = None
     reason: Annotated[str, Field(max_length=200)] | None = None
     """Why the robot is `waiting` or `cancelled`, in words an operator can act on; while `navigating`, set only

@@ -44,6 +44,8 @@ def _checked_pin(pin: int, is_input: bool, pull_up: bool = False) -> int:
 
 
 GpioPin = Annotated[int, Field(ge=0, le=16)]
+MAX_DELAY_MS = 600_000
+"""A zone's debounce delays (site file, node config) are at most 10 minutes."""
 
 
 class DigitalSensor(_Strict):
@@ -115,9 +117,9 @@ class Node(_Strict):
     """Where the node hangs, for pictures; the zone's centre when absent."""
     heartbeat_s: Annotated[float, Field(gt=0, le=3600)] | None = None
     """Overrides the site's heartbeat period for this node."""
-    on_delay_ms: Annotated[int, Field(ge=0, le=600_000)] = 500
+    on_delay_ms: Annotated[int, Field(ge=0, le=MAX_DELAY_MS)] = 500
     """Debounce: the sensor must read 'occupied' this long before the node says `blocked`."""
-    off_delay_ms: Annotated[int, Field(ge=0, le=600_000)] = 3000
+    off_delay_ms: Annotated[int, Field(ge=0, le=MAX_DELAY_MS)] = 3000
     """Debounce: the sensor must read 'free' this long before the node says `clear`."""
 
 

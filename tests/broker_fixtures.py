@@ -7,6 +7,7 @@ Everything waits on a condition with a generous timeout, never on a fixed sleep,
 from __future__ import annotations
 
 import contextlib
+import os
 import queue
 import random
 import socket
@@ -17,13 +18,18 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.reasoncodes import ReasonCode
 
+from tests.conftest import require_tool
 from wsnav.broker.amqtt.retained_store import read_retained
+from wsnav.broker.mosquitto.config import CONF, MosquittoOptions, write_mosquitto_config
+from wsnav.broker.mosquitto.process import free_port
 from wsnav.schemas.credentials import load_credentials
+from wsnav.schemas.site import load_site
 
 TIMEOUT = 30.0
 
@@ -221,3 +227,24 @@ def wait_stored(data: Path, expected: dict[str, bytes]) -> None:
             return
         time.sleep(0.05)
     raise AssertionError(f"store holds {read_retained(data)}, expected {expected}")
+
+
+@contextlib.contextmanager
+def mosquitto_on(
+    site: Path, creds: Path, conf: Path, data: Path, **options: Any
+) -> Iterator[tuple[Endpoint, subprocess.Popen[bytes]]]:
+    """Mosquitto from the generated config (`options` for MosquittoOptions: its defaults, a save every 2 s, unless
+    given), its store in `data`; stopped cleanly (SIGTERM: it saves once more) unless the test killed it."""
+    mosquitto = require_tool("mosquitto")
+    port = free_port()
+    user = "root" if os.geteuid() == 0 else None
+    settings = MosquittoOptions(**{"bind": ("127.0.0.1", port), "data_dir": data, "user": user, **options})
+    write_mosquitto_config(load_site(site).spec, creds, conf, settings)
+    proc = subprocess.Popen([mosquitto, "-c", str(conf / CONF)], stderr=subprocess.DEVNULL)
+    try:
+        wait_listening("127.0.0.1", port, proc)
+        yield Endpoint("mosquitto", "127.0.0.1", port, creds), proc
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            assert proc.wait(30) == 0

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import contextlib
 import queue
+import socket
+import struct
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,7 +21,7 @@ import paho.mqtt.client as mqtt
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
-from tests.broker_fixtures import TIMEOUT, Endpoint, client, connect_reason, wsnav
+from tests.broker_fixtures import TIMEOUT, Client, Endpoint, client, connect_reason, wsnav
 from tests.conftest import require_tool
 from tests.site_fixtures import tiny_site
 from wsnav.broker.amqtt.config import BrokerOptions
@@ -185,6 +187,70 @@ def test_a_flooding_node_is_held_to_its_rate_loses_nothing_and_the_other_node_ge
             assert (
                 time.monotonic() - t0 < 300 / RATE + count / RATE
             )  # the operator was not held to a node's rate
+
+
+def raw_flood(endpoint: Endpoint, packets: int, seconds: float = 1.5) -> tuple[socket.socket, int]:
+    """Node n1 logged in over a raw socket, then up to `packets` QoS 0 PUBLISHes (220 B each) as fast as the
+    kernel takes them, for at most `seconds` or until the broker cuts it off; returns the socket (open unless
+    cut off) and the count sent. The rate limit reads them slowly: the rest wait in the socket buffers."""
+    sock = socket.create_connection((endpoint.host, endpoint.port), timeout=TIMEOUT)
+    password = endpoint.password("n1").encode()
+    connect = b"\x00\x04MQTT\x04\xc2\x00\x1e" + b"".join(
+        struct.pack("!H", len(f)) + f for f in (b"n1-flood", b"n1", password)
+    )
+    sock.sendall(bytes([0x10, len(connect)]) + connect)
+    assert sock.recv(4) == b"\x20\x02\x00\x00", "n1 refused"
+    topic = topics.zone_state(SITE, "z1", "n1").encode()
+    sock.setblocking(False)
+    pending, made, size, deadline = bytearray(), 0, 0, time.monotonic() + seconds
+    while time.monotonic() < deadline and (made < packets or pending):
+        if len(pending) < 65536 and made < packets:
+            body = struct.pack("!H", len(topic)) + topic + b"flood %06d " % made + b"x" * 200
+            packet = bytes([0x30, len(body) & 0x7F | 0x80, len(body) >> 7]) + body
+            pending += packet
+            size, made = len(packet), made + 1
+        try:
+            del pending[: sock.send(pending)]
+        except BlockingIOError:
+            time.sleep(0.01)
+        except ConnectionError:
+            break  # the broker cut the flooder off
+    return sock, made - len(pending) // size
+
+
+def flood_seen(watcher: Client) -> int:
+    return sum(1 for m in watcher.received if m.payload.startswith(b"flood "))
+
+
+@pytest.mark.parametrize(("how", "packets"), [("leaves", 250), ("leaves", 10**6), ("revoked", 250)])
+def test_a_flood_stops_within_a_second_of_the_flooder_leaving_or_being_revoked(
+    amqtt: Endpoint, site_dir: Path, creds_dir: Path, how: str, packets: int
+) -> None:
+    """The flood that outlived its sender: held to its rate, 2.5 MB waited in the dead connection's buffers
+    and kept z1 flipping at the robots for 9 minutes after the flooder exited, and 3 minutes after a revoke.
+    A client more than MAX_BACKLOG_BYTES behind its rate is disconnected, and what a departed or revoked
+    client sent over its rate is discarded. 250 packets (55 KB) wait under that cap: 5 s of the rate."""
+    with client(amqtt, "operator", f"operator-flood-{how}") as watcher:
+        watcher.subscribe(f"wsn/{SITE}/zones/#")
+        sock, sent = raw_flood(amqtt, packets)
+        try:
+            assert sent >= 250, sent  # far more than the rate lets through in the test's 3 s
+            watcher.wait_for(topics.zone_state(SITE, "z1", "n1"))  # the flood does reach the robots
+            if how == "revoked":
+                write_credentials(load_site(site_dir).spec, creds_dir, renew=frozenset({"n1"}))
+            else:
+                sock.close()
+            time.sleep(1.0)
+            after_a_second = flood_seen(watcher)
+            time.sleep(2.0)
+            assert flood_seen(watcher) == after_a_second, (sent, after_a_second, flood_seen(watcher))
+            assert after_a_second < sent  # the rest was discarded
+        finally:
+            sock.close()
+    with client(amqtt, "n1", "n1") as node, client(amqtt, "operator", "operator-after-flood") as robot:
+        robot.subscribe(topics.zone_state(SITE, "z1", "n1"))
+        node.publish(topics.zone_state(SITE, "z1", "n1"), b'{"marker": 4}', qos=1)
+        robot.wait_for(topics.zone_state(SITE, "z1", "n1"), b'{"marker": 4}')  # the node itself still works
 
 
 def test_subscribe_packets_and_logins_are_held_to_their_rate(amqtt: Endpoint) -> None:

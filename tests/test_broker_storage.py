@@ -6,18 +6,22 @@ from __future__ import annotations
 
 import contextlib
 import os
+import struct
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from tests.broker_fixtures import TIMEOUT, Endpoint, client, wait_stored, wsnav
+from tests.broker_fixtures import TIMEOUT, Endpoint, client, mosquitto_on, wait_stored, wsnav
+from tests.conftest import unavailable
 from tests.site_fixtures import tiny_site
 from wsnav.broker.amqtt.embedded import BrokerProcess
 from wsnav.broker.amqtt.retained_store import DB_NAME, read_retained
 from wsnav.broker.credentials import write_credentials
+from wsnav.broker.mosquitto.store import MAGIC, STORE, StoreCheck, check_store, keep_good
 from wsnav.schemas import topics
 from wsnav.schemas.site import load_site
 
@@ -86,21 +90,16 @@ def test_damaged_store_is_set_aside_loudly_and_the_broker_keeps_storing(
     assert "Task exception was never retrieved" not in "".join(proc.errors)
 
 
-def cannot(reason: str) -> None:
-    """Skip, but fail under WSNAV_REQUIRE_TOOLS=1 (CI): there the full-disk test must run, not skip."""
-    if os.environ.get("WSNAV_REQUIRE_TOOLS") == "1":
-        pytest.fail(f"{reason} (WSNAV_REQUIRE_TOOLS=1)")
-    pytest.skip(reason)
-
-
 @contextlib.contextmanager
 def tiny_tmpfs(path: Path, size: str) -> Iterator[Path]:
     path.mkdir()
     if os.geteuid() != 0:
-        cannot("mounting a tmpfs needs root (CI runs as root)")
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], check=False)
+        unavailable("mounting a tmpfs needs root (CI runs as root)")
+    mounted = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], check=False, capture_output=True
+    )
     if mounted.returncode != 0:
-        cannot("cannot mount a tmpfs here")
+        unavailable(f"cannot mount a tmpfs here: {mounted.stderr.decode(errors='replace').strip()}")
     try:
         yield path
     finally:
@@ -137,6 +136,7 @@ def test_full_disk_is_loud_loses_nothing_while_running_and_counts_what_is_lost(
             wait_line(proc, "cannot store")
         assert proc.proc is not None and proc.proc.returncode == 0
         wait_line(proc, "are LOST")
+        assert "Task exception was never retrieved" not in "".join(proc.errors)  # one line, no traceback
         filler.unlink()
         with BrokerProcess(site, creds, data_dir=data) as again:
             with client(endpoint(again), "robot1") as robot:
@@ -160,3 +160,115 @@ def test_store_that_cannot_be_opened_stops_the_start_in_one_line(
     assert len(result.stderr.splitlines()) == 1, result.stderr
     assert "cannot open the retained store" in result.stderr and "left as it is" in result.stderr
     assert (data / DB_NAME).is_dir()
+
+
+def fill(disk: Path) -> Path:
+    filler = disk / "filler"
+    with contextlib.suppress(OSError), filler.open("wb") as f:  # the close's flush fails too
+        while True:
+            f.write(b"\0" * 65536)
+            f.flush()
+    return filler
+
+
+def healthcheck(data: Path) -> subprocess.CompletedProcess[str]:
+    command = [
+        sys.executable,
+        "-m",
+        "wsnav.healthcheck",
+        "mosquitto-store",
+        "--data",
+        str(data),
+        "--autosave",
+        "1",
+    ]
+    return subprocess.run(command, capture_output=True, text=True, timeout=60)
+
+
+def test_mosquitto_full_disk_is_reported_at_once_and_the_last_whole_store_comes_back(
+    setup: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """Mosquitto 2.0.11 on a full disk renames an empty store into place without a word: the healthcheck said
+    "saved 4 s ago", and after a clean stop every retained message was gone, operator blocks included. Now the
+    check fails as soon as the disk is full, and `wsnav broker mosquitto-restore` (ExecStartPre) puts back the
+    last whole store the check kept."""
+    site, creds = setup
+    block = topics.operator_block(SITE, "b1")
+    with tiny_tmpfs(tmp_path / "disk", "512k") as disk:
+        data = disk / "data"
+        with (
+            mosquitto_on(site, creds, tmp_path / "mq", data) as (mq, _),
+            client(mq, "operator", "operator") as operator,
+            client(mq, "n1") as node,
+        ):
+            operator.publish(block, b'{"marker": "block"}', retain=True)
+            node.publish(STATE, b"blocked", retain=True)
+            deadline = time.monotonic() + TIMEOUT
+            while check_store(data / STORE).retained < 2:
+                assert time.monotonic() < deadline, check_store(data / STORE)
+                time.sleep(0.1)
+            healthy = healthcheck(data)  # the monitor's run every autosave interval: it keeps a copy
+            assert healthy.returncode == 0 and "saved" in healthy.stdout, healthy
+            filler = fill(disk)
+            node.publish(STATE, b"clear", retain=True)
+            full = healthcheck(data)  # at once, before Mosquitto's next save
+            assert full.returncode == 1 and "bytes free" in full.stderr, full
+            deadline = time.monotonic() + TIMEOUT
+            while check_store(data / STORE).problem is None:  # Mosquitto's next save, cut short
+                assert time.monotonic() < deadline, "Mosquitto's store stayed whole on a full disk"
+                time.sleep(0.1)
+            cut = healthcheck(data)
+            assert cut.returncode == 1, cut
+            assert "last save failed" in cut.stderr and "2 retained messages) is kept" in cut.stderr, cut
+        assert check_store(data / STORE).problem is not None  # the clean stop's save was cut short too
+        filler.unlink()  # room again, then the restart, with ExecStartPre's restore
+        restored = wsnav("broker", "mosquitto-restore", "--data", data)
+        assert restored.returncode == 0 and "restored the last whole store" in restored.stderr, restored
+        assert check_store(data / STORE).retained == 2
+        with mosquitto_on(site, creds, tmp_path / "mq", data) as (mq, _), client(mq, "robot1") as robot:
+            assert robot.subscribe(block) == [1]
+            assert robot.wait_for(block).payload == b'{"marker": "block"}'
+
+
+def mosquitto_store(retained: int) -> bytes:
+    """A store in Mosquitto 2.0's framing: header, a config chunk, `retained` retain chunks."""
+    chunks = struct.pack("!II", 1, 16) + bytes(16)
+    chunks += b"".join(struct.pack("!II", 4, 8) + struct.pack("!Q", i) for i in range(retained))
+    return MAGIC + bytes(4) + struct.pack("!I", 6) + chunks
+
+
+@pytest.mark.parametrize(
+    ("content", "problem"),
+    [
+        (b"", "empty"),
+        (b"\x00" * 4096, "not a Mosquitto store"),
+        (mosquitto_store(3)[:-3], "cut short"),
+        (mosquitto_store(3)[:-20], "cut short"),
+        (mosquitto_store(0)[:23], "no config chunk"),
+    ],
+    ids=["empty", "zeros", "cut-in-payload", "cut-in-header", "header-only"],
+)
+def test_mosquitto_restore_puts_the_last_whole_store_back_and_sets_the_cut_one_aside(
+    tmp_path: Path, content: bytes, problem: str
+) -> None:
+    (tmp_path / STORE).write_bytes(mosquitto_store(3))
+    assert check_store(tmp_path / STORE) == StoreCheck(None, 3, (tmp_path / STORE).stat().st_mtime)
+    keep_good(tmp_path)
+    (tmp_path / STORE).unlink()  # Mosquitto's rename of a new file over it
+    (tmp_path / STORE).write_bytes(content)
+    assert problem in str(check_store(tmp_path / STORE).problem)
+    restored = wsnav("broker", "mosquitto-restore", "--data", tmp_path)
+    assert restored.returncode == 0 and "restored the last whole store" in restored.stderr, restored
+    assert (tmp_path / STORE).read_bytes() == mosquitto_store(3)
+    assert [p.read_bytes() for p in tmp_path.glob(f"{STORE}.damaged-*")] == [content]
+    again = wsnav("broker", "mosquitto-restore", "--data", tmp_path)
+    assert again.returncode == 0 and "whole (3 retained messages)" in again.stdout, again
+
+
+def test_mosquitto_restore_without_a_whole_copy_says_so_and_lets_mosquitto_start(tmp_path: Path) -> None:
+    (tmp_path / STORE).write_bytes(b"")
+    restored = wsnav("broker", "mosquitto-restore", "--data", tmp_path)
+    assert restored.returncode == 1 and restored.stderr.count("\n") == 1, restored
+    assert "ERROR" in restored.stderr and "send the operator blocks again" in restored.stderr
+    first = wsnav("broker", "mosquitto-restore", "--data", tmp_path / "new")
+    assert first.returncode == 0 and "a first start" in first.stdout, first

@@ -7,16 +7,19 @@ import json
 import pytest
 
 from wsnav.schemas import topics
-from wsnav.schemas.export import stale_files
+from wsnav.schemas.export import rendered, stale_files
 from wsnav.schemas.messages import (
+    MAX_COUNT,
     MAX_PAYLOAD_BYTES,
     NodeCommand,
+    NodeInfo,
     NodeStatus,
     OperatorBlock,
     PayloadError,
     RobotGoal,
     RobotStatus,
     ZoneState,
+    _Message,
     parse_payload,
 )
 
@@ -147,3 +150,66 @@ def test_duplicate_keys_are_refused_not_last_wins() -> None:
     with pytest.raises(PayloadError, match="duplicate key 'state'"):
         parse_payload(ZoneState, payload)
     assert parse_payload(ZoneState, payload.replace(b'"state": "clear", ', b"")).state == "blocked"
+
+
+HUGE = "9" * 900
+
+
+@pytest.mark.parametrize(
+    ("model", "fields"),
+    [
+        (NodeInfo, {"node": "n1", "fw": "1.0", "reset": "power_on", "uptime_s": 5, "reconnects": 0}),
+        (
+            NodeInfo,
+            {"node": "n1", "fw": "1.0", "reset": "power_on", "uptime_s": 5, "reconnects": 0, "heap_free": 1},
+        ),
+        (
+            NodeInfo,
+            {
+                "node": "n1",
+                "fw": "1.0",
+                "reset": "power_on",
+                "uptime_s": 5,
+                "reconnects": 0,
+                "bad_commands": 0,
+            },
+        ),
+        (RobotStatus, {"robot": "r1", "state": "idle", "pose": [0, 0, 0], "replans": 3}),
+        (ZoneState, {"zone": "z1", "node": "n1", "state": "clear", "seq": 1}),
+    ],
+)
+def test_a_900_digit_integer_is_refused_in_every_count(
+    model: type[_Message], fields: dict[str, object]
+) -> None:
+    """900-digit `uptime_s` and `replans` passed the contract and reached the operator's page."""
+    counts = [name for name, value in fields.items() if isinstance(value, int) and name != "v"]
+    for name in counts:
+        good = json.dumps({"v": 1, **fields, name: MAX_COUNT})
+        assert getattr(parse_payload(model, good), name) == MAX_COUNT
+        bad = json.dumps({"v": 1, **fields}).replace(f'"{name}": {fields[name]}', f'"{name}": {HUGE}')
+        assert HUGE in bad
+        with pytest.raises(PayloadError, match=name):
+            parse_payload(model, bad)
+
+
+def test_every_integer_in_the_contract_has_an_upper_bound() -> None:
+    """Read from the exported JSON Schemas (what the firmware and other languages follow): a new unbounded
+    integer field fails here."""
+    unbounded: list[str] = []
+
+    def walk(node: object, where: str) -> None:
+        if isinstance(node, dict):
+            if (
+                node.get("type") == "integer"
+                and not {"maximum", "exclusiveMaximum", "const", "enum"} & node.keys()
+            ):
+                unbounded.append(where)
+            for key, value in node.items():
+                walk(value, f"{where}/{key}")
+        elif isinstance(node, list):
+            for i, value in enumerate(node):
+                walk(value, f"{where}/{i}")
+
+    for name, text in rendered().items():
+        walk(json.loads(text), name)
+    assert unbounded == []

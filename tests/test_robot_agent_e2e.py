@@ -4,11 +4,19 @@ lock-step simulated time, and its status read back over MQTT."""
 
 from __future__ import annotations
 
+import logging
+import shutil
+import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
-from tests.robot_agent_rig import LIDAR_RANGE_M, Rig, connect, distance_to_polygon
+from tests.conftest import SCHOOL
+from tests.robot_agent_rig import LIDAR_RANGE_M, REAL_TIMEOUT_S, Rig, connect, distance_to_polygon
+from wsnav.broker.amqtt.embedded import BrokerThread
+from wsnav.runtime.drop_log import DROP_LOG_INTERVAL
+from wsnav.schemas import topics
 from wsnav.schemas.messages import RobotStatus
 
 
@@ -222,3 +230,69 @@ def test_an_operator_block_detours_the_robot_and_its_removal_brings_it_back(tmp_
     assert rig.state() == "arrived"
     assert rig.agent.navigator.replans_by["zone"] == 2
     assert rig.robot.distance_m < 35.0 and rig.robot.collisions == 0
+
+
+def agent_lines(caplog: pytest.LogCaptureFixture) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.name == "wsnav.robot_agent.agent"]
+
+
+def test_forged_statuses_and_goals_are_logged_once_per_kind_then_summed_up_with_a_count(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """60 forged statuses of robot2 and 60 bad goals used to give one line in all: now one line per kind at
+    once, then one line with the count of the rest after the interval (the zone intake's rule)."""
+    caplog.set_level(logging.WARNING)
+    with Rig(tmp_path) as rig:
+        robot2 = connect(rig.broker, "robot2")
+        site = rig.site.name
+        for i in range(60):
+            robot2.publish(
+                topics.robot_status(site, "robot2"), b'{"v": 1, "robot": "robot2", "uptime": %d}' % i
+            )
+            rig.operator.publish(topics.robot_goal(site, "robot1"), b'{"v": 1, "goal": "nowhere%d"}' % i)
+        dropped = rig.agent.dropped
+        rig.settle(
+            lambda: dropped()["robot_status_invalid"] == 60 and dropped()["goal_unknown_point"] == 60,
+            "the forgeries",
+        )
+        lines = agent_lines(caplog)
+        assert len(lines) == 2, lines
+        assert any("dropped wsn/school/robots/robot2/status (robot_status_invalid)" in line for line in lines)
+        assert any("(goal_unknown_point)" in line for line in lines)
+        rig.clock.advance(DROP_LOG_INTERVAL + 1.0)
+        rig.agent.step(rig.clock.now())
+        summaries = agent_lines(caplog)[2:]
+        assert len(summaries) == 2, summaries
+        assert any("dropped 59 messages (robot_status_invalid)" in line for line in summaries), summaries
+        assert any("dropped 59 messages (goal_unknown_point)" in line for line in summaries), summaries
+        robot2.close()
+
+
+def test_a_broker_outage_is_said_once_with_the_stale_policy_and_its_end_once(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.WARNING)
+    with Rig(tmp_path) as rig:
+        port, creds = rig.broker.port, tmp_path / "creds"
+        shutil.copytree(rig.broker.credentials_dir, creds)  # the broker's own are removed when it stops
+        rig.broker.stop()
+        deadline = time.monotonic() + REAL_TIMEOUT_S
+        while rig.agent_bus.connected:
+            assert time.monotonic() < deadline, "the agent's bus did not notice the broker was gone"
+            time.sleep(0.05)
+        for _ in range(50):  # 5 simulated seconds of the agent's loop during the outage
+            rig.clock.advance(0.1)
+            rig.agent.step(rig.clock.now())
+        down = [line for line in agent_lines(caplog) if "link" in line]
+        assert len(down) == 1, down
+        assert "robot1: broker link down" in down[0] and "stale policy 'keep'" in down[0], down
+        with BrokerThread(SCHOOL, creds, port=port):
+            deadline = time.monotonic() + REAL_TIMEOUT_S
+            while not rig.agent_bus.connected:
+                assert time.monotonic() < deadline, "the agent's bus did not reconnect"
+                rig.agent_bus.wait(0.1)
+            for _ in range(20):
+                rig.clock.advance(0.1)
+                rig.agent.step(rig.clock.now())
+            link = [line for line in agent_lines(caplog) if "link" in line]
+            assert len(link) == 2 and "robot1: broker link back after 5 s" in link[1], link

@@ -7,7 +7,7 @@ exits 0 (healthy) or 1 (not):
     python -m wsnav.healthcheck broker --broker HOST:PORT --credentials FILE
     python -m wsnav.healthcheck nodes --site DIR --broker HOST:PORT --credentials FILE   # operator's file
     python -m wsnav.healthcheck robot --site DIR --robot ID --broker HOST:PORT --credentials FILE
-    python -m wsnav.healthcheck mosquitto-store --data DIR [--autosave 60]
+    python -m wsnav.healthcheck mosquitto-store --data DIR [--autosave 2]
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from wsnav.broker.mosquitto.store import GOOD, STORE, check_store, keep_good
 from wsnav.runtime.cli_support import Parser, host_port
 from wsnav.runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
 from wsnav.schemas import topics
@@ -101,22 +102,55 @@ def check_robot(args: argparse.Namespace) -> str:
 
 def check_mosquitto_store(args: argparse.Namespace) -> str:
     """Mosquitto saves its store every `autosave_interval`; when it cannot (its user may not write the folder), it
-    only logs an error each time and loses the operator's blocks at the next restart. A store older than two
-    intervals is that case."""
-    store = args.data / "mosquitto.db"
-    try:
-        age = time.time() - store.stat().st_mtime
-    except OSError:
+    only logs an error each time, and on a full disk it renames an empty or cut-short store into place without a
+    word: either way the operator's blocks are gone at the next restart. So the store must be recent and whole,
+    and its disk must have room for the next save. A whole store is kept (hard-linked) as `mosquitto.db.good`,
+    which `wsnav broker mosquitto-restore` puts back before the next start."""
+    store = args.data / STORE
+    found = check_store(store)
+    if found.problem == "missing":
         raise Unhealthy(
             f"{store}: Mosquitto has not saved its store (is {args.data} writable by Mosquitto's user? "
             "`wsnav broker mosquitto-config --data DIR --user USER` hands it over)"
-        ) from None
+        )
+    free = _free_bytes(args.data)
+    if found.problem is not None:
+        kept = check_store(args.data / GOOD)
+        last = (
+            f"the last whole store ({GOOD}, {time.time() - kept.saved_at:.0f} s old, {kept.retained} retained "
+            "messages) is kept: make room, then restart Mosquitto (`wsnav broker mosquitto-restore` first)"
+            if kept.problem is None
+            else f"no whole store was kept ({GOOD}: {kept.problem})"
+        )
+        raise Unhealthy(
+            f"{store} is {found.problem}: Mosquitto's last save failed ({free} bytes free); {last}"
+        )
+    try:
+        keep_good(args.data)
+        kept_note = ""
+    except OSError as exc:
+        kept_note = f" (no copy kept: {exc.strerror})"
+    size = store.stat().st_size
+    if free < 2 * size + 65536:
+        raise Unhealthy(
+            f"{args.data}: {free} bytes free, too little for Mosquitto's next save of its {size}-byte store "
+            "(a full disk: Mosquitto would save it empty, without a word)"
+        )
+    age = time.time() - found.saved_at
     if age > 2 * args.autosave + 5:
         raise Unhealthy(
             f"{store}: last saved {age:.0f} s ago, every {args.autosave:g} s expected (is {args.data} writable "
             "by Mosquitto's user? a full disk?)"
         )
-    return f"{store} saved {age:.0f} s ago"
+    return f"{store} saved {age:.0f} s ago, whole ({found.retained} retained messages){kept_note}"
+
+
+def _free_bytes(path: Path) -> int:
+    try:
+        stats = os.statvfs(path)
+    except OSError:
+        return 0
+    return stats.f_bavail * stats.f_frsize
 
 
 def _site(path: Path) -> Site:
@@ -146,9 +180,16 @@ def build_parser() -> Parser:
         if name == "robot":
             p.add_argument("--robot", required=True, help="robot id")
         p.set_defaults(func=func)
-    store = sub.add_parser("mosquitto-store", help="Mosquitto saved its retained messages lately")
+    store = sub.add_parser(
+        "mosquitto-store", help="Mosquitto saved its retained messages lately, whole, with room"
+    )
     store.add_argument("--data", type=Path, required=True, help="Mosquitto's persistence_location")
-    store.add_argument("--autosave", type=float, default=60.0, help="its autosave_interval (default 60)")
+    store.add_argument(
+        "--autosave",
+        type=float,
+        default=2.0,
+        help="seconds between its saves (default 2: `autosave_interval 1`)",
+    )
     store.set_defaults(func=check_mosquitto_store)
     return parser
 

@@ -3,8 +3,8 @@
 Malformed JSON, wrong types, unknown zones or nodes, a node writing a zone it does not watch, a payload that
 disagrees with its topic, an old `seq`, an oversized payload: each is dropped with a reason in `dropped` and a
 one-line log, never reaches the zone layer, and never raises (docs/architecture.md, "The message contract"). The log is
-rate-limited per reason so a flood of garbage cannot flood the log: the first drop of a reason is logged at once,
-later ones within DROP_LOG_INTERVAL only counted, then summed up in one line; `dropped` counts every one.
+rate-limited per reason so a flood of garbage cannot flood the log (wsnav.runtime.drop_log, the rule every reader
+shares); `dropped` counts every one.
 
 The `seq` rule, matching the firmware (firmware/device/node_logic.py): a node's seq increases with every state
 it publishes and starts from a random base when it boots, and every (re)connect publishes the birth `online`
@@ -29,6 +29,7 @@ from typing import TypeVar
 from pydantic import ValidationError
 
 from wsnav.runtime.bus import Message
+from wsnav.runtime.drop_log import DROP_LOG_INTERVAL, DropLog
 from wsnav.schemas import topics
 from wsnav.schemas.messages import (
     MAX_OPERATOR_PAYLOAD_BYTES,
@@ -57,10 +58,6 @@ def seq_is_newer(seq: int, last: int) -> bool:
     return 0 < (seq - last) % SEQ_SPACE <= MAX_SEQ_STEP
 
 
-DROP_LOG_INTERVAL = 10.0
-"""Seconds (of the bus's clock) between two log lines about drops of one reason."""
-
-
 class ZoneIntake:
     """Validates zone states, node statuses and operator blocks of one site and feeds them to a ZoneLayer."""
 
@@ -76,16 +73,12 @@ class ZoneIntake:
         """Per node: the last accepted state as it came, to tell a QoS 1 redelivery from a replay."""
         self.duplicates = 0
         self._reborn: set[str] = set()
-        self.dropped: Counter[str] = Counter()
+        self._drops = DropLog(log, "zone intake", "zone messages", drop_log_interval)
+        self.dropped: Counter[str] = self._drops.counts
         self.accepted = 0
         self.cleared = 0
         """Empty retained messages on a node's topics: the broker forgot its word (`wsnav broker revoke`); the
         layer keeps what it knew until the stale policy says otherwise."""
-        self._drop_log_interval = drop_log_interval
-        self._drop_log_since: dict[str, float] = {}
-        """Per reason with a log line in the last interval: when that interval began (bus clock time)."""
-        self._unlogged: Counter[str] = Counter()
-        self._unlogged_last: dict[str, str] = {}
 
     def subscriptions(self) -> list[str]:
         """Topic filters to subscribe: every zone state, node status and operator block of the site."""
@@ -98,12 +91,11 @@ class ZoneIntake:
 
     def handle(self, message: Message) -> bool:
         """Validate and apply one message; True if effective zone costs changed. Never raises."""
-        if self._drop_log_since:
-            self._log_unlogged_drops(message.received_at)
+        self._drops.flush(message.received_at)
         try:
             return self._handle(message)
         except Exception as exc:  # a bug here must not stop the robot; count it and keep going
-            if "internal_error" not in self._drop_log_since:  # its traceback as rate-limited as its drops
+            if self._drops.logs_at_once("internal_error"):  # its traceback as rate-limited as its drops
                 log.exception("zone intake: %s: internal error", message.topic)
             return self._drop("internal_error", message, f"{type(exc).__name__}: {exc}")
 
@@ -206,33 +198,5 @@ class ZoneIntake:
             return None
 
     def _drop(self, reason: str, message: Message, detail: str) -> bool:
-        self.dropped[reason] += 1
-        if reason in self._drop_log_since:
-            self._unlogged[reason] += 1
-            self._unlogged_last[reason] = f"{message.topic}: {detail}"
-        else:
-            self._drop_log_since[reason] = message.received_at
-            log.warning("zone intake: dropped %s (%s): %s", message.topic, reason, detail)
+        self._drops.drop(reason, message.received_at, message.topic, detail)
         return False
-
-    def _log_unlogged_drops(self, now: float) -> None:
-        """Sum up each reason's drops not logged in an interval that has ended; a quiet reason logs afresh.
-
-        Run on every inbound message (time is the bus's, so lock-step runs log the same), so a flood that stops
-        is still summed up by the next message of any kind.
-        """
-        for reason, since in list(self._drop_log_since.items()):
-            if now - since < self._drop_log_interval:
-                continue
-            count = self._unlogged.pop(reason, 0)
-            if count:
-                log.warning(
-                    "zone intake: dropped %d zone messages (%s) in the last %.0f s, the last: %s",
-                    count,
-                    reason,
-                    now - since,
-                    self._unlogged_last.pop(reason),
-                )
-                self._drop_log_since[reason] = now
-            else:
-                del self._drop_log_since[reason]

@@ -17,6 +17,12 @@ from amqtt.adapters import ReaderAdapter
 
 from wsnav.broker.identity_limits import MAX_PACKET_BYTES
 
+MAX_BACKLOG_BYTES = 64 * 1024
+"""Unread input (in the kernel's socket buffer) a client held to its rate may leave behind before it is
+disconnected and the input discarded: about 1,000 zone states, far above any node's burst. A flood left
+megabytes there, which kept its messages coming for minutes after the flooder had gone (the peer's FIN waits
+behind them)."""
+
 CONNECT, PUBLISH, PUBACK, PUBREC, PUBREL, PUBCOMP = 1, 3, 4, 5, 6, 7
 SUBSCRIBE, UNSUBSCRIBE, PINGREQ, DISCONNECT = 8, 10, 12, 14
 _FLAGS_0010 = {PUBREL, SUBSCRIBE, UNSUBSCRIBE}
@@ -186,6 +192,14 @@ async def read_packet(stream: ReaderAdapter, max_bytes: int) -> tuple[int, bytes
     return header, bytes(encoded), await _exactly(stream, length)
 
 
+def _never() -> bool:
+    return False
+
+
+def _nothing() -> int:
+    return 0
+
+
 class GateReader(ReaderAdapter):
     """What amqtt reads from: the bytes of packets that passed `check_packet`, one whole packet at a time.
 
@@ -200,6 +214,7 @@ class GateReader(ReaderAdapter):
         *,
         max_bytes: int = MAX_PACKET_BYTES,
         connect_timeout_s: float = 5.0,
+        max_backlog: int = MAX_BACKLOG_BYTES,
     ) -> None:
         self._stream = stream
         self._reject = reject
@@ -213,6 +228,14 @@ class GateReader(ReaderAdapter):
         self.packet_delay: Callable[[int], float] | None = None
         """Asked with each packet's type after the CONNECT: seconds to wait before handing it on (its identity's
         rate, wsnav.broker.identity_limits); the wait is backpressure, as the socket is not read meanwhile."""
+        self.closed_by_us: Callable[[], bool] = _never
+        """True once the broker closed the connection (revoked, rejected): nothing more it sent is handed on."""
+        self.peer_left: Callable[[], bool] = _never
+        """True once the client has closed its side. Asked only when a packet must wait for its rate: what a
+        departed client sent over its rate is discarded, or its backlog would keep its flood going after it left."""
+        self.backlog: Callable[[], int] = _nothing
+        """Bytes the client sent that wait unread in the socket; asked when a packet must wait for its rate."""
+        self.max_backlog = max_backlog
 
     async def read(self, n: int = -1) -> bytes:
         while not self._closed and (n < 0 or len(self._buffer) < n):
@@ -242,10 +265,18 @@ class GateReader(ReaderAdapter):
         if self._first:
             self._first = False
             self.connect_seen.set()
+        elif self.closed_by_us():
+            return self._stop(None)
         elif self.packet_delay is not None:
             delay = self.packet_delay(header >> 4)
             if delay > 0.0:
+                if self.peer_left():
+                    return self._stop("the client left with input over its rate (discarded)")
+                if (unread := self.backlog()) > self.max_backlog:
+                    return self._stop(f"{unread} bytes of input over its rate (discarded)")
                 await asyncio.sleep(delay)
+                if self.closed_by_us():
+                    return self._stop(None)
         self._buffer += bytes([header]) + encoded + body
         return True
 

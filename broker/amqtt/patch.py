@@ -15,6 +15,8 @@ is pinned to amqtt==0.12.1 (pyproject.toml) and to a test; docs/broker-amqtt.md 
 | `WsnavBroker.add_subscription`, `_del_subscription` | no limit on the filters one session holds (100,000 from one robot: node -> robot latency 7 s) | tests/test_broker_limits.py |
 | `WsnavBroker._initialize_client_session` (again) | persistent sessions of one identity never expire and have no cap (2,000 parked by one node) | tests/test_broker_limits.py |
 | `WsnavBroker.start` (a password-file watch) | a changed password file needs a restart, and a revoked identity's connections and sessions live on | tests/test_broker_revoke.py |
+| `WsnavBroker._gated` (the gate's `peer_left`, `backlog`, `closed_by_us`) | a flood held to its rate outlived its sender: megabytes unread in the socket kept its messages coming for minutes after the flooder left or was revoked | tests/test_broker_limits.py |
+| `WsnavProtocolHandler._acknowledge_once_stored`, `WsnavBroker.retain_message` | an operator block acknowledged 0.01 s before a kill -9 was lost (PUBACK when queued, on disk within 0.2 s) | tests/test_broker_process.py |
 | `handle_read_timeout` on each handler | keepalive never enforced: a silent client is never dropped and its will never fires | tests/test_broker_embedded.py |
 """
 
@@ -22,10 +24,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import fcntl
 import logging
 import math
+import select
+import struct
+import termios
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -43,14 +49,16 @@ from amqtt.contexts import Action, ListenerConfig
 from amqtt.errors import AMQTTError, MQTTError, NoDataError
 from amqtt.mqtt.protocol.broker_handler import BrokerProtocolHandler
 from amqtt.mqtt.puback import PubackPacket
-from amqtt.session import OUTGOING, IncomingApplicationMessage, OutgoingApplicationMessage, Session
+from amqtt.session import INCOMING, OUTGOING, IncomingApplicationMessage, OutgoingApplicationMessage, Session
 from amqtt.utils import gen_client_id
 from websockets.asyncio.server import ServerConnection
 
 from wsnav.broker.amqtt.admission import Admission, Ticket
 from wsnav.broker.amqtt.packet_gate import MAX_PACKET_BYTES, PUBLISH, SUBSCRIBE, UNSUBSCRIBE, GateReader
+from wsnav.broker.amqtt.retained_store import RetainedStorePlugin
 from wsnav.broker.credentials import file_stamp, read_password_file
 from wsnav.broker.identity_limits import IdentityLimits, budget
+from wsnav.schemas import topics
 from wsnav.schemas.credentials import CredentialsError
 
 log = logging.getLogger("wsnav.broker")
@@ -104,6 +112,13 @@ class WsnavProtocolHandler(BrokerProtocolHandler):
     """
 
     taken: list[Any] | None = None
+    stored: Callable[[int], Awaitable[None]] | None = None
+    """The retained store's `written`: an operator block is acknowledged once it is on disk (set by the broker)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.awaiting_store: dict[int, asyncio.Future[int]] = {}
+        """id() of a message waiting for its PUBACK -> resolved by the broker once it has handled the message."""
 
     async def mqtt_deliver_next_message(self) -> Any:
         message = await super().mqtt_deliver_next_message()
@@ -116,6 +131,15 @@ class WsnavProtocolHandler(BrokerProtocolHandler):
     async def _handle_qos1_message_flow(
         self, app_message: OutgoingApplicationMessage | IncomingApplicationMessage
     ) -> None:
+        if (
+            app_message.direction == INCOMING
+            and self.stored is not None
+            and self.session is not None
+            and app_message.packet_id is not None
+            and _stored_before_puback(app_message)
+        ):
+            await self._acknowledge_once_stored(app_message, self.session, app_message.packet_id, self.stored)
+            return
         if app_message.direction != OUTGOING or self.session is None or app_message.packet_id is None:
             await super()._handle_qos1_message_flow(app_message)
             return
@@ -139,6 +163,45 @@ class WsnavProtocolHandler(BrokerProtocolHandler):
         finally:
             self._puback_waiters.pop(packet_id, None)
             self.session.inflight_out.pop(packet_id, None)
+
+    async def _acknowledge_once_stored(
+        self,
+        app_message: OutgoingApplicationMessage | IncomingApplicationMessage,
+        session: Session,
+        packet_id: int,
+        stored: Callable[[int], Awaitable[None]],
+    ) -> None:
+        """amqtt acknowledges a QoS 1 PUBLISH when it is queued; an operator block killed with the broker 0.01 s
+        later was lost (the store writes within 0.2 s). Here the PUBACK waits until the broker has handled the
+        message and the store has written (and fsync'd) it; not handled within STORED_WITHIN_S: no PUBACK, and
+        the client sends it again."""
+        if app_message.puback_packet:
+            raise AMQTTError(f"Message '{packet_id}' has already been acknowledged")
+        handled: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+        self.awaiting_store[id(app_message)] = handled
+        await session.delivered_message_queue.put(app_message)
+        try:
+            noted = await asyncio.wait_for(handled, STORED_WITHIN_S)
+            await asyncio.wait_for(stored(noted), STORED_WITHIN_S)
+        except TimeoutError:
+            log.warning(f"{app_message.topic}: not stored within {STORED_WITHIN_S:g} s, not acknowledged")
+            return
+        finally:
+            self.awaiting_store.pop(id(app_message), None)
+        puback = PubackPacket.build(packet_id)
+        await self._send_packet(puback)
+        app_message.puback_packet = puback
+
+
+STORED_WITHIN_S = 10.0
+
+
+def _stored_before_puback(message: OutgoingApplicationMessage | IncomingApplicationMessage) -> bool:
+    """Operator blocks (and their clearing): nothing else restores them. Zone states and statuses come again
+    within a heartbeat, so they keep amqtt's early PUBACK and the 0.2 s flush."""
+    packet = message.publish_packet
+    parsed = topics.parse(message.topic) if packet is not None and packet.retain_flag else None
+    return parsed is not None and parsed.kind == "operator_block"
 
 
 class WsnavBroker(Broker):
@@ -226,19 +289,30 @@ class WsnavBroker(Broker):
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, listener_name: str
     ) -> None:
         """Every TCP/TLS connection: a slot (or none), the packet gate, and the socket closed whatever happens."""
-        transport = writer.transport
         await self._gated(
-            listener_name, StreamReaderAdapter(reader), StreamWriterAdapter(writer), transport.abort
+            listener_name, StreamReaderAdapter(reader), StreamWriterAdapter(writer), writer.transport
         )
 
     async def ws_connected(self, websocket: ServerConnection, listener_name: str) -> None:
         await self._gated(
-            listener_name, WebSocketsReader(websocket), WebSocketsWriter(websocket), websocket.transport.abort
+            listener_name, WebSocketsReader(websocket), WebSocketsWriter(websocket), websocket.transport
         )
 
     async def _gated(
-        self, listener_name: str, reader: ReaderAdapter, writer: WriterAdapter, abort: Callable[[], None]
+        self,
+        listener_name: str,
+        reader: ReaderAdapter,
+        writer: WriterAdapter,
+        transport: asyncio.WriteTransport,
     ) -> None:
+        aborted = (
+            asyncio.Event()
+        )  # closed by the broker (revoked, rejected), not by the peer (TLS closes on EOF)
+
+        def abort() -> None:
+            aborted.set()
+            transport.abort()
+
         ticket = self.admission.admit(abort)
         if ticket is None:
             abort()
@@ -254,6 +328,9 @@ class WsnavBroker(Broker):
         )
         setattr(gate, "ticket", ticket)  # noqa: B010  (read back in _initialize_client_session)
         gate.packet_delay = partial(self._packet_delay, ticket)
+        gate.closed_by_us = aborted.is_set
+        gate.peer_left = partial(_peer_left, transport)
+        gate.backlog = partial(_unread_bytes, transport)
         try:
             await self._client_connected(listener_name, gate, writer)
         finally:
@@ -313,7 +390,28 @@ class WsnavBroker(Broker):
             session.keep_alive = math.ceil(session.keep_alive * 1.5)
             setattr(handler, "handle_read_timeout", partial(_drop_silent_client, handler))  # noqa: B010
         setattr(session, _PREAUTHORIZED, True)
+        store = self._retained_store()
+        if store is not None and isinstance(handler, WsnavProtocolHandler):
+            handler.stored = store.written
         return handler, session
+
+    def _retained_store(self) -> RetainedStorePlugin | None:
+        return next((p for p in self.plugins_manager._plugins if isinstance(p, RetainedStorePlugin)), None)
+
+    async def retain_message(
+        self,
+        source_session: Session | None,
+        topic_name: str | None,
+        data: bytes | bytearray | None,
+        qos: int | None = None,
+    ) -> None:
+        """amqtt's, and the store notes the change now rather than in amqtt's event task, so that an operator
+        block's PUBACK can wait for its write (`WsnavProtocolHandler._acknowledge_once_stored`)."""
+        await super().retain_message(source_session, topic_name, data, qos)
+        store = self._retained_store()
+        if store is not None and topic_name is not None:
+            parsed = topics.parse(topic_name)
+            store.note(topic_name, urgent=parsed is not None and parsed.kind == "operator_block")
 
     def _packet_delay(self, ticket: Ticket, kind: int) -> float:
         """How long a packet of `kind` from this connection waits: its identity's PUBLISH (nodes only) or
@@ -406,15 +504,22 @@ class WsnavBroker(Broker):
         self, client_session: Session, handler: BrokerProtocolHandler, wait_deliver: asyncio.Future[Any]
     ) -> bool:
         """amqtt's, after forgetting the message as taken-but-unhandled (see `_client_message_loop`)."""
-        if (
-            isinstance(handler, WsnavProtocolHandler)
-            and handler.taken
-            and not wait_deliver.cancelled()
-            and wait_deliver.exception() is None
-        ):
-            message = wait_deliver.result()
+        message = (
+            wait_deliver.result()
+            if not wait_deliver.cancelled() and wait_deliver.exception() is None
+            else None
+        )
+        if isinstance(handler, WsnavProtocolHandler) and handler.taken and message is not None:
             handler.taken = [m for m in handler.taken if m is not message]
-        return await super()._handle_message_delivery(client_session, handler, wait_deliver)
+        handled = (
+            handler.awaiting_store.get(id(message)) if isinstance(handler, WsnavProtocolHandler) else None
+        )
+        try:
+            return await super()._handle_message_delivery(client_session, handler, wait_deliver)
+        finally:
+            if handled is not None and not handled.done():
+                store = self._retained_store()
+                handled.set_result(store.noted if store is not None else 0)
 
     async def _authenticate_first(self, session: Session) -> bool:
         return await super()._authenticate(session, ListenerConfig())
@@ -468,6 +573,36 @@ def _hashes_or_none(path: Path) -> dict[str, str] | None:
         return read_password_file(path)
     except CredentialsError:
         return None
+
+
+def _peer_left(transport: asyncio.BaseTransport) -> bool:
+    """Has the client closed its side (FIN or reset received), even with bytes still unread in the socket?
+
+    poll()'s POLLRDHUP (Linux) says so at once, where reading would first drain the backlog."""
+    if transport.is_closing():
+        return True
+    sock = transport.get_extra_info("socket")
+    fd = sock.fileno() if sock is not None else -1
+    if fd < 0:
+        return True
+    poller = select.poll()
+    poller.register(fd, _HANGUP)
+    return any(events & _HANGUP for _, events in poller.poll(0))
+
+
+def _unread_bytes(transport: asyncio.BaseTransport) -> int:
+    """Bytes received on the connection's socket and not read yet (FIONREAD), 0 when that cannot be known."""
+    sock = transport.get_extra_info("socket")
+    fd = sock.fileno() if sock is not None else -1
+    if fd < 0:
+        return 0
+    try:
+        return int(struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0])
+    except OSError:
+        return 0
+
+
+_HANGUP = getattr(select, "POLLRDHUP", 0) | select.POLLHUP | select.POLLERR
 
 
 def _drop_silent_client(handler: BrokerProtocolHandler) -> None:

@@ -8,8 +8,9 @@ aiosqlite, which we do not ship. This plugin mirrors the dict into `<data>/retai
 - the database is in WAL mode with `synchronous=NORMAL`: a committed flush survives kill -9 and a crash of the
   broker process (the data is in the OS by then); after a power cut the last few flushes may be lost but the
   file is never corrupt. `synchronous: FULL` (`--sync full`) also survives power cuts, at one fsync per flush.
-So a kill -9 loses at most the retained updates of the last flush interval (a PUBACK is sent by amqtt before
-the broker handles the message, so "acknowledged" cannot be made stronger without patching amqtt).
+So a kill -9 loses at most the retained updates of the last flush interval (amqtt sends a PUBACK before the
+broker handles the message), except operator blocks: nothing republishes them, so `note(urgent=True)` writes
+them at once with an fsync, and the patch (`WsnavProtocolHandler`) holds their PUBACK until `written`.
 
 The storage policy (docs/security.md), so that no state is ever lost silently:
 - a damaged file (not a database, malformed pages, or 0 bytes) is moved aside to
@@ -27,6 +28,7 @@ flushed before exit.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import sqlite3
 import threading
@@ -63,7 +65,8 @@ class RetainedDb:
         self._lock = threading.Lock()
         with self._lock:
             self._conn.execute("PRAGMA journal_mode=WAL")
-            self._conn.execute(f"PRAGMA synchronous={'FULL' if synchronous.upper() == 'FULL' else 'NORMAL'}")
+            self.full = synchronous.upper() == "FULL"
+            self._conn.execute(f"PRAGMA synchronous={'FULL' if self.full else 'NORMAL'}")
             self._conn.execute(_SCHEMA)
 
     def check(self) -> None:
@@ -78,24 +81,34 @@ class RetainedDb:
             rows = self._conn.execute("SELECT topic, payload, qos FROM retained").fetchall()
         return {topic: (bytes(payload), int(qos)) for topic, payload, qos in rows}
 
-    def apply(self, pending: Pending) -> None:
+    def apply(self, pending: Pending, durable: bool = False) -> None:
+        """One transaction; `durable`: fsync'd at its commit (synchronous=FULL for it), for a power cut."""
         with self._lock:
-            self._conn.execute("BEGIN")
+            if durable and not self.full:
+                self._conn.execute("PRAGMA synchronous=FULL")
             try:
-                for topic, value in pending.items():
-                    if value is None:
-                        self._conn.execute("DELETE FROM retained WHERE topic = ?", (topic,))
-                    else:
-                        self._conn.execute(
-                            "INSERT INTO retained (topic, payload, qos) VALUES (?, ?, ?) "
-                            "ON CONFLICT(topic) DO UPDATE SET payload = excluded.payload, qos = excluded.qos",
-                            (topic, value[0], value[1]),
-                        )
-                self._conn.execute("COMMIT")
-            except BaseException:
-                if self._conn.in_transaction:  # SQLite rolls back by itself on a full disk
-                    self._conn.execute("ROLLBACK")
-                raise
+                self._apply(pending)
+            finally:
+                if durable and not self.full:
+                    self._conn.execute("PRAGMA synchronous=NORMAL")
+
+    def _apply(self, pending: Pending) -> None:
+        self._conn.execute("BEGIN")
+        try:
+            for topic, value in pending.items():
+                if value is None:
+                    self._conn.execute("DELETE FROM retained WHERE topic = ?", (topic,))
+                else:
+                    self._conn.execute(
+                        "INSERT INTO retained (topic, payload, qos) VALUES (?, ?, ?) "
+                        "ON CONFLICT(topic) DO UPDATE SET payload = excluded.payload, qos = excluded.qos",
+                        (topic, value[0], value[1]),
+                    )
+            self._conn.execute("COMMIT")
+        except BaseException:
+            if self._conn.in_transaction:  # SQLite rolls back by itself on a full disk
+                self._conn.execute("ROLLBACK")
+            raise
 
     def close(self) -> None:
         with self._lock:
@@ -183,6 +196,11 @@ class RetainedStorePlugin(BasePlugin[BrokerContext]):
         self._last_report = 0.0
         self._pending: Pending = {}
         self._wake = asyncio.Event()
+        self._urgent = asyncio.Event()
+        self._noted = 0
+        self._written = 0
+        self._waiters: list[tuple[int, asyncio.Future[None]]] = []
+        self._flush_lock = asyncio.Lock()
         self._flusher: asyncio.Task[None] | None = None
         self._closed = False
 
@@ -199,35 +217,86 @@ class RetainedStorePlugin(BasePlugin[BrokerContext]):
     ) -> None:
         if client_id is not None:
             return  # a message queued for one offline persistent session, not a topic's retained message
-        data = retained_message.data
-        self._pending[retained_message.topic] = (bytes(data), retained_message.qos or 0) if data else None
+        self.note(retained_message.topic)
+
+    def note(self, topic: str, urgent: bool = False) -> int:
+        """Mark `topic`'s retained message (or its absence) as to be written, as the broker holds it now: amqtt's
+        event runs as a later task, when a newer message may already be retained; returns a number to pass to
+        `written`. `urgent`: written at once and fsync'd (an operator block), not within the flush interval."""
+        current = self.context.retained_messages.get(topic)
+        data = current.data if current is not None else None
+        self._pending[topic] = (bytes(data), current.qos or 0) if current is not None and data else None
+        self._noted += 1
+        if urgent:
+            self._urgent.set()
         self._wake.set()
+        return self._noted
+
+    @property
+    def noted(self) -> int:
+        return self._noted
+
+    async def written(self, noted: int) -> None:
+        """Until what was noted up to `noted` is on disk, or the store is failing (kept in memory, reported)."""
+        if noted <= self._written or self._failing_since is not None or self._closed:
+            return
+        waiter: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._waiters.append((noted, waiter))
+        await waiter
+
+    def _release(self, everyone: bool = False) -> None:
+        waiting = []
+        for noted, waiter in self._waiters:
+            if everyone or noted <= self._written:
+                if not waiter.done():
+                    waiter.set_result(None)
+            else:
+                waiting.append((noted, waiter))
+        self._waiters = waiting
 
     async def on_broker_pre_shutdown(self) -> None:
-        await self.flush()
+        """A first try; amqtt runs this as a task nobody awaits, so a failure (a full disk) must not escape it
+        ("Task exception was never retrieved" and a traceback at every stop): `close` tries again and reports."""
+        with contextlib.suppress(sqlite3.Error):
+            await self.flush()
 
     async def close(self) -> None:
         """Last call of a shutdown (after amqtt's pending events ran): flush and close the file."""
         await self._stop()
 
     async def flush(self) -> None:
-        """Write what is pending now (the flusher does this by itself; tests and shutdown call it too)."""
+        """Write what is pending now (the flusher does this by itself; tests and shutdown call it too).
+
+        One at a time: a shutdown's flush overtaking the flusher's would count its older write as done."""
+        async with self._flush_lock:
+            await self._flush()
+
+    async def _flush(self) -> None:
+        noted, durable = self._noted, self._urgent.is_set()
+        self._urgent.clear()
         if not self._pending:
+            self._written = noted
+            self._release()
             return
         pending, self._pending = self._pending, {}
         try:
-            await asyncio.to_thread(self._db.apply, pending)
+            await asyncio.to_thread(self._db.apply, pending, durable)
         except sqlite3.Error:
             self._pending = pending | self._pending  # keep them for the next try; newer values win
+            if durable:
+                self._urgent.set()
             raise
+        self._written = noted
+        self._release()
 
     async def _flush_loop(self) -> None:
         while True:
             if self._failing_since is None:
                 await self._wake.wait()
                 self._wake.clear()
-                if self._interval:
-                    await asyncio.sleep(self._interval)
+                if self._interval and not self._urgent.is_set():
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(self._urgent.wait(), self._interval)
             else:
                 await asyncio.sleep(RETRY_S)
             try:
@@ -240,6 +309,7 @@ class RetainedStorePlugin(BasePlugin[BrokerContext]):
                     log.warning(f"retained store {self._db.path} is writable again: pending updates written")
 
     def _report_failure(self, exc: sqlite3.Error) -> None:
+        self._release(everyone=True)  # kept in memory and served: the acknowledgements wait no longer
         now = time.monotonic()
         if self._failing_since is None:
             self._failing_since = now
@@ -265,4 +335,5 @@ class RetainedStorePlugin(BasePlugin[BrokerContext]):
                 f"{len(self._pending)} retained update(s) could not be written to {self._db.path} and are LOST: {exc}"
             )
         finally:
+            self._release(everyone=True)
             self._db.close()

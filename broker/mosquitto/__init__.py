@@ -3,9 +3,11 @@
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the submodules load when imported, not with the package
-    from wsnav.broker.mosquitto import config, process
+    from wsnav.broker.mosquitto import config, firewall, process, store
 
 __all__ = [
     "config",
+    "firewall",
     "process",
+    "store",
 ]
