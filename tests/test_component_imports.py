@@ -152,7 +152,6 @@ def test_commands_run_outside_the_checkout_where_only_wsnav_is_importable(tmp_pa
 
 
 KNOWN_TEST_MODULE_IMPORTS = {
-    "tests/test_ros2_bridge_cli.py imports tests.test_ros2_bridge",
     "tests/test_firmware_ota.py imports tests.test_firmware_node",
 }
 """Helpers still shared by importing another test module (their files are being changed on other branches): to be
