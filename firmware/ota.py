@@ -5,7 +5,8 @@ manifest naming them with their sizes and sha256 (schemas.messages.OtaManifest).
 command carrying the manifest's sha256, reboots into update mode and pulls the manifest and the files chunk by
 chunk (`nodes/<node>/ota/request` -> `nodes/<node>/ota/chunk`): `OtaServer` answers every request, whichever
 node and whenever it comes (a node that lost power mid-transfer starts again), and follows each node until its
-`info` says the new version (done) or says why not (failed).
+`info` says the new version confirmed (done: the node ran it healthy for a while, health.settle; an `info`
+with `trial` is only a start) or says why not (failed: an error, or the old version back after a rollback).
 """
 
 from __future__ import annotations
@@ -104,6 +105,8 @@ class NodeProgress:
     node: str
     started: bool = False
     """It asked for a chunk: an `info` from now on tells how the update went."""
+    trial: bool = False
+    """Its new version runs on trial: not done until an `info` without `trial` (the node's health confirmed it)."""
     done: bool = False
     error: str | None = None
     served: int = 0
@@ -193,9 +196,13 @@ class OtaServer:
         version = self.update.manifest.version
         if info.error is not None and info.error.startswith(("ota:", "safe:")):
             prog.error = f"{prog.node}: update failed: {info.error}"
+        elif info.fw == version and info.trial:
+            if not prog.trial:
+                prog.trial = True
+                self.say(f"{prog.node}: running {version} on trial, waiting for it to confirm")
         elif info.fw == version:
             prog.done = True
-            self.say(f"{prog.node}: running {version}")
+            self.say(f"{prog.node}: running {version}, confirmed")
         else:
             prog.error = f"{prog.node}: came back on {info.fw}, not {version} (the update was abandoned or rolled back)"
         if prog.error is not None:
@@ -211,7 +218,11 @@ class OtaServer:
         failures = [p.error for p in self.progress.values() if p.error is not None]
         for p in self.pending():
             where = (
-                f"stopped at {p.served}/{self.update.total} B" if p.started else "never asked for the update"
+                "running it on trial, never confirmed"
+                if p.trial
+                else f"stopped at {p.served}/{self.update.total} B"
+                if p.started
+                else "never asked for the update"
             )
             failures.append(f"{p.node}: not confirmed within {timeout_s:g} s ({where})")
         return failures

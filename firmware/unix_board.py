@@ -11,7 +11,8 @@ code and the file operations are the real ones, run by MicroPython).
   `firmware.board.MpremoteBoard`, can talk to it.
 - Its watchdog behaves as the ESP8266's: started by the first machine.WDT(), it cannot be stopped (no deinit,
   nothing the board runs undoes it), and `WDT_TIMEOUT_S` after the last feed it resets the board (the process
-  is killed and started again). machine.reset() restarts it too. `resets` records each cause.
+  is killed and started again). machine.reset() restarts it too. `resets` records each cause, and the next
+  boot's machine.reset_cause() reports it as the ESP8266 would.
 """
 
 from __future__ import annotations
@@ -138,6 +139,7 @@ class UnixBoard:
         # measured by tests/test_firmware_node.py and bench/firmware_heap.py, not here).
         self.cmd = [micropython_exe(), "-X", "heapsize=96k", "-m", "board_repl"]
         self.env = micropython_env(fs, stubs, pins)
+        self.pins = pins
         self.resets: list[str] = []
         self._boot: _Boot | None = None
         self._lock = threading.RLock()
@@ -173,6 +175,10 @@ class UnixBoard:
                 self.resets.append(
                     "watchdog" if boot.killed_by_wdt else "reset" if code == 75 else f"exit {code}"
                 )
+                # What machine.reset_cause() says at the next boot (host_stubs/machine.py): the ESP8266's rst_info
+                # reason, 1 after its watchdog, 4 after machine.reset(), 0 (power on) after a power cut.
+                cause = 1 if boot.killed_by_wdt else 4 if code == 75 else 0
+                (self.pins / "reset_cause").write_text(str(cause))
                 boot.stop()
                 self._start()
 

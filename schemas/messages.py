@@ -122,6 +122,9 @@ class NodeInfo(_Message):
     """The heartbeat period the node runs now: its config's, or what a `set_heartbeat` command set (RAM only)."""
     bad_commands: Annotated[int, Field(ge=0)] | None = None
     """Commands ignored since boot: malformed, unknown, or out of range (a node that takes commands says 0)."""
+    trial: Literal[True] | None = None
+    """Present (true) while the node runs an over-the-air update on trial: the update is confirmed (and `trial`
+    gone from the next `info`) once the node has run healthy for a while, connected, sending states."""
 
 
 NodeCommandName = Literal["restart", "send_info", "set_heartbeat", "update"]

@@ -44,10 +44,29 @@ pytestmark = pytest.mark.slow
 
 SITE_DIR = REPO / "sites" / "school"
 SITE, NODE = "school", "n1"
-OLD, NEW, BROKEN, LOOPING = "1.0.0-old", "1.0.0-new", "1.0.0-bad", "1.0.0-loop"
+OLD, NEW, BROKEN, LOOPING, LATE = "1.0.0-old", "1.0.0-new", "1.0.0-bad", "1.0.0-loop", "1.0.0-late"
+LATE_FAILURE = """
+_iteration = Node.iteration
+_connected = None
+
+
+def _late(self):
+    global _connected
+    _iteration(self)
+    if self.connects and _connected is None:
+        _connected = self.ticks()
+    if _connected is not None and ticks_diff(self.ticks(), _connected) > 8000:
+        raise RuntimeError("sensor loop failed")
+
+
+Node.iteration = _late
+"""
+"""Appended to app.py: from 8 s after its first connect every pass of the loop fails (then the loop stops
+feeding the watchdog, which resets the board)."""
 APPENDED = {
     BROKEN: {"app.py": '\nraise RuntimeError("broken app")\n'},
     LOOPING: {"app.py": "\nimport machine\n\nmachine.reset()\n"},  # a reset before it ever connects
+    LATE: {"app.py": LATE_FAILURE},
 }
 WAIT = 120.0
 
@@ -57,7 +76,7 @@ def fw(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """Source folders by version, their builds (`<version>-build`), and the host stubs (`stubs`)."""
     root = tmp_path_factory.mktemp("ota-fw")
     out: dict[str, Path] = {"stubs": build_for_host(root / "host")[1]}
-    for version in (OLD, NEW, BROKEN, LOOPING):
+    for version in (OLD, NEW, BROKEN, LOOPING, LATE):
         out[version] = versioned_sources(root / f"src-{version}", version, APPENDED.get(version))
         build(root / f"{version}-build", out[version])
         out[f"{version}-build"] = root / f"{version}-build"
@@ -281,6 +300,45 @@ def test_a_new_app_that_resets_before_it_connects_is_rolled_back_after_three_boo
     assert board.unix.resets.count("reset") >= 5  # into update mode, into the trial, the trial boots (3)
     assert board.leftovers() == []
     assert (board.fs / "app.mpy").read_bytes() == (fw[f"{OLD}-build"] / "app.mpy").read_bytes()
+
+
+def test_a_new_app_whose_loop_fails_8_s_after_connecting_is_rolled_back(
+    fw, creds, broker, infos, board_of
+) -> None:
+    """The first connect is no confirmation: ota reports the trial, then the rollback (exit 1, naming the node
+    and both versions); the board runs the old app again from its kept backups."""
+    board = board_of(OLD)
+    infos.wait(lambda i: i.fw == OLD)
+    code, out, err = finish(ota_cli(fw, creds, broker, LATE))
+    assert code == 1, (out, err, board.serial()[-3000:])
+    assert f"{NODE}: running {LATE} on trial" in out, out
+    assert f"{NODE}: came back on {OLD}, not {LATE}" in err, err
+    assert "0 of 1 nodes" in out
+    serial = board.serial()
+    assert "loop error: sensor loop failed" in serial and "ota: rollback" in serial
+    assert "ota: confirmed" not in serial
+    assert board.unix.resets.count("watchdog") >= 3  # the trial's boots, each ended by the starved watchdog
+    assert board.leftovers() == []
+    for name in ("app.mpy", "diagnostics.mpy"):
+        assert (board.fs / name).read_bytes() == (fw[f"{OLD}-build"] / name).read_bytes()
+
+
+def test_a_version_that_keeps_failing_goes_to_safe_mode_and_takes_an_update(
+    fw, creds, broker, infos, board_of
+) -> None:
+    """No update on trial (the failing version was put on by USB): after three watchdog resets in a row the node
+    stops starting its app and waits online in safe mode, from which an update over the air is taken; the new
+    version's healthy run clears the count."""
+    board = board_of(LATE)
+    safe = infos.wait(lambda i: (i.error or "").startswith("safe:"), WAIT * 2)
+    assert safe.error == "safe: 3 resets in a row" and safe.fw == LATE
+    assert board.unix.resets == ["watchdog"] * 3, board.unix.resets
+    assert board.unix.wdt_fed_within(2.0)  # safe mode feeds it: no fourth reset
+    code, out, err = finish(ota_cli(fw, creds, broker, NEW))
+    assert code == 0, (out, err, board.serial()[-3000:])
+    assert f"{NODE}: running {NEW}, confirmed" in out
+    assert not (board.fs / "otaboot.loops").exists()
+    assert board.unix.resets.count("watchdog") == 3
 
 
 def test_a_power_cut_mid_swap_is_finished_at_the_next_boot(

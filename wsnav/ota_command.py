@@ -29,7 +29,7 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     fw_sub = next(a for a in firmware._actions if isinstance(a, argparse._SubParsersAction))
     o = fw_sub.add_parser(
         "ota",
-        help="update running nodes' app over MQTT: build, command, serve the chunks, wait for the new version",
+        help="update running nodes' app over MQTT: build, command, serve the chunks, wait until each confirms",
     )
     operator_arguments(o)
     o.add_argument("--nodes", required=True, metavar="N1,N2", help="the nodes to update, comma-separated")
@@ -47,7 +47,8 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
 
 
 def ota_command(args: argparse.Namespace) -> int:
-    """Build, send each node its `update`, serve the chunks with progress; exit 1 unless every node confirmed."""
+    """Build, send each node its `update`, serve the chunks with progress; exit 1 unless every node confirmed
+    (ran the new version healthy for a while: firmware/ota.py)."""
     from wsnav.console.operator_commands import CommandError, node_command
     from wsnav.console.operator_link import connect
     from wsnav.firmware.ota import OtaError, OtaServer, make_update

@@ -13,7 +13,7 @@ every string of 10 characters or less (interned when the module loads) counts; t
 """
 
 INFO_PERIOD_MS = 300000
-FIRMWARE_VERSION = "0.5.0"
+FIRMWARE_VERSION = "0.6.0"
 """Bump it with every change under firmware/device/: it is how an operator tells which boards are behind."""
 RESET_NAMES = "power_on watchdog exception soft_wdt soft_reset deep_sleep reset_pin unknown"
 """`machine.reset_cause()` on the ESP8266 is the SDK's rst_info reason, 0..6 in this order (REASON_DEFAULT_RST,
@@ -22,16 +22,24 @@ REASON_EXT_SYS_RST); anything else is `unknown` (schemas.messages.ResetCause).""
 
 
 def info(
-    logic, uptime_s: int, connects: int, reset_cause: int, rssi=None, heap_free=None, error=None, bad_commands=0
+    logic,
+    uptime_s: int,
+    connects: int,
+    reset_cause: int,
+    rssi=None,
+    heap_free=None,
+    error=None,
+    bad_commands=0,
+    trial=False,
 ) -> tuple:
     """(topic, payload str, retain, qos) of the diagnostics of `logic` (a NodeLogic: its node id and topics),
     `uptime_s` seconds since boot (seconds, not the board's wrapping ms clock: a small int for 34 years),
     `connects` broker connections since boot, `reset_cause` as `machine.reset_cause()` gives it, `error` why the
-    link last went down (an exception or text; None if it never did), `bad_commands` the commands it ignored. The heartbeat period is `logic`'s, which a command may change. The caller sends them after each connect
+    link last went down (an exception or text; None if it never did), `bad_commands` the commands it ignored, `trial` an update not yet confirmed (health.settle). The heartbeat period is `logic`'s, which a command may change. The caller sends them after each connect
     and every INFO_PERIOD_MS by its own clock. An RSSI outside -127..0 (the ESP8266 says 31 without a link) is
     left out. The error is cut to 32 characters, its quotes and backslashes made `'` and `/`. The payload's
     UTF-8 bytes are byte for byte what the model serialises (payloads.py says why it is built by hand)."""
-    payload = '{"v":1,"node":"%s","fw":"%s","reset":"%s","uptime_s":%d%s%s,"reconnects":%d%s,"heartbeat_ms":%d,"bad_commands":%d}' % (
+    payload = '{"v":1,"node":"%s","fw":"%s","reset":"%s","uptime_s":%d%s%s,"reconnects":%d%s,"heartbeat_ms":%d,"bad_commands":%d%s}' % (
         logic.node,
         FIRMWARE_VERSION,
         RESET_NAMES.split()[reset_cause if 0 <= reset_cause < 7 else 7],
@@ -45,6 +53,7 @@ def info(
         else "",
         logic.heartbeat_ms,
         bad_commands,
+        ',"trial":true' if trial else "",
     )
     topic = logic.status_topic[:-6] + "info"  # nodes/<node>/status -> nodes/<node>/info
     return (topic, payload, True, 0)
