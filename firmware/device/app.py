@@ -51,10 +51,10 @@ _INFO_RETRY_MS = const(60000)
 """When the diagnostics could not be loaded (no heap), try again after this long, not every iteration."""
 _MAX_ERRORS = const(20)
 """Consecutive unexpected exceptions in the loop before it stops feeding the watchdog."""
-_HEALTHY_MS = const(30000)
-"""How long the loop must run without an error (and, for an update on trial, online with two states or
-heartbeats sent since the last connect) before the node counts as healthy (health.settle): an update is
-confirmed, the boot-loop count cleared. A first connect proves little: a version whose loop fails 8 s later
+_HEALTHY_S = const(30)
+"""How long after boot the node must be running, its last pass without an error (and, for an update on trial,
+online with two states or heartbeats sent after the first connect's), before it counts as healthy
+(health.apply): an update is confirmed, the boot-loop count cleared. A first connect proves little: a version whose loop fails 8 s later
 was once confirmed at it, then boot-looped with its backups gone."""
 
 _OFFLINE = const(0)
@@ -118,9 +118,10 @@ class Node:
         # attributes (17 would take 17 slots, 96 B less on the unix port), and a tuple constant is heap too.
         self.uptime_s = 0  # whole seconds since boot, counted from the ticks: small int for 34 years
         self._second = self.ticks()  # the tick at which the current uptime second began
-        self.healthy_since = self._second  # the start of the loop's error-free stretch; None once settled
-        self.sent = 0  # states and heartbeats sent since the last connect
-        self.trial = cfg.get("trial", False)  # an update on trial (otaboot.boot said so): health.settle
+        # Not yet known healthy (health.apply): 2 with an update on trial (otaboot.boot said so), 1 without
+        # (the boot-loop count to clear), 0 once done. Names the firmware already has: on the 64-bit unix port
+        # its interned strings sit at the edge of a qstr pool (diagnostics.py).
+        self.trial = 2 if "trial" in cfg else 1
 
     def ticks(self) -> int:
         """The clock's tick count: an int (a small one on the board), whatever type the stubs give it."""
@@ -162,7 +163,6 @@ class Node:
         self.broker_backoff.reset()
         self.phase = _ONLINE
         self.connects += 1
-        self.sent = 0
         self.info_due_ms = now_ms  # diagnostics at once: the next iteration sends them
         print("mqtt up", self.connects)
 
@@ -213,7 +213,6 @@ class Node:
                     msg = self.logic.step(reading, now)
                     if msg is not None:
                         self.client.publish(msg[0], msg[1], msg[2], msg[3])
-                        self.sent += 1
                     elif ticks_diff(now, self.info_due_ms) >= 0:  # not in the same pass as a state: one send per feed
                         self._send_info(now)
                 cmd = self.client.poll()
@@ -248,8 +247,9 @@ class Node:
                 gc.mem_free(),
                 self.last_error,
                 self.bad_commands,
-                self.trial,
             )
+            if self.trial == 2:  # NodeInfo.trial, its last field: an update not yet confirmed (health.apply)
+                payload = payload[:-1] + ',"trial":true}'
         except MemoryError:
             self.info_due_ms = ticks_add(now_ms, _INFO_RETRY_MS)
             print("info: no heap")
@@ -265,21 +265,14 @@ class Node:
             try:
                 self.iteration()
                 self.errors = 0
-                h = self.healthy_since
-                if h is not None and ticks_diff(self.ticks(), h) >= _HEALTHY_MS:
-                    import health  # loaded for this and dropped, as command.py for a command
-                    import sys
-
-                    health.settle(self)
-                    del sys.modules["health"]
+                if self.trial and self.uptime_s >= _HEALTHY_S:
+                    __import__("health").apply(self)  # loaded for this, drops itself (no name kept here)
             except MemoryError:
                 gc.collect()
                 self.errors += 1
-                self.healthy_since = self.ticks()  # (after settling too: a late error need not be rare)
                 print("MemoryError")
             except Exception as exc:  # a bug must not kill the node silently: count it, let the WDT decide
                 self.errors += 1
-                self.healthy_since = self.ticks()
                 print("loop error:", exc)
             self.feed()
             clock.sleep_ms(_LOOP_MS)

@@ -1,6 +1,8 @@
 """A node's diagnostics message (`nodes/<node>/info`, schemas.messages.NodeInfo), written from its NodeLogic.
 
-Pure logic (MicroPython and CPython), the one writer of this payload: the board (app.py) sends it after each
+Pure logic (MicroPython and CPython), the one writer of this payload (but for `"trial":true`, NodeInfo's last
+field, which app.Node._send_info appends during an update's trial: a parameter here cost the 64-bit port's
+heap): the board (app.py) sends it after each
 connect and every INFO_PERIOD_MS; the zone simulator's emulated nodes do the same, without what only a board
 can measure (RSSI, free heap: left out). Retained, QoS 0: no PUBACK wait on the watchdog's time, and a lost one
 is replaced at the next period.
@@ -22,24 +24,16 @@ REASON_EXT_SYS_RST); anything else is `unknown` (schemas.messages.ResetCause).""
 
 
 def info(
-    logic,
-    uptime_s: int,
-    connects: int,
-    reset_cause: int,
-    rssi=None,
-    heap_free=None,
-    error=None,
-    bad_commands=0,
-    trial=False,
+    logic, uptime_s: int, connects: int, reset_cause: int, rssi=None, heap_free=None, error=None, bad_commands=0
 ) -> tuple:
     """(topic, payload str, retain, qos) of the diagnostics of `logic` (a NodeLogic: its node id and topics),
     `uptime_s` seconds since boot (seconds, not the board's wrapping ms clock: a small int for 34 years),
     `connects` broker connections since boot, `reset_cause` as `machine.reset_cause()` gives it, `error` why the
-    link last went down (an exception or text; None if it never did), `bad_commands` the commands it ignored, `trial` an update not yet confirmed (health.settle). The heartbeat period is `logic`'s, which a command may change. The caller sends them after each connect
+    link last went down (an exception or text; None if it never did), `bad_commands` the commands it ignored. The heartbeat period is `logic`'s, which a command may change. The caller sends them after each connect
     and every INFO_PERIOD_MS by its own clock. An RSSI outside -127..0 (the ESP8266 says 31 without a link) is
     left out. The error is cut to 32 characters, its quotes and backslashes made `'` and `/`. The payload's
     UTF-8 bytes are byte for byte what the model serialises (payloads.py says why it is built by hand)."""
-    payload = '{"v":1,"node":"%s","fw":"%s","reset":"%s","uptime_s":%d%s%s,"reconnects":%d%s,"heartbeat_ms":%d,"bad_commands":%d%s}' % (
+    payload = '{"v":1,"node":"%s","fw":"%s","reset":"%s","uptime_s":%d%s%s,"reconnects":%d%s,"heartbeat_ms":%d,"bad_commands":%d}' % (
         logic.node,
         FIRMWARE_VERSION,
         RESET_NAMES.split()[reset_cause if 0 <= reset_cause < 7 else 7],
@@ -53,7 +47,6 @@ def info(
         else "",
         logic.heartbeat_ms,
         bad_commands,
-        ',"trial":true' if trial else "",
     )
     topic = logic.status_topic[:-6] + "info"  # nodes/<node>/status -> nodes/<node>/info
     return (topic, payload, True, 0)

@@ -6,12 +6,12 @@ cut leaves the old state or the new one, never half of one):
 - `swap`: every new file is whole in `<name>.tmp` and hash-checked; `swap` renames them in (idempotent; here,
   not in the updater, which may be one of the files a power cut left half moved);
 - `trial`: the new files are in, the old ones kept as `<name>.bak`; the app confirms the update once it has
-  run healthy for a while, connected (health.settle renames the state `ota.ok`; the next boot removes the
+  run healthy for a while, connected (health.apply renames the state `ota.ok`; the next boot removes the
   backups). A trial that boots MAX_BOOTS times without confirming (a reset before connecting, a loop that fails
   later and starves the watchdog), or whose `import app` fails, is rolled back (`rollback`).
 Every boot with a state counts one in it: an update mode that keeps resetting (no broker, no operator tool)
 is abandoned after MAX_BOOTS and the old app runs. The app confirms a trial only once it has run healthy for a
-while (health.settle: connected, states sent, no loop error), so a version that fails later is rolled back too.
+while (health.apply: connected, states sent, no loop error), so a version that fails later is rolled back too.
 
 Outside an update, a boot after a watchdog or exception reset counts one in `LOOPS`; the app clears it once
 healthy. At MAX_BOOTS such resets in a row the app is not started: safe mode (connected, waiting for an update);
@@ -25,7 +25,7 @@ import os
 STATE = "ota.json"
 MAX_BOOTS = 3
 LOOPS = "otaboot.loops"
-"""Watchdog or exception resets in a row, outside an update (health.settle removes it)."""
+"""Watchdog or exception resets in a row, outside an update (health.apply removes it)."""
 APP_ONLY = "app payloads debounce node_logic backoff sensing diagnostics digital_sensor ultrasonic command health"
 """The app's modules that safe mode does without (it keeps mqtt and wifi; diagnostics is loaded again for its
 one `info`). One string: a tuple of ten would be ten objects on the heap of every boot."""
@@ -103,7 +103,7 @@ def swap(st, feed=None) -> None:
 
 def boot(cfg) -> None:
     """Called by main.py with the parsed config before `import app`: the backups of a confirmed update go (the
-    app confirmed it by renaming the state `ota.ok`: health.settle); then count this boot in a pending update's
+    app confirmed it by renaming the state `ota.ok`: health.apply); then count this boot in a pending update's
     state; in `fetch` or `swap` run the updater (which resets the board: never returns); a trial that has used
     its boots is rolled back; past MAX_BOOTS in update mode the update is abandoned."""
     st = load("ota.ok")
@@ -128,7 +128,8 @@ def boot(cfg) -> None:
         remove(STATE)
         return
     save(st)
-    cfg["trial"] = stage == "trial"  # the app says so in `info` until it confirms (health.settle)
+    if stage == "trial":
+        cfg["trial"] = 1  # the app says so in `info` until it confirms (health.apply)
     if stage == "swap":  # here, not in the updater: a swap cut short may have moved updater.mpy out
         swap(st)
         import machine
