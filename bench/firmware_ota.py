@@ -82,12 +82,13 @@ class ZoneLoad:
             client.disconnect()
 
 
-def one_update(bus: MqttBus, update: Update, timeout_s: float = 300.0) -> tuple[float, float]:
-    """(command to confirmed info, first request to last byte) in seconds, for one update of NODE."""
+def one_update(bus: MqttBus, update: Update, key: str, timeout_s: float = 300.0) -> tuple[float, float]:
+    """(command to confirmed info, first request to last byte) in seconds, for one update of NODE, signed with
+    NODE's update `key` as `wsnav firmware ota` signs it."""
     server = OtaServer(bus, SITE.name, update, [NODE], say=lambda _line: None)
     server.subscribe()  # again each run: the bus keeps one subscription per filter
     time.sleep(0.5)  # in place before the node can ask
-    pub = node_command(load_site(SITE), NODE, "update", manifest=update.digest)
+    pub = node_command(load_site(SITE), NODE, "update", manifest=update.signature(key))
     t0 = time.monotonic()
     if not bus.publish_confirmed(pub.topic, pub.payload):
         raise SystemExit("firmware_ota: the broker did not confirm the update command")
@@ -160,6 +161,8 @@ def main() -> None:
         (tmp / "pins").mkdir()
         board = UnixBoard(fs, stubs, tmp / "serial.log", tmp / "pins")
         op = Credentials.model_validate_json((creds / "operator.json").read_text())
+        node_key = NodeConfig.model_validate_json((creds / f"{NODE}.json").read_text()).update_key
+        assert node_key is not None  # wsnav broker credentials writes one for every node
         bus = MqttBus(
             broker.host,
             broker.port,
@@ -177,7 +180,7 @@ def main() -> None:
                     load.start()
                     time.sleep(2)
                 try:
-                    result = one_update(bus, updates[(k + 1) % 2])
+                    result = one_update(bus, updates[(k + 1) % 2], node_key)
                 finally:
                     if load is not None:
                         load.stop()

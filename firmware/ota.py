@@ -2,10 +2,11 @@
 
 The update is the build's `.mpy` modules (never main.py, boot.py or otaboot.mpy: schemas OTA_BOOT_FILES) and a
 manifest naming them with their sizes and sha256 (schemas.messages.OtaManifest). Each node gets an `update`
-command carrying the manifest's sha256, reboots into update mode and pulls the manifest and the files chunk by
-chunk (`nodes/<node>/ota/request` -> `nodes/<node>/ota/chunk`): `OtaServer` answers every request, whichever
+command carrying the manifest's HMAC-SHA256 under that node's update key (`Update.signature`), reboots into
+update mode and pulls the manifest and the files chunk by chunk (`nodes/<node>/ota/request` ->
+`nodes/<node>/ota/chunk`): `OtaServer` answers every request, whichever
 node and whenever it comes (a node that lost power mid-transfer starts again), and follows each node until its
-`info` says the new version confirmed (done: the node ran it healthy for a while, health.settle; an `info`
+`info` says the new version confirmed (done: the node ran it healthy for a while, health.apply; an `info`
 with `trial` is only a start) or says why not (failed: an error, or the old version back after a rollback).
 """
 
@@ -23,6 +24,7 @@ from wsnav.firmware.build import DEVICE, build
 from wsnav.runtime.bus import Message
 from wsnav.runtime.mqtt_bus import MqttBus
 from wsnav.schemas import topics
+from wsnav.schemas.credentials import sign_manifest
 from wsnav.schemas.messages import (
     OTA_BOOT_FILES,
     OTA_CHUNK_BYTES,
@@ -36,6 +38,15 @@ from wsnav.schemas.messages import (
 )
 
 _VERSION = re.compile(r'^FIRMWARE_VERSION = "([^"]+)"$', re.MULTILINE)
+
+
+FAT_REFUSED = "ota: FAT filesystem"
+"""What a node's `info` says when its updater found FAT (device/fscheck.py)."""
+FAT_ADVICE = (
+    "its flash is FAT, where a power cut mid-update can leave it unreadable: back up config.json, "
+    "`wsnav firmware flash` (erases; MicroPython 1.13+ makes littlefs), then `wsnav firmware deploy` over USB"
+)
+"""Also deploy's (firmware/deploy.py), which refuses FAT for the same reason."""
 
 
 class OtaError(Exception):
@@ -54,6 +65,11 @@ class Update:
         import hashlib
 
         return hashlib.sha256(self.payloads[0]).hexdigest()
+
+    def signature(self, node_key: str) -> str:
+        """The `update` command's `manifest` for the node whose update key is `node_key`: the manifest signed
+        (schemas.credentials.sign_manifest), which its updater checks before it takes any file."""
+        return sign_manifest(node_key, self.payloads[0])
 
     @property
     def total(self) -> int:
@@ -196,6 +212,8 @@ class OtaServer:
         version = self.update.manifest.version
         if info.error is not None and info.error.startswith(("ota:", "safe:")):
             prog.error = f"{prog.node}: update failed: {info.error}"
+            if info.error == FAT_REFUSED:
+                prog.error += f" ({FAT_ADVICE})"
         elif info.fw == version and info.trial:
             if not prog.trial:
                 prog.trial = True

@@ -91,6 +91,39 @@ class SiteBroker:
         self._proc = None
 
 
+def flashbdev_source(vfs: str) -> str:
+    """A `flashbdev.py` for a board's filesystem folder: what the ESP8266 port's frozen module gives (`bdev`, the
+    flash's block device, 4 KiB blocks) on a RAM block device that MicroPython's own `os.<vfs>.mkfs` formats
+    (`VfsFat`: a board upgraded from before 1.13 without an erase; `VfsLfs2`: the default since), so that
+    device/fscheck.py reads a real filesystem's first block. The flash chip is the boundary faked here."""
+    return f"""import os
+
+
+class _Ram:
+    def __init__(self, blocks):
+        self.data = bytearray(blocks * 4096)
+
+    def readblocks(self, n, buf, off=0):
+        start = n * 4096 + off
+        buf[:] = self.data[start : start + len(buf)]
+
+    def writeblocks(self, n, buf, off=0):
+        start = n * 4096 + (off or 0)
+        self.data[start : start + len(buf)] = buf
+
+    def ioctl(self, op, arg):
+        if op == 4:
+            return len(self.data) // 4096
+        if op == 5:
+            return 4096
+        return 0
+
+
+bdev = _Ram(64)
+os.{vfs}.mkfs(bdev)
+"""
+
+
 def write_credentials(site: Path, out: Path) -> None:
     """`wsnav broker credentials --site SITE --out OUT`, the command installers run."""
     cmd = [sys.executable, "-m", "wsnav.cli", "broker", "credentials", "--site", str(site), "--out", str(out)]

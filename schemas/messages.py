@@ -139,7 +139,8 @@ class NodeCommand(_Message):
 
     `restart`: the node publishes `offline`, disconnects and resets; `send_info`: it publishes its `info` at
     once; `set_heartbeat`: its heartbeat period becomes `heartbeat_s` until it restarts (reported in `info`);
-    `update`: it reboots into update mode and fetches the OtaManifest whose sha256 is `manifest`, then its files
+    `update`: it reboots into update mode and fetches the OtaManifest whose HMAC-SHA256 under the node's update key
+    (schemas.credentials.sign_manifest) is `manifest`, then its files
     (over-the-air update, docs/firmware-esp8266.md). `id` is the sender's, random per command: the node applies a
     command once even if QoS 1 delivers it again. The whole payload stays under 128 bytes, what the node's MQTT
     client hands over (an `update` takes 120 at most)."""

@@ -30,6 +30,7 @@ from wsnav.firmware.testing import (
     NodeProcess,
     SiteBroker,
     build_for_host,
+    flashbdev_source,
     micropython_env,
     micropython_exe,
     versioned_sources,
@@ -37,7 +38,7 @@ from wsnav.firmware.testing import (
 )
 from wsnav.firmware.unix_board import UnixBoard
 from wsnav.runtime.mqtt_bus import MqttBus
-from wsnav.schemas.credentials import Credentials, NodeConfig
+from wsnav.schemas.credentials import UPDATE_KEY_FILE, Credentials, NodeConfig, node_update_key
 from wsnav.schemas.messages import NodeInfo
 
 pytestmark = pytest.mark.slow
@@ -206,9 +207,19 @@ def finish(proc: subprocess.Popen[str]) -> tuple[int, str, str]:
     return proc.returncode, out, err
 
 
-def serve(broker: SiteBroker, creds: Path, update: Update, command: bool = True) -> list[str]:
+def node_key(creds: Path) -> str:
+    """NODE's update key, as `wsnav broker credentials` wrote it into its config."""
+    key = NodeConfig.model_validate_json((creds / f"{NODE}.json").read_text()).update_key
+    assert key is not None
+    return key
+
+
+def serve(
+    broker: SiteBroker, creds: Path, update: Update, command: bool = True, manifest: str | None = None
+) -> list[str]:
     """firmware.ota.OtaServer in this process, as the operator: `update` served to NODE until it ends; with
-    `command`, the `update` command sent first. Returns the failures."""
+    `command`, the `update` command sent first, carrying `manifest` (default: the manifest signed with NODE's
+    key, as `wsnav firmware ota` sends it). Returns the failures."""
     from wsnav.console.operator_commands import node_command
     from wsnav.schemas.site import load_site
 
@@ -220,7 +231,8 @@ def serve(broker: SiteBroker, creds: Path, update: Update, command: bool = True)
         server = OtaServer(bus, SITE, update, [NODE], say=lambda _line: None)
         server.subscribe()
         if command:
-            pub = node_command(load_site(SITE_DIR), NODE, "update", manifest=update.digest)
+            signed = manifest or update.signature(node_key(creds))
+            pub = node_command(load_site(SITE_DIR), NODE, "update", manifest=signed)
             assert bus.publish_confirmed(pub.topic, pub.payload)
         return server.run(WAIT)
     finally:
@@ -274,6 +286,78 @@ def test_a_corrupted_file_is_refused_and_the_old_version_keeps_running(
     assert infos.wait(lambda i: i.fw == OLD and i.uptime_s < 30 and i.error is None, WAIT)
     assert board.leftovers() == []
     assert (board.fs / "app.mpy").read_bytes() == (fw[f"{OLD}-build"] / "app.mpy").read_bytes()
+
+
+@pytest.mark.parametrize("signed_with", ["nothing", "another key", "the site's key"])
+def test_an_update_not_signed_with_the_nodes_key_is_refused(
+    fw, creds, broker, infos, board_of, tmp_path: Path, signed_with: str
+) -> None:
+    """Whoever holds the operator's password can send an `update`, but the node takes only a manifest signed
+    with its own key: a bare sha256, another site's key or the site's key itself (not the node's derived one)
+    are refused before any file is fetched, and the old version keeps running."""
+    board = board_of(OLD)
+    infos.wait(lambda i: i.fw == OLD)
+    update = make_update(tmp_path / "build", fw[NEW])
+    site_key = (creds / UPDATE_KEY_FILE).read_text().strip()
+    manifest = {
+        "nothing": update.digest,
+        "another key": update.signature(node_update_key("0" * 64, NODE)),
+        "the site's key": update.signature(site_key),
+    }[signed_with]
+    failures = serve(broker, creds, update, manifest=manifest)
+    assert failures == [f"{NODE}: update failed: ota: bad signature"], board.serial()[-3000:]
+    assert "ota: got" not in board.serial()  # not one file taken
+    board.wait_serial("mqtt up")
+    assert infos.wait(lambda i: i.fw == OLD and i.uptime_s < 30 and i.error is None)
+    assert board.leftovers() == []
+    assert (board.fs / "app.mpy").read_bytes() == (fw[f"{OLD}-build"] / "app.mpy").read_bytes()
+
+
+def test_an_update_to_a_board_whose_flash_is_fat_is_refused(fw, creds, broker, infos, board_of) -> None:
+    """The swap renames files over old ones, which a power cut can leave unreadable on FAT: a board whose flash
+    is FAT (a real FAT made by MicroPython's VfsFat on a RAM block device as its `flashbdev`) refuses before
+    fetching anything, and `wsnav firmware ota` says why and what to do."""
+    board = board_of(OLD)
+    infos.wait(lambda i: i.fw == OLD)
+    (board.fs / "flashbdev.py").write_text(flashbdev_source("VfsFat"))
+    code, out, err = finish(ota_cli(fw, creds, broker, NEW))
+    assert code == 1, (out, err, board.serial()[-3000:])
+    assert f"{NODE}: update failed: ota: FAT filesystem (its flash is FAT, where a power cut" in err, err
+    assert "ota: got" not in board.serial()
+    assert board.leftovers() == []
+    assert infos.wait(lambda i: i.fw == OLD and i.error is None)
+    assert (board.fs / "app.mpy").read_bytes() == (fw[f"{OLD}-build"] / "app.mpy").read_bytes()
+
+
+def test_a_node_without_an_update_key_takes_no_update(
+    fw, creds, broker, infos, board_of, tmp_path: Path
+) -> None:
+    board = board_of(OLD)
+    infos.wait(lambda i: i.fw == OLD)
+    config = json.loads((board.fs / "config.json").read_text())
+    del config["update_key"]
+    (board.fs / "config.json").write_text(json.dumps(config))  # as deployed before update keys existed
+    failures = serve(broker, creds, make_update(tmp_path / "build", fw[NEW]))
+    assert failures == [f"{NODE}: update failed: ota: no update key"]
+    assert board.leftovers() == []
+    assert infos.wait(lambda i: i.fw == OLD and i.error is None)
+
+
+def test_ota_without_the_sites_update_key_is_one_line(fw, creds, broker, tmp_path: Path) -> None:
+    op = tmp_path / "op"
+    op.mkdir()
+    shutil.copyfile(creds / "operator.json", op / "operator.json")  # the operator's login, not the update key
+    cmd = [
+        *(sys.executable, "-m", "wsnav.cli", "firmware", "ota"),
+        *("--site", str(SITE_DIR), "--broker", f"{broker.host}:{broker.port}"),
+        *("--credentials", str(op / "operator.json"), "--nodes", NODE, "--source", str(fw[NEW])),
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=WAIT)
+    assert proc.returncode == 2, proc
+    assert proc.stderr.strip().splitlines() == [
+        f"wsnav: error: {op / UPDATE_KEY_FILE}: cannot read the site's update key (No such file or directory); "
+        "wsnav broker credentials makes it"
+    ], proc.stderr
 
 
 def test_a_new_app_that_fails_to_import_is_rolled_back(fw, creds, broker, infos, board_of) -> None:
