@@ -169,7 +169,7 @@ class OtaServer:
         prog = self.progress[parsed.node]
         if parsed.kind == "node_ota_request":
             self._serve(prog, msg.payload)
-        elif parsed.kind == "node_info" and not msg.retain and prog.started and not prog.done:
+        elif parsed.kind == "node_info" and not msg.retain and not prog.done:
             self._info(prog, msg.payload)
 
     def _serve(self, prog: NodeProgress, payload: bytes) -> None:
@@ -210,6 +210,9 @@ class OtaServer:
         except PayloadError:
             return
         version = self.update.manifest.version
+        refused = info.error is not None and info.error.startswith("ota:")
+        if not prog.started and not refused:
+            return  # its infos before it asked for anything say nothing of this update
         if info.error is not None and info.error.startswith(("ota:", "safe:")):
             prog.error = f"{prog.node}: update failed: {info.error}"
             if info.error == FAT_REFUSED:

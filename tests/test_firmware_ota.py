@@ -30,7 +30,7 @@ from wsnav.firmware.testing import (
     NodeProcess,
     SiteBroker,
     build_for_host,
-    flashbdev_source,
+    fake_flash,
     micropython_env,
     micropython_exe,
     versioned_sources,
@@ -315,11 +315,11 @@ def test_an_update_not_signed_with_the_nodes_key_is_refused(
 
 def test_an_update_to_a_board_whose_flash_is_fat_is_refused(fw, creds, broker, infos, board_of) -> None:
     """The swap renames files over old ones, which a power cut can leave unreadable on FAT: a board whose flash
-    is FAT (a real FAT made by MicroPython's VfsFat on a RAM block device as its `flashbdev`) refuses before
+    is FAT (its `flashbdev` reads an image MicroPython's VfsFat formatted: testing.fake_flash) refuses before
     fetching anything, and `wsnav firmware ota` says why and what to do."""
     board = board_of(OLD)
     infos.wait(lambda i: i.fw == OLD)
-    (board.fs / "flashbdev.py").write_text(flashbdev_source("VfsFat"))
+    fake_flash(board.fs, "VfsFat")
     code, out, err = finish(ota_cli(fw, creds, broker, NEW))
     assert code == 1, (out, err, board.serial()[-3000:])
     assert f"{NODE}: update failed: ota: FAT filesystem (its flash is FAT, where a power cut" in err, err
@@ -343,13 +343,14 @@ def test_a_node_without_an_update_key_takes_no_update(
     assert infos.wait(lambda i: i.fw == OLD and i.error is None)
 
 
-def test_ota_without_the_sites_update_key_is_one_line(fw, creds, broker, tmp_path: Path) -> None:
+def test_ota_without_the_sites_update_key_is_one_line(fw, creds, tmp_path: Path) -> None:
+    """Refused before it connects (no broker here) or sends anything."""
     op = tmp_path / "op"
     op.mkdir()
     shutil.copyfile(creds / "operator.json", op / "operator.json")  # the operator's login, not the update key
     cmd = [
         *(sys.executable, "-m", "wsnav.cli", "firmware", "ota"),
-        *("--site", str(SITE_DIR), "--broker", f"{broker.host}:{broker.port}"),
+        *("--site", str(SITE_DIR), "--broker", "127.0.0.1:1"),
         *("--credentials", str(op / "operator.json"), "--nodes", NODE, "--source", str(fw[NEW])),
     ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=WAIT)

@@ -31,7 +31,7 @@ from wsnav.firmware.testing import (
     DEVICE,
     SiteBroker,
     build_for_host,
-    flashbdev_source,
+    fake_flash,
     write_credentials,
 )
 from wsnav.firmware.unix_board import CHUNK, WDT_TIMEOUT_S, UnixBoard
@@ -223,10 +223,10 @@ def test_the_first_deploy_on_a_fresh_board(
 def test_deploy_refuses_a_board_whose_flash_is_fat_before_touching_anything(
     board: FlakyLine, new_files: dict[str, Path], vfs: str
 ) -> None:
-    """The board's flash as MicroPython's VfsFat or VfsLfs2 formats it (a RAM block device as its `flashbdev`):
+    """The board's flash as MicroPython's VfsFat or VfsLfs2 formats it (testing.fake_flash, read by `flashbdev`):
     on FAT, renaming files in is not power-cut safe, so the deploy stops with one line and copies nothing; on
     littlefs it goes ahead."""
-    (board.fs / "flashbdev.py").write_text(flashbdev_source(vfs))
+    fake_flash(board.fs, vfs)
     if vfs == "VfsFat":
         with pytest.raises(DeployError, match=r"^board: its flash is FAT, .* `wsnav firmware flash`"):
             Deployer(board).deploy(new_files)
