@@ -1,7 +1,7 @@
 """`wsnav firmware ota`: over-the-air app updates, the operator's side (the node's: device/updater.py).
 
-The update is the build's `.mpy` modules (never main.py, boot.py or otaboot.mpy: schemas OTA_BOOT_FILES) and a
-manifest naming them with their sizes and sha256 (schemas.messages.OtaManifest). Each node gets an `update`
+The update is the build's `.mpy` modules (never main.py, boot.py, otaboot.mpy or nodeconfig.mpy: schemas
+OTA_BOOT_FILES) and a manifest naming them with their sizes and sha256 (schemas.messages.OtaManifest). Each node gets an `update`
 command carrying the manifest's HMAC-SHA256 under that node's update key (`Update.signature`), reboots into
 update mode and pulls the manifest and the files chunk by chunk (`nodes/<node>/ota/request` ->
 `nodes/<node>/ota/chunk`): `OtaServer` answers every request, whichever

@@ -169,9 +169,11 @@ OTA_MAX_MANIFEST_BYTES = 3072
 """What the node accepts: a manifest it can parse in update mode, files it can hold (the app is ~13 KB)."""
 OTA_FILE_NAME = r"^[a-z][a-z0-9_]{0,23}\.mpy$"
 """Bytecode modules of the app in the board's root folder: no path, no `..`, never main.py or boot.py."""
-OTA_BOOT_FILES = ("otaboot.mpy",)
+OTA_BOOT_FILES = ("otaboot.mpy", "nodeconfig.mpy")
 """Built modules an update never replaces: main.py's boot decisions (trial boots, rollback) and safe mode rely on
-them; they change only with a deploy over USB (firmware/deploy.py)."""
+them; they change only with a deploy over USB (firmware/deploy.py). nodeconfig too: main.py imports it before
+otaboot can finish a swap that a power cut interrupted, so a half-moved nodeconfig.mpy (old in .bak, new in
+.tmp) would stop the board at its REPL."""
 OTA_CHUNK_HEADER = struct.Struct(">HII")
 """A chunk's binary header (`nodes/<node>/ota/chunk`): file index (0: the manifest, i: its i-th file), offset,
 the file's whole size; then the bytes."""

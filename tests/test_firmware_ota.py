@@ -39,7 +39,7 @@ from wsnav.firmware.testing import (
 from wsnav.firmware.unix_board import UnixBoard
 from wsnav.runtime.mqtt_bus import MqttBus
 from wsnav.schemas.credentials import UPDATE_KEY_FILE, Credentials, NodeConfig, node_update_key
-from wsnav.schemas.messages import NodeInfo
+from wsnav.schemas.messages import OTA_BOOT_FILES, NodeInfo
 
 pytestmark = pytest.mark.slow
 
@@ -248,7 +248,10 @@ def test_an_update_runs_the_new_version_and_leaves_no_backup(fw, creds, broker, 
     assert infos.wait(lambda i: i.fw == NEW).error is None
     board.wait_confirmed()
     kept = sorted(
-        ["ota.ok", *(f"{p.name}.bak" for p in fw[f"{OLD}-build"].glob("*.mpy") if p.name != "otaboot.mpy")]
+        [
+            "ota.ok",
+            *(f"{p.name}.bak" for p in fw[f"{OLD}-build"].glob("*.mpy") if p.name not in OTA_BOOT_FILES),
+        ]
     )
     assert board.leftovers() == kept, board.leftovers()  # the old version, until the next boot
     assert (board.fs / "app.mpy").read_bytes() == (fw[f"{NEW}-build"] / "app.mpy").read_bytes()
@@ -475,7 +478,8 @@ def test_update_mode_and_the_trial_boot_fit_the_boards_38_kib_heap(
     `update` command's ota.json: update mode fetches and swaps, then the trial boot runs the new app."""
     update = make_update(tmp_path / "build", fw[NEW])
     b = Board(fw, OLD, creds, broker, tmp_path)
-    (b.fs / "ota.json").write_text(json.dumps({"stage": "fetch", "manifest": update.digest, "boots": 0}))
+    signed = update.signature(node_key(creds))  # as the `update` command carries it
+    (b.fs / "ota.json").write_text(json.dumps({"stage": "fetch", "manifest": signed, "boots": 0}))
     failures: list[list[str]] = []
     server = threading.Thread(target=lambda: failures.append(serve(broker, creds, update, command=False)))
     server.start()

@@ -208,6 +208,7 @@ class Fetcher(Link):
                 or "/" in name
                 or name.startswith(".")
                 or name == "otaboot.mpy"
+                or name == "nodeconfig.mpy"  # schemas OTA_BOOT_FILES
                 or type(size) is not int
             ):
                 raise OtaAbort("manifest")
