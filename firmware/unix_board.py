@@ -73,7 +73,8 @@ class _Boot:
         self.last_feed = time.monotonic()
         self.killed_by_wdt = False
         self._log = log.open("ab")
-        threading.Thread(target=self._read_serial, daemon=True).start()
+        self._reader = threading.Thread(target=self._read_serial, daemon=True)
+        self._reader.start()
         threading.Thread(target=self._read_wdt, args=(rfd,), daemon=True).start()
 
     def _read_serial(self) -> None:
@@ -126,6 +127,9 @@ class _Boot:
         if self.alive():
             self.proc.kill()
         self.proc.wait(timeout=30)
+        # The last output read and logged (the reader ends at the pipe's end), then the log closes: closed first,
+        # a late write raised in the reader ("write to closed file").
+        self._reader.join(5)
         self._log.close()
 
 
