@@ -82,12 +82,13 @@ class ZoneLoad:
             client.disconnect()
 
 
-def one_update(bus: MqttBus, update: Update, timeout_s: float = 300.0) -> tuple[float, float]:
-    """(command to confirmed info, first request to last byte) in seconds, for one update of NODE."""
+def one_update(bus: MqttBus, update: Update, key: str, timeout_s: float = 300.0) -> tuple[float, float]:
+    """(command to confirmed info, first request to last byte) in seconds, for one update of NODE, signed with
+    NODE's update `key` as `wsnav firmware ota` signs it."""
     server = OtaServer(bus, SITE.name, update, [NODE], say=lambda _line: None)
     server.subscribe()  # again each run: the bus keeps one subscription per filter
     time.sleep(0.5)  # in place before the node can ask
-    pub = node_command(load_site(SITE), NODE, "update", manifest=update.digest)
+    pub = node_command(load_site(SITE), NODE, "update", manifest=update.signature(key))
     t0 = time.monotonic()
     if not bus.publish_confirmed(pub.topic, pub.payload):
         raise SystemExit("firmware_ota: the broker did not confirm the update command")
@@ -160,6 +161,8 @@ def main() -> None:
         (tmp / "pins").mkdir()
         board = UnixBoard(fs, stubs, tmp / "serial.log", tmp / "pins")
         op = Credentials.model_validate_json((creds / "operator.json").read_text())
+        node_key = NodeConfig.model_validate_json((creds / f"{NODE}.json").read_text()).update_key
+        assert node_key is not None  # wsnav broker credentials writes one for every node
         bus = MqttBus(
             broker.host,
             broker.port,
@@ -177,7 +180,7 @@ def main() -> None:
                     load.start()
                     time.sleep(2)
                 try:
-                    result = one_update(bus, updates[(k + 1) % 2])
+                    result = one_update(bus, updates[(k + 1) % 2], node_key)
                 finally:
                     if load is not None:
                         load.stop()
@@ -214,13 +217,16 @@ def main() -> None:
         f"(`wsnav firmware ota`'s, firmware/ota.py), median of {args.runs} runs per broker. The node is the "
         "MicroPython unix port (firmware/unix_board.py), updated through `wsnav broker run` on this machine: the "
         "numbers are the protocol's and the broker's, not an ESP8266's, whose Wi-Fi round trips and flash "
-        "writes add to every chunk. `command to new version` counts the reboot into update mode, the transfer, "
-        "the swap, the trial boot and its first connect.\n\n"
+        "writes add to every chunk. `command to new version confirmed` counts the reboot into update mode, the "
+        "transfer, the swap, the trial boot, its first connect, and the healthy period the node runs before it "
+        "confirms (30 s after boot and two states sent: app._HEALTHY_S, health.py), which `wsnav firmware ota` "
+        "waits for.\n\n"
         + "\n".join(table)
         + "\n\nHeap, on MicroPython's WebAssembly port (32-bit: the ESP8266's object sizes; bench/wasm_port, "
         "setup_heap.mjs): the node in normal operation does not load the updater; update mode loads only the "
         "updater, the MQTT client and Wi-Fi (otaboot.py stays loaded under them), and its peak holds the parsed "
-        "manifest's file list, a chunk in the client's buffer, the sha256 and the open `.tmp` file. The board's boot (`_boot.py`, about 1.2 KB, "
+        "manifest's file list, a chunk in the client's buffer, the sha256 and the open `.tmp` file (the update key, "
+        "64 bytes, is held only while the manifest is checked, before that). The board's boot (`_boot.py`, about 1.2 KB, "
         "BENCHMARKS.md's firmware heap section) is not taken off.\n\n"
         + "\n".join(heap_table)
         + f"\n\nReproduce: `{COMMAND}` (`--runs N`, `--baseline REF`; needs Node.js and npm for the heap rows)."

@@ -1,4 +1,5 @@
-"""The credentials folder: one `<id>.json` per node, robot and the operator, plus the broker's password file.
+"""The credentials folder: one `<id>.json` per node, robot and the operator, plus the broker's password file
+and the site's update key (`update.key`: each node's config holds the key derived from it for its id).
 
 Secrets are generated once and then kept: a rerun reuses every existing password (so deployed nodes keep
 working), gives new ids new passwords, refreshes the site-derived fields of node configs (zone, sensor,
@@ -20,12 +21,14 @@ from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatc
 from pydantic import ValidationError
 
 from wsnav.schemas.credentials import (
+    UPDATE_KEY_FILE,
     BrokerAddress,
     Credentials,
     CredentialsError,
     NodeConfig,
     WifiConfig,
     load_credentials,
+    node_update_key,
     read_json_object,
 )
 from wsnav.schemas.site_file import SiteFile
@@ -82,6 +85,7 @@ def write_credentials(
     The ids in `renew` get new passwords (revocation: the old ones stop working).
     """
     secure_dir(out)
+    site_key = _site_update_key(out / UPDATE_KEY_FILE)
     existing = {p.stem: p for p in out.glob("*.json")}
     report = CredentialsReport()
     passwords: dict[str, str] = {}
@@ -112,6 +116,7 @@ def write_credentials(
                 off_delay_ms=node.off_delay_ms,
                 keepalive_s=keepalive_s,
                 wifi=wifi,
+                update_key=node_update_key(site_key, ident),
             )
         else:
             role = "robot" if ident in robot_ids else "dashboard" if ident == DASHBOARD else "operator"
@@ -122,6 +127,22 @@ def write_credentials(
     report.stale = sorted(name for name in existing if name not in passwords)
     write_password_file(out / PASSWORD_FILE, passwords)
     return report
+
+
+def _site_update_key(path: Path) -> str:
+    """The site's update key (schemas.credentials.UPDATE_KEY_FILE), made once and kept: every node's key derives
+    from it, so a new one would lock deployed nodes out of updates over the air until redeployed by USB."""
+    if path.exists():
+        try:
+            key = path.read_text().strip()
+        except OSError as exc:
+            raise CredentialsError(f"{path}: cannot read: {exc.strerror}") from None
+        if len(key) != 64 or any(c not in "0123456789abcdef" for c in key):
+            raise CredentialsError(f"{path}: not an update key (64 hex digits); restore it from a backup")
+        return key
+    key = secrets.token_hex(32)
+    write_private(path, key + "\n")
+    return key
 
 
 def write_password_file(path: Path, passwords: dict[str, str]) -> None:

@@ -2,7 +2,8 @@
 
 Deploy updates a node safely, whether it runs or not (docs/firmware-esp8266.md, "Updating a node"):
 1. maintenance mode: the node's loop is stopped (Ctrl-C) and `device/maintenance.py` is run at its REPL, which
-   keeps feeding the ESP8266's watchdog (it cannot be stopped) for as long as the host keeps asking;
+   keeps feeding the ESP8266's watchdog (it cannot be stopped) for as long as the host keeps asking; a board
+   whose MicroPython cannot load our files, or whose flash is FAT (`device/fscheck.py`), is refused there;
 2. stale `.py` copies of the modules are deleted (MicroPython imports `app.py` before `app.mpy`, so a forgotten
    source file would silently shadow the new build), and leftover `.tmp` files of an interrupted deploy;
 3. each file whose sha256 on the board differs from the host's is copied under a temporary name, its hash
@@ -28,9 +29,11 @@ from pydantic import ValidationError
 
 from wsnav.firmware.board import Board, BoardError, MpremoteBoard
 from wsnav.firmware.build import DEVICE, REPL_ONLY, SOURCE_ONLY, tool_path
+from wsnav.firmware.ota import FAT_ADVICE
 from wsnav.schemas.credentials import NodeConfig
 
 MAINTENANCE = DEVICE / "maintenance.py"
+FSCHECK = DEVICE / "fscheck.py"
 HOLD_MS = 300_000
 """How long the board stays in maintenance after the host's last command (then its watchdog resets it)."""
 FLASH_BAUD = 460800
@@ -170,6 +173,16 @@ class Deployer:
             f"maintenance mode (the board's watchdog is fed for {self.hold_ms // 1000} s after each step)"
         )
         self.check_mpy()
+        self.check_fs()
+
+    def check_fs(self) -> None:
+        """Refuse a board whose flash is FAT (device/fscheck.py, its text run here: the board may have none of
+        our files yet) before anything on it is touched: renaming files in is not power-cut safe on FAT."""
+        out = self._run(FSCHECK.read_text() + "\nprint('wsnav-fs', 'fat' if fat() else 'ok')\ndel fat")
+        if "wsnav-fs fat" in out:
+            raise DeployError(f"board: {FAT_ADVICE}")
+        if "wsnav-fs ok" not in out:
+            raise DeployError(f"board: cannot tell its filesystem ({out.strip()[-80:]})")
 
     def check_mpy(self) -> None:
         """Refuse a board whose MicroPython cannot load our .mpy files (another .mpy version: older than 1.19,

@@ -1,11 +1,13 @@
 """`wsnav firmware ota`: over-the-air app updates, the operator's side (the node's: device/updater.py).
 
-The update is the build's `.mpy` modules (never main.py, boot.py or otaboot.mpy: schemas OTA_BOOT_FILES) and a
-manifest naming them with their sizes and sha256 (schemas.messages.OtaManifest). Each node gets an `update`
-command carrying the manifest's sha256, reboots into update mode and pulls the manifest and the files chunk by
-chunk (`nodes/<node>/ota/request` -> `nodes/<node>/ota/chunk`): `OtaServer` answers every request, whichever
+The update is the build's `.mpy` modules (never main.py, boot.py, otaboot.mpy or nodeconfig.mpy: schemas
+OTA_BOOT_FILES) and a manifest naming them with their sizes and sha256 (schemas.messages.OtaManifest). Each node gets an `update`
+command carrying the manifest's HMAC-SHA256 under that node's update key (`Update.signature`), reboots into
+update mode and pulls the manifest and the files chunk by chunk (`nodes/<node>/ota/request` ->
+`nodes/<node>/ota/chunk`): `OtaServer` answers every request, whichever
 node and whenever it comes (a node that lost power mid-transfer starts again), and follows each node until its
-`info` says the new version (done) or says why not (failed).
+`info` says the new version confirmed (done: the node ran it healthy for a while, health.apply; an `info`
+with `trial` is only a start) or says why not (failed: an error, or the old version back after a rollback).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from wsnav.firmware.build import DEVICE, build
 from wsnav.runtime.bus import Message
 from wsnav.runtime.mqtt_bus import MqttBus
 from wsnav.schemas import topics
+from wsnav.schemas.credentials import sign_manifest
 from wsnav.schemas.messages import (
     OTA_BOOT_FILES,
     OTA_CHUNK_BYTES,
@@ -35,6 +38,15 @@ from wsnav.schemas.messages import (
 )
 
 _VERSION = re.compile(r'^FIRMWARE_VERSION = "([^"]+)"$', re.MULTILINE)
+
+
+FAT_REFUSED = "ota: FAT filesystem"
+"""What a node's `info` says when its updater found FAT (device/fscheck.py)."""
+FAT_ADVICE = (
+    "its flash is FAT, where a power cut mid-update can leave it unreadable: back up config.json, "
+    "`wsnav firmware flash` (erases; MicroPython 1.13+ makes littlefs), then `wsnav firmware deploy` over USB"
+)
+"""Also deploy's (firmware/deploy.py), which refuses FAT for the same reason."""
 
 
 class OtaError(Exception):
@@ -53,6 +65,11 @@ class Update:
         import hashlib
 
         return hashlib.sha256(self.payloads[0]).hexdigest()
+
+    def signature(self, node_key: str) -> str:
+        """The `update` command's `manifest` for the node whose update key is `node_key`: the manifest signed
+        (schemas.credentials.sign_manifest), which its updater checks before it takes any file."""
+        return sign_manifest(node_key, self.payloads[0])
 
     @property
     def total(self) -> int:
@@ -104,6 +121,8 @@ class NodeProgress:
     node: str
     started: bool = False
     """It asked for a chunk: an `info` from now on tells how the update went."""
+    trial: bool = False
+    """Its new version runs on trial: not done until an `info` without `trial` (the node's health confirmed it)."""
     done: bool = False
     error: str | None = None
     served: int = 0
@@ -150,7 +169,7 @@ class OtaServer:
         prog = self.progress[parsed.node]
         if parsed.kind == "node_ota_request":
             self._serve(prog, msg.payload)
-        elif parsed.kind == "node_info" and not msg.retain and prog.started and not prog.done:
+        elif parsed.kind == "node_info" and not msg.retain and not prog.done:
             self._info(prog, msg.payload)
 
     def _serve(self, prog: NodeProgress, payload: bytes) -> None:
@@ -191,11 +210,20 @@ class OtaServer:
         except PayloadError:
             return
         version = self.update.manifest.version
+        refused = info.error is not None and info.error.startswith("ota:")
+        if not prog.started and not refused:
+            return  # its infos before it asked for anything say nothing of this update
         if info.error is not None and info.error.startswith(("ota:", "safe:")):
             prog.error = f"{prog.node}: update failed: {info.error}"
+            if info.error == FAT_REFUSED:
+                prog.error += f" ({FAT_ADVICE})"
+        elif info.fw == version and info.trial:
+            if not prog.trial:
+                prog.trial = True
+                self.say(f"{prog.node}: running {version} on trial, waiting for it to confirm")
         elif info.fw == version:
             prog.done = True
-            self.say(f"{prog.node}: running {version}")
+            self.say(f"{prog.node}: running {version}, confirmed")
         else:
             prog.error = f"{prog.node}: came back on {info.fw}, not {version} (the update was abandoned or rolled back)"
         if prog.error is not None:
@@ -211,7 +239,11 @@ class OtaServer:
         failures = [p.error for p in self.progress.values() if p.error is not None]
         for p in self.pending():
             where = (
-                f"stopped at {p.served}/{self.update.total} B" if p.started else "never asked for the update"
+                "running it on trial, never confirmed"
+                if p.trial
+                else f"stopped at {p.served}/{self.update.total} B"
+                if p.started
+                else "never asked for the update"
             )
             failures.append(f"{p.node}: not confirmed within {timeout_s:g} s ({where})")
         return failures

@@ -91,6 +91,39 @@ class SiteBroker:
         self._proc = None
 
 
+FORMAT_FLASH = """
+import os, sys
+class Ram:
+    def __init__(self, n): self.data = bytearray(n * 512)
+    def readblocks(self, n, buf, off=0): buf[:] = self.data[n * 512 + off : n * 512 + off + len(buf)]
+    def writeblocks(self, n, buf, off=0): self.data[n * 512 + (off or 0) : n * 512 + (off or 0) + len(buf)] = buf
+    def ioctl(self, op, arg): return 64 if op == 4 else 512 if op == 5 else 0
+bdev = Ram(64)
+getattr(os, sys.argv[1]).mkfs(bdev)
+with open(sys.argv[2], "wb") as f: f.write(bdev.data[:4096])
+"""
+FLASHBDEV = """class _Flash:
+    def readblocks(self, n, buf, off=0):
+        with open("flash.img", "rb") as f:
+            f.seek(n * 4096 + off)
+            f.readinto(buf)
+
+
+bdev = _Flash()
+"""
+
+
+def fake_flash(fs: Path, vfs: str) -> None:
+    """Give the board whose filesystem is the folder `fs` a flash chip holding a filesystem that MicroPython's
+    own `os.<vfs>.mkfs` formatted (`VfsFat`: a board upgraded from before 1.13 without an erase; `VfsLfs2`: the
+    default since): `flash.img` (its first 4 KiB) and a `flashbdev.py` reading it as the ESP8266 port's frozen
+    module does (`bdev.readblocks`), for device/fscheck.py. The flash chip is the boundary faked here; the
+    image is made by a separate unix-port process with room for the format, not on the board's heap."""
+    cmd = [micropython_exe(), "-X", "heapsize=1m", "-c", FORMAT_FLASH, vfs, str(fs / "flash.img")]
+    subprocess.run(cmd, check=True, capture_output=True, timeout=60)
+    (fs / "flashbdev.py").write_text(FLASHBDEV)
+
+
 def write_credentials(site: Path, out: Path) -> None:
     """`wsnav broker credentials --site SITE --out OUT`, the command installers run."""
     cmd = [sys.executable, "-m", "wsnav.cli", "broker", "credentials", "--site", str(site), "--out", str(out)]

@@ -11,7 +11,8 @@ code and the file operations are the real ones, run by MicroPython).
   `firmware.board.MpremoteBoard`, can talk to it.
 - Its watchdog behaves as the ESP8266's: started by the first machine.WDT(), it cannot be stopped (no deinit,
   nothing the board runs undoes it), and `WDT_TIMEOUT_S` after the last feed it resets the board (the process
-  is killed and started again). machine.reset() restarts it too. `resets` records each cause.
+  is killed and started again). machine.reset() restarts it too. `resets` records each cause, and the next
+  boot's machine.reset_cause() reports it as the ESP8266 would.
 """
 
 from __future__ import annotations
@@ -72,7 +73,8 @@ class _Boot:
         self.last_feed = time.monotonic()
         self.killed_by_wdt = False
         self._log = log.open("ab")
-        threading.Thread(target=self._read_serial, daemon=True).start()
+        self._reader = threading.Thread(target=self._read_serial, daemon=True)
+        self._reader.start()
         threading.Thread(target=self._read_wdt, args=(rfd,), daemon=True).start()
 
     def _read_serial(self) -> None:
@@ -125,6 +127,9 @@ class _Boot:
         if self.alive():
             self.proc.kill()
         self.proc.wait(timeout=30)
+        # The last output read and logged (the reader ends at the pipe's end), then the log closes: closed first,
+        # a late write raised in the reader ("write to closed file").
+        self._reader.join(5)
         self._log.close()
 
 
@@ -138,6 +143,7 @@ class UnixBoard:
         # measured by tests/test_firmware_node.py and bench/firmware_heap.py, not here).
         self.cmd = [micropython_exe(), "-X", "heapsize=96k", "-m", "board_repl"]
         self.env = micropython_env(fs, stubs, pins)
+        self.pins = pins
         self.resets: list[str] = []
         self._boot: _Boot | None = None
         self._lock = threading.RLock()
@@ -173,6 +179,10 @@ class UnixBoard:
                 self.resets.append(
                     "watchdog" if boot.killed_by_wdt else "reset" if code == 75 else f"exit {code}"
                 )
+                # What machine.reset_cause() says at the next boot (host_stubs/machine.py): the ESP8266's rst_info
+                # reason, 1 after its watchdog, 4 after machine.reset(), 0 (power on) after a power cut.
+                cause = 1 if boot.killed_by_wdt else 4 if code == 75 else 0
+                (self.pins / "reset_cause").write_text(str(cause))
                 boot.stop()
                 self._start()
 

@@ -56,12 +56,40 @@ class NodeConfig(Credentials):
     off_delay_ms: Annotated[int, Field(ge=0, le=MAX_DELAY_MS)]
     keepalive_s: Annotated[int, Field(ge=5, le=3600)] = 30
     wifi: WifiConfig = WifiConfig()
+    update_key: Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")] | None = None
+    """This node's key for over-the-air updates (`node_update_key` of the site's UPDATE_KEY_FILE): the node takes
+    an update only if the `update` command carries its manifest's HMAC under this key. Without it, no update
+    over the air (a USB deploy still works)."""
 
     @model_validator(mode="after")
     def _is_node(self) -> NodeConfig:
         if self.role != "node":
             raise ValueError("a node config must have role 'node'")
         return self
+
+
+UPDATE_KEY_FILE = "update.key"
+"""The site's update key in the credentials folder (`wsnav broker credentials` makes it): 64 hex digits, read by
+`wsnav firmware ota` only. It is not the operator's MQTT password: a stolen operator login can send commands but
+cannot sign an update, so it cannot reprogram a node."""
+
+
+def node_update_key(site_key: str, node: str) -> str:
+    """A node's update key (NodeConfig.update_key): HMAC-SHA256 of its id under the site's key, so a node taken
+    off the ceiling gives away its own key only, and the operator's tool needs only the site's."""
+    import hashlib
+    import hmac
+
+    return hmac.new(site_key.encode(), b"wsnav-ota " + node.encode(), hashlib.sha256).hexdigest()
+
+
+def sign_manifest(node_key: str, manifest: bytes) -> str:
+    """What an `update` command carries for a node (NodeCommand.manifest): HMAC-SHA256 of the manifest's bytes
+    under the node's key as ASCII (64 bytes: one SHA-256 block, which the board's updater uses as it is)."""
+    import hashlib
+    import hmac
+
+    return hmac.new(node_key.encode(), manifest, hashlib.sha256).hexdigest()
 
 
 class CredentialsError(ValueError):

@@ -127,6 +127,9 @@ class NodeInfo(_Message):
     """The heartbeat period the node runs now: its config's, or what a `set_heartbeat` command set (RAM only)."""
     bad_commands: Count | None = None
     """Commands ignored since boot: malformed, unknown, or out of range (a node that takes commands says 0)."""
+    trial: Literal[True] | None = None
+    """Present (true) while the node runs an over-the-air update on trial: the update is confirmed (and `trial`
+    gone from the next `info`) once the node has run healthy for a while, connected, sending states."""
 
 
 NodeCommandName = Literal["restart", "send_info", "set_heartbeat", "update"]
@@ -141,7 +144,8 @@ class NodeCommand(_Message):
 
     `restart`: the node publishes `offline`, disconnects and resets; `send_info`: it publishes its `info` at
     once; `set_heartbeat`: its heartbeat period becomes `heartbeat_s` until it restarts (reported in `info`);
-    `update`: it reboots into update mode and fetches the OtaManifest whose sha256 is `manifest`, then its files
+    `update`: it reboots into update mode and fetches the OtaManifest whose HMAC-SHA256 under the node's update key
+    (schemas.credentials.sign_manifest) is `manifest`, then its files
     (over-the-air update, docs/firmware-esp8266.md). `id` is the sender's, random per command: the node applies a
     command once even if QoS 1 delivers it again. The whole payload stays under 128 bytes, what the node's MQTT
     client hands over (an `update` takes 120 at most)."""
@@ -170,9 +174,11 @@ OTA_MAX_MANIFEST_BYTES = 3072
 """What the node accepts: a manifest it can parse in update mode, files it can hold (the app is ~13 KB)."""
 OTA_FILE_NAME = r"^[a-z][a-z0-9_]{0,23}\.mpy$"
 """Bytecode modules of the app in the board's root folder: no path, no `..`, never main.py or boot.py."""
-OTA_BOOT_FILES = ("otaboot.mpy",)
+OTA_BOOT_FILES = ("otaboot.mpy", "nodeconfig.mpy")
 """Built modules an update never replaces: main.py's boot decisions (trial boots, rollback) and safe mode rely on
-them; they change only with a deploy over USB (firmware/deploy.py)."""
+them; they change only with a deploy over USB (firmware/deploy.py). nodeconfig too: main.py imports it before
+otaboot can finish a swap that a power cut interrupted, so a half-moved nodeconfig.mpy (old in .bak, new in
+.tmp) would stop the board at its REPL."""
 OTA_CHUNK_HEADER = struct.Struct(">HII")
 """A chunk's binary header (`nodes/<node>/ota/chunk`): file index (0: the manifest, i: its i-th file), offset,
 the file's whole size; then the bytes."""

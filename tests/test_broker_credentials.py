@@ -33,7 +33,13 @@ from wsnav.broker.mosquitto.config import (
     write_mosquitto_config,
 )
 from wsnav.broker.mosquitto.process import free_port
-from wsnav.schemas.credentials import Credentials, NodeConfig, load_credentials
+from wsnav.schemas.credentials import (
+    UPDATE_KEY_FILE,
+    Credentials,
+    NodeConfig,
+    load_credentials,
+    node_update_key,
+)
 from wsnav.schemas.site import load_site
 
 
@@ -59,7 +65,15 @@ def test_files_for_every_id_owner_only(tmp_path: Path) -> None:
     assert mode(out) == 0o700
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted(
-        [PASSWORD_FILE, "n1.json", "n2.json", "robot1.json", "operator.json", "dashboard.json"]
+        [
+            PASSWORD_FILE,
+            UPDATE_KEY_FILE,
+            "n1.json",
+            "n2.json",
+            "robot1.json",
+            "operator.json",
+            "dashboard.json",
+        ]
     )
     assert all(mode(p) == 0o600 for p in out.iterdir())
     node = NodeConfig.model_validate_json((out / "n2.json").read_text())
@@ -78,6 +92,12 @@ def test_files_for_every_id_owner_only(tmp_path: Path) -> None:
     assert Credentials.model_validate_json((out / "dashboard.json").read_text()).role == "dashboard"
     assert verify_password(hashes["n2"], node.password)
     assert not verify_password(hashes["n1"], node.password)
+    site_key = (out / UPDATE_KEY_FILE).read_text().strip()
+    n1 = NodeConfig.model_validate_json((out / "n1.json").read_text())
+    assert node.update_key == node_update_key(site_key, "n2") and n1.update_key == node_update_key(
+        site_key, "n1"
+    )
+    assert len({site_key, node.update_key, n1.update_key, node.password, n1.password}) == 5
 
 
 def test_rerun_keeps_secrets_adds_new_ids_reports_removed(tmp_path: Path) -> None:
@@ -85,6 +105,7 @@ def test_rerun_keeps_secrets_adds_new_ids_reports_removed(tmp_path: Path) -> Non
     out = tmp_path / "creds"
     assert wsnav("broker", "credentials", "--site", site, "--out", out).returncode == 0
     before = {p.name: json.loads(p.read_text())["password"] for p in out.glob("*.json")}
+    before_key = (out / UPDATE_KEY_FILE).read_text()
     tiny_site(
         site,
         nodes=[
@@ -95,12 +116,27 @@ def test_rerun_keeps_secrets_adds_new_ids_reports_removed(tmp_path: Path) -> Non
     result = wsnav("broker", "credentials", "--site", site, "--out", out)
     assert result.returncode == 0, result.stderr
     after = {p.name: json.loads(p.read_text())["password"] for p in out.glob("*.json")}
+    after_key = (out / UPDATE_KEY_FILE).read_text()
     assert after["n1.json"] == before["n1.json"] and after["robot1.json"] == before["robot1.json"]
     assert "n3.json" in after and after["n3.json"] not in before.values()
     assert "n2.json" in after  # left in place ...
     assert "n2" not in read_password_file(out / PASSWORD_FILE)  # ... but can no longer log in
     assert "n2.json: n2 is no longer in the site" in result.stdout
     assert NodeConfig.model_validate_json((out / "n1.json").read_text()).heartbeat_s == 2.0
+    assert after_key == before_key  # the update key is kept: deployed nodes keep taking updates
+
+
+def test_a_damaged_update_key_is_one_line_and_not_replaced(tmp_path: Path) -> None:
+    site = tiny_site(tmp_path / "site")
+    out = tmp_path / "creds"
+    assert wsnav("broker", "credentials", "--site", site, "--out", out).returncode == 0
+    (out / UPDATE_KEY_FILE).write_text("not a key\n")
+    result = wsnav("broker", "credentials", "--site", site, "--out", out)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        f"wsnav: error: {out / UPDATE_KEY_FILE}: not an update key (64 hex digits); restore it from a backup"
+    ]
+    assert (out / UPDATE_KEY_FILE).read_text() == "not a key\n"
 
 
 def test_wifi_set_for_every_node_and_the_key_read_from_stdin(tmp_path: Path) -> None:

@@ -186,3 +186,5 @@ def test_ota_refuses_bad_arguments_in_one_line(tmp_path: Path) -> None:
     one_line_error(wsnav("ota", *common, "--nodes", "n1", "--source", source), "no FIRMWARE_VERSION line")
     (source / "diagnostics.py").write_text('FIRMWARE_VERSION = "1.0"\n')
     one_line_error(wsnav("ota", *common, "--nodes", "n1", "--source", source), "not the firmware's sources")
+    (tmp_path / "update.key").write_text("the operator's password\n")  # beside --credentials: the default
+    one_line_error(wsnav("ota", *common, "--nodes", "n1"), "update.key: not an update key (64 hex digits)")

@@ -30,6 +30,7 @@ from wsnav.firmware.testing import (
     NodeProcess,
     SiteBroker,
     build_for_host,
+    fake_flash,
     micropython_env,
     micropython_exe,
     versioned_sources,
@@ -37,17 +38,36 @@ from wsnav.firmware.testing import (
 )
 from wsnav.firmware.unix_board import UnixBoard
 from wsnav.runtime.mqtt_bus import MqttBus
-from wsnav.schemas.credentials import Credentials, NodeConfig
-from wsnav.schemas.messages import NodeInfo
+from wsnav.schemas.credentials import UPDATE_KEY_FILE, Credentials, NodeConfig, node_update_key
+from wsnav.schemas.messages import OTA_BOOT_FILES, NodeInfo
 
 pytestmark = pytest.mark.slow
 
 SITE_DIR = REPO / "sites" / "school"
 SITE, NODE = "school", "n1"
-OLD, NEW, BROKEN, LOOPING = "1.0.0-old", "1.0.0-new", "1.0.0-bad", "1.0.0-loop"
+OLD, NEW, BROKEN, LOOPING, LATE = "1.0.0-old", "1.0.0-new", "1.0.0-bad", "1.0.0-loop", "1.0.0-late"
+LATE_FAILURE = """
+_iteration = Node.iteration
+_connected = None
+
+
+def _late(self):
+    global _connected
+    _iteration(self)
+    if self.connects and _connected is None:
+        _connected = self.ticks()
+    if _connected is not None and ticks_diff(self.ticks(), _connected) > 8000:
+        raise RuntimeError("sensor loop failed")
+
+
+Node.iteration = _late
+"""
+"""Appended to app.py: from 8 s after its first connect every pass of the loop fails (then the loop stops
+feeding the watchdog, which resets the board)."""
 APPENDED = {
     BROKEN: {"app.py": '\nraise RuntimeError("broken app")\n'},
     LOOPING: {"app.py": "\nimport machine\n\nmachine.reset()\n"},  # a reset before it ever connects
+    LATE: {"app.py": LATE_FAILURE},
 }
 WAIT = 120.0
 
@@ -57,7 +77,7 @@ def fw(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """Source folders by version, their builds (`<version>-build`), and the host stubs (`stubs`)."""
     root = tmp_path_factory.mktemp("ota-fw")
     out: dict[str, Path] = {"stubs": build_for_host(root / "host")[1]}
-    for version in (OLD, NEW, BROKEN, LOOPING):
+    for version in (OLD, NEW, BROKEN, LOOPING, LATE):
         out[version] = versioned_sources(root / f"src-{version}", version, APPENDED.get(version))
         build(root / f"{version}-build", out[version])
         out[f"{version}-build"] = root / f"{version}-build"
@@ -187,9 +207,19 @@ def finish(proc: subprocess.Popen[str]) -> tuple[int, str, str]:
     return proc.returncode, out, err
 
 
-def serve(broker: SiteBroker, creds: Path, update: Update, command: bool = True) -> list[str]:
+def node_key(creds: Path) -> str:
+    """NODE's update key, as `wsnav broker credentials` wrote it into its config."""
+    key = NodeConfig.model_validate_json((creds / f"{NODE}.json").read_text()).update_key
+    assert key is not None
+    return key
+
+
+def serve(
+    broker: SiteBroker, creds: Path, update: Update, command: bool = True, manifest: str | None = None
+) -> list[str]:
     """firmware.ota.OtaServer in this process, as the operator: `update` served to NODE until it ends; with
-    `command`, the `update` command sent first. Returns the failures."""
+    `command`, the `update` command sent first, carrying `manifest` (default: the manifest signed with NODE's
+    key, as `wsnav firmware ota` sends it). Returns the failures."""
     from wsnav.console.operator_commands import node_command
     from wsnav.schemas.site import load_site
 
@@ -201,7 +231,8 @@ def serve(broker: SiteBroker, creds: Path, update: Update, command: bool = True)
         server = OtaServer(bus, SITE, update, [NODE], say=lambda _line: None)
         server.subscribe()
         if command:
-            pub = node_command(load_site(SITE_DIR), NODE, "update", manifest=update.digest)
+            signed = manifest or update.signature(node_key(creds))
+            pub = node_command(load_site(SITE_DIR), NODE, "update", manifest=signed)
             assert bus.publish_confirmed(pub.topic, pub.payload)
         return server.run(WAIT)
     finally:
@@ -217,7 +248,10 @@ def test_an_update_runs_the_new_version_and_leaves_no_backup(fw, creds, broker, 
     assert infos.wait(lambda i: i.fw == NEW).error is None
     board.wait_confirmed()
     kept = sorted(
-        ["ota.ok", *(f"{p.name}.bak" for p in fw[f"{OLD}-build"].glob("*.mpy") if p.name != "otaboot.mpy")]
+        [
+            "ota.ok",
+            *(f"{p.name}.bak" for p in fw[f"{OLD}-build"].glob("*.mpy") if p.name not in OTA_BOOT_FILES),
+        ]
     )
     assert board.leftovers() == kept, board.leftovers()  # the old version, until the next boot
     assert (board.fs / "app.mpy").read_bytes() == (fw[f"{NEW}-build"] / "app.mpy").read_bytes()
@@ -257,6 +291,79 @@ def test_a_corrupted_file_is_refused_and_the_old_version_keeps_running(
     assert (board.fs / "app.mpy").read_bytes() == (fw[f"{OLD}-build"] / "app.mpy").read_bytes()
 
 
+@pytest.mark.parametrize("signed_with", ["nothing", "another key", "the site's key"])
+def test_an_update_not_signed_with_the_nodes_key_is_refused(
+    fw, creds, broker, infos, board_of, tmp_path: Path, signed_with: str
+) -> None:
+    """Whoever holds the operator's password can send an `update`, but the node takes only a manifest signed
+    with its own key: a bare sha256, another site's key or the site's key itself (not the node's derived one)
+    are refused before any file is fetched, and the old version keeps running."""
+    board = board_of(OLD)
+    infos.wait(lambda i: i.fw == OLD)
+    update = make_update(tmp_path / "build", fw[NEW])
+    site_key = (creds / UPDATE_KEY_FILE).read_text().strip()
+    manifest = {
+        "nothing": update.digest,
+        "another key": update.signature(node_update_key("0" * 64, NODE)),
+        "the site's key": update.signature(site_key),
+    }[signed_with]
+    failures = serve(broker, creds, update, manifest=manifest)
+    assert failures == [f"{NODE}: update failed: ota: bad signature"], board.serial()[-3000:]
+    assert "ota: got" not in board.serial()  # not one file taken
+    board.wait_serial("mqtt up")
+    assert infos.wait(lambda i: i.fw == OLD and i.uptime_s < 30 and i.error is None)
+    assert board.leftovers() == []
+    assert (board.fs / "app.mpy").read_bytes() == (fw[f"{OLD}-build"] / "app.mpy").read_bytes()
+
+
+def test_an_update_to_a_board_whose_flash_is_fat_is_refused(fw, creds, broker, infos, board_of) -> None:
+    """The swap renames files over old ones, which a power cut can leave unreadable on FAT: a board whose flash
+    is FAT (its `flashbdev` reads an image MicroPython's VfsFat formatted: testing.fake_flash) refuses before
+    fetching anything, and `wsnav firmware ota` says why and what to do."""
+    board = board_of(OLD)
+    infos.wait(lambda i: i.fw == OLD)
+    fake_flash(board.fs, "VfsFat")
+    code, out, err = finish(ota_cli(fw, creds, broker, NEW))
+    assert code == 1, (out, err, board.serial()[-3000:])
+    assert f"{NODE}: update failed: ota: FAT filesystem (its flash is FAT, where a power cut" in err, err
+    assert "ota: got" not in board.serial()
+    assert board.leftovers() == []
+    assert infos.wait(lambda i: i.fw == OLD and i.error is None)
+    assert (board.fs / "app.mpy").read_bytes() == (fw[f"{OLD}-build"] / "app.mpy").read_bytes()
+
+
+def test_a_node_without_an_update_key_takes_no_update(
+    fw, creds, broker, infos, board_of, tmp_path: Path
+) -> None:
+    board = board_of(OLD)
+    infos.wait(lambda i: i.fw == OLD)
+    config = json.loads((board.fs / "config.json").read_text())
+    del config["update_key"]
+    (board.fs / "config.json").write_text(json.dumps(config))  # as deployed before update keys existed
+    failures = serve(broker, creds, make_update(tmp_path / "build", fw[NEW]))
+    assert failures == [f"{NODE}: update failed: ota: no update key"]
+    assert board.leftovers() == []
+    assert infos.wait(lambda i: i.fw == OLD and i.error is None)
+
+
+def test_ota_without_the_sites_update_key_is_one_line(fw, creds, tmp_path: Path) -> None:
+    """Refused before it connects (no broker here) or sends anything."""
+    op = tmp_path / "op"
+    op.mkdir()
+    shutil.copyfile(creds / "operator.json", op / "operator.json")  # the operator's login, not the update key
+    cmd = [
+        *(sys.executable, "-m", "wsnav.cli", "firmware", "ota"),
+        *("--site", str(SITE_DIR), "--broker", "127.0.0.1:1"),
+        *("--credentials", str(op / "operator.json"), "--nodes", NODE, "--source", str(fw[NEW])),
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=WAIT)
+    assert proc.returncode == 2, proc
+    assert proc.stderr.strip().splitlines() == [
+        f"wsnav: error: {op / UPDATE_KEY_FILE}: cannot read the site's update key (No such file or directory); "
+        "wsnav broker credentials makes it"
+    ], proc.stderr
+
+
 def test_a_new_app_that_fails_to_import_is_rolled_back(fw, creds, broker, infos, board_of) -> None:
     board = board_of(OLD)
     infos.wait(lambda i: i.fw == OLD)
@@ -281,6 +388,45 @@ def test_a_new_app_that_resets_before_it_connects_is_rolled_back_after_three_boo
     assert board.unix.resets.count("reset") >= 5  # into update mode, into the trial, the trial boots (3)
     assert board.leftovers() == []
     assert (board.fs / "app.mpy").read_bytes() == (fw[f"{OLD}-build"] / "app.mpy").read_bytes()
+
+
+def test_a_new_app_whose_loop_fails_8_s_after_connecting_is_rolled_back(
+    fw, creds, broker, infos, board_of
+) -> None:
+    """The first connect is no confirmation: ota reports the trial, then the rollback (exit 1, naming the node
+    and both versions); the board runs the old app again from its kept backups."""
+    board = board_of(OLD)
+    infos.wait(lambda i: i.fw == OLD)
+    code, out, err = finish(ota_cli(fw, creds, broker, LATE))
+    assert code == 1, (out, err, board.serial()[-3000:])
+    assert f"{NODE}: running {LATE} on trial" in out, out
+    assert f"{NODE}: came back on {OLD}, not {LATE}" in err, err
+    assert "0 of 1 nodes" in out
+    serial = board.serial()
+    assert "loop error: sensor loop failed" in serial and "ota: rollback" in serial
+    assert "ota: confirmed" not in serial
+    assert board.unix.resets.count("watchdog") >= 3  # the trial's boots, each ended by the starved watchdog
+    assert board.leftovers() == []
+    for name in ("app.mpy", "diagnostics.mpy"):
+        assert (board.fs / name).read_bytes() == (fw[f"{OLD}-build"] / name).read_bytes()
+
+
+def test_a_version_that_keeps_failing_goes_to_safe_mode_and_takes_an_update(
+    fw, creds, broker, infos, board_of
+) -> None:
+    """No update on trial (the failing version was put on by USB): after three watchdog resets in a row the node
+    stops starting its app and waits online in safe mode, from which an update over the air is taken; the new
+    version's healthy run clears the count."""
+    board = board_of(LATE)
+    safe = infos.wait(lambda i: (i.error or "").startswith("safe:"), WAIT * 2)
+    assert safe.error == "safe: 3 resets in a row" and safe.fw == LATE
+    assert board.unix.resets == ["watchdog"] * 3, board.unix.resets
+    assert board.unix.wdt_fed_within(2.0)  # safe mode feeds it: no fourth reset
+    code, out, err = finish(ota_cli(fw, creds, broker, NEW))
+    assert code == 0, (out, err, board.serial()[-3000:])
+    assert f"{NODE}: running {NEW}, confirmed" in out
+    assert not (board.fs / "otaboot.loops").exists()
+    assert board.unix.resets.count("watchdog") == 3
 
 
 def test_a_power_cut_mid_swap_is_finished_at_the_next_boot(
@@ -332,7 +478,8 @@ def test_update_mode_and_the_trial_boot_fit_the_boards_38_kib_heap(
     `update` command's ota.json: update mode fetches and swaps, then the trial boot runs the new app."""
     update = make_update(tmp_path / "build", fw[NEW])
     b = Board(fw, OLD, creds, broker, tmp_path)
-    (b.fs / "ota.json").write_text(json.dumps({"stage": "fetch", "manifest": update.digest, "boots": 0}))
+    signed = update.signature(node_key(creds))  # as the `update` command carries it
+    (b.fs / "ota.json").write_text(json.dumps({"stage": "fetch", "manifest": signed, "boots": 0}))
     failures: list[list[str]] = []
     server = threading.Thread(target=lambda: failures.append(serve(broker, creds, update, command=False)))
     server.start()

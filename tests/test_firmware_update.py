@@ -27,7 +27,13 @@ import pytest
 from wsnav.firmware.board import BoardError, MpremoteBoard
 from wsnav.firmware.build import build
 from wsnav.firmware.deploy import Deployer, DeployError, firmware_files, module_names
-from wsnav.firmware.testing import DEVICE, SiteBroker, build_for_host, write_credentials
+from wsnav.firmware.testing import (
+    DEVICE,
+    SiteBroker,
+    build_for_host,
+    fake_flash,
+    write_credentials,
+)
 from wsnav.firmware.unix_board import CHUNK, WDT_TIMEOUT_S, UnixBoard
 
 WAIT = 60.0
@@ -211,6 +217,23 @@ def test_the_first_deploy_on_a_fresh_board(
         assert wait_until(lambda: board.wdt_fed_within(0.5))  # the node runs and feeds its watchdog
     finally:
         board.close()
+
+
+@pytest.mark.parametrize("vfs", ["VfsFat", "VfsLfs2"])
+def test_deploy_refuses_a_board_whose_flash_is_fat_before_touching_anything(
+    board: FlakyLine, new_files: dict[str, Path], vfs: str
+) -> None:
+    """The board's flash as MicroPython's VfsFat or VfsLfs2 formats it (testing.fake_flash, read by `flashbdev`):
+    on FAT, renaming files in is not power-cut safe, so the deploy stops with one line and copies nothing; on
+    littlefs it goes ahead."""
+    fake_flash(board.fs, vfs)
+    if vfs == "VfsFat":
+        with pytest.raises(DeployError, match=r"^board: its flash is FAT, .* `wsnav firmware flash`"):
+            Deployer(board).deploy(new_files)
+        assert board.puts == 0
+        assert {name: sha(board.fs / name) for name in new_files} != {n: sha(p) for n, p in new_files.items()}
+    else:
+        assert sorted(Deployer(board).deploy(new_files)) == sorted(new_files)
 
 
 def test_deploy_refuses_a_board_that_left_maintenance(board: FlakyLine, new_files: dict[str, Path]) -> None:

@@ -51,6 +51,11 @@ _INFO_RETRY_MS = const(60000)
 """When the diagnostics could not be loaded (no heap), try again after this long, not every iteration."""
 _MAX_ERRORS = const(20)
 """Consecutive unexpected exceptions in the loop before it stops feeding the watchdog."""
+_HEALTHY_S = const(30)
+"""How long after boot the node must be running, its last pass without an error (and, for an update on trial,
+online with two states or heartbeats sent after the first connect's), before it counts as healthy
+(health.apply): an update is confirmed, the boot-loop count cleared. A first connect proves little: a version whose loop fails 8 s later
+was once confirmed at it, then boot-looped with its backups gone."""
 
 _OFFLINE = const(0)
 _WIFI_JOINING = const(1)
@@ -113,6 +118,10 @@ class Node:
         # attributes (17 would take 17 slots, 96 B less on the unix port), and a tuple constant is heap too.
         self.uptime_s = 0  # whole seconds since boot, counted from the ticks: small int for 34 years
         self._second = self.ticks()  # the tick at which the current uptime second began
+        # Not yet known healthy (health.apply): 2 with an update on trial (otaboot.boot said so), 1 without
+        # (the boot-loop count to clear), 0 once done. Names the firmware already has: on the 64-bit unix port
+        # its interned strings sit at the edge of a qstr pool (diagnostics.py).
+        self.trial = 2 if "trial" in cfg else 1
 
     def ticks(self) -> int:
         """The clock's tick count: an int (a small one on the board), whatever type the stubs give it."""
@@ -154,13 +163,6 @@ class Node:
         self.broker_backoff.reset()
         self.phase = _ONLINE
         self.connects += 1
-        if self.connects == 1:  # an update on trial is good: marked by a rename, otaboot.py does the rest
-            import os
-
-            try:
-                os.rename("ota.json", "ota.ok")
-            except OSError:
-                pass  # no update on trial (the usual case)
         self.info_due_ms = now_ms  # diagnostics at once: the next iteration sends them
         print("mqtt up", self.connects)
 
@@ -246,6 +248,8 @@ class Node:
                 self.last_error,
                 self.bad_commands,
             )
+            if self.trial == 2:  # NodeInfo.trial, its last field: an update not yet confirmed (health.apply)
+                payload = payload[:-1] + ',"trial":true}'
         except MemoryError:
             self.info_due_ms = ticks_add(now_ms, _INFO_RETRY_MS)
             print("info: no heap")
@@ -261,6 +265,8 @@ class Node:
             try:
                 self.iteration()
                 self.errors = 0
+                if self.trial and self.uptime_s >= _HEALTHY_S:
+                    __import__("health").apply(self)  # loaded for this, drops itself (no name kept here)
             except MemoryError:
                 gc.collect()
                 self.errors += 1

@@ -1,6 +1,8 @@
 """A node's diagnostics message (`nodes/<node>/info`, schemas.messages.NodeInfo), written from its NodeLogic.
 
-Pure logic (MicroPython and CPython), the one writer of this payload: the board (app.py) sends it after each
+Pure logic (MicroPython and CPython), the one writer of this payload (but for `"trial":true`, NodeInfo's last
+field, which app.Node._send_info appends during an update's trial: a parameter here cost the 64-bit port's
+heap): the board (app.py) sends it after each
 connect and every INFO_PERIOD_MS; the zone simulator's emulated nodes do the same, without what only a board
 can measure (RSSI, free heap: left out). Retained, QoS 0: no PUBACK wait on the watchdog's time, and a lost one
 is replaced at the next period.
@@ -13,7 +15,7 @@ every string of 10 characters or less (interned when the module loads) counts; t
 """
 
 INFO_PERIOD_MS = 300000
-FIRMWARE_VERSION = "0.5.0"
+FIRMWARE_VERSION = "0.6.0"
 """Bump it with every change under firmware/device/: it is how an operator tells which boards are behind."""
 RESET_NAMES = "power_on watchdog exception soft_wdt soft_reset deep_sleep reset_pin unknown"
 """`machine.reset_cause()` on the ESP8266 is the SDK's rst_info reason, 0..6 in this order (REASON_DEFAULT_RST,

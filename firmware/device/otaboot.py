@@ -5,11 +5,17 @@ cut leaves the old state or the new one, never half of one):
 - `fetch`: command.py wrote it (an `update` command); boot into update mode (updater.py: nothing else loaded);
 - `swap`: every new file is whole in `<name>.tmp` and hash-checked; `swap` renames them in (idempotent; here,
   not in the updater, which may be one of the files a power cut left half moved);
-- `trial`: the new files are in, the old ones kept as `<name>.bak`; the app's first connect to the broker
-  confirms the update (app.py renames the state `ota.ok`; the next boot removes the backups). A trial
-  that boots MAX_BOOTS times without connecting, or whose `import app` fails, is rolled back (`rollback`).
+- `trial`: the new files are in, the old ones kept as `<name>.bak`; the app confirms the update once it has
+  run healthy for a while, connected (health.apply renames the state `ota.ok`; the next boot removes the
+  backups). A trial that boots MAX_BOOTS times without confirming (a reset before connecting, a loop that fails
+  later and starves the watchdog), or whose `import app` fails, is rolled back (`rollback`).
 Every boot with a state counts one in it: an update mode that keeps resetting (no broker, no operator tool)
-is abandoned after MAX_BOOTS and the old app runs. Never replaced by an update (schemas OTA_BOOT_FILES): the
+is abandoned after MAX_BOOTS and the old app runs. The app confirms a trial only once it has run healthy for a
+while (health.apply: connected, states sent, no loop error), so a version that fails later is rolled back too.
+
+Outside an update, a boot after a watchdog or exception reset counts one in `LOOPS`; the app clears it once
+healthy. At MAX_BOOTS such resets in a row the app is not started: safe mode (connected, waiting for an update);
+its own reset after safemode.SAFE_MS tries the app once more. A power-on or reset-pin boot (a person) clears it. Never replaced by an update (schemas OTA_BOOT_FILES): the
 rollback must work whatever the update brought. Loaded at boot and dropped before the app is imported.
 """
 
@@ -18,7 +24,9 @@ import os
 
 STATE = "ota.json"
 MAX_BOOTS = 3
-APP_ONLY = "app payloads debounce node_logic backoff sensing diagnostics digital_sensor ultrasonic command"
+LOOPS = "otaboot.loops"
+"""Watchdog or exception resets in a row, outside an update (health.apply removes it)."""
+APP_ONLY = "app payloads debounce node_logic backoff sensing diagnostics digital_sensor ultrasonic command health"
 """The app's modules that safe mode does without (it keeps mqtt and wifi; diagnostics is loaded again for its
 one `info`). One string: a tuple of ten would be ten objects on the heap of every boot."""
 
@@ -95,7 +103,7 @@ def swap(st, feed=None) -> None:
 
 def boot(cfg) -> None:
     """Called by main.py with the parsed config before `import app`: the backups of a confirmed update go (the
-    app confirmed it by renaming the state `ota.ok`: app._settle); then count this boot in a pending update's
+    app confirmed it by renaming the state `ota.ok`: health.apply); then count this boot in a pending update's
     state; in `fetch` or `swap` run the updater (which resets the board: never returns); a trial that has used
     its boots is rolled back; past MAX_BOOTS in update mode the update is abandoned."""
     st = load("ota.ok")
@@ -104,6 +112,7 @@ def boot(cfg) -> None:
         print("ota: backups removed")
     st = load()
     if st is None:
+        loops(cfg)
         return
     stage = st.get("stage")
     boots = st.get("boots", 0) + 1
@@ -119,6 +128,8 @@ def boot(cfg) -> None:
         remove(STATE)
         return
     save(st)
+    if stage == "trial":
+        cfg["trial"] = 1  # the app says so in `info` until it confirms (health.apply)
     if stage == "swap":  # here, not in the updater: a swap cut short may have moved updater.mpy out
         swap(st)
         import machine
@@ -128,6 +139,32 @@ def boot(cfg) -> None:
         import updater
 
         updater.update(cfg, st)
+
+
+def loops(cfg) -> None:
+    """Count this boot in LOOPS if a watchdog or an exception reset the board (reset causes 1-3: hardware and
+    software watchdog, exception; diagnostics.RESET_NAMES), clear it after a power-on or the reset pin (0, 6);
+    at MAX_BOOTS counted, safe mode instead of the app (never returns)."""
+    import machine
+
+    cause = machine.reset_cause()
+    if cause == 0 or cause == 6:
+        remove(LOOPS)
+        return
+    if not 1 <= cause <= 3:
+        return
+    try:
+        with open(LOOPS) as f:
+            n = int(f.read())
+    except (OSError, ValueError):
+        n = 0
+    n += 1
+    with open(LOOPS, "w") as f:
+        f.write(str(n))
+    if n >= MAX_BOOTS:
+        import safemode
+
+        safemode.safe(cfg, "safe: %d resets in a row" % n)
 
 
 def failed(cfg, exc) -> None:

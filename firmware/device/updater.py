@@ -2,11 +2,15 @@
 
 Update mode (`update`, an `ota.json` in stage `fetch`): join Wi-Fi, connect subscribed to the node's
 `ota/chunk` topic, and pull the update: ask (`ota/request`, schemas.messages.OtaRequest) for the manifest (file
-0, written to `ota.man` and parsed from there), check its sha256 against the `update` command's, then each file chunk by chunk into `<name>.tmp`, hashed as
-it comes. Nothing is replaced until every file is whole and matches; then otaboot.swap renames each old file
-to `<name>.bak` and the new one in (idempotent: a power cut is finished at the next boot, by otaboot, since this
-file may be the one half moved), sets the stage to `trial` and resets. A bad manifest or file abandons the update (the old files never moved) and says why in the node's
-`info`; a lost link resets the board, whose next boot retries (otaboot counts them).
+0, written to `ota.man` and parsed from there), check it against the `update` command's signature (HMAC-SHA256
+under the node's `update_key`, read from config.json here: schemas.credentials.sign_manifest; a node without
+one takes no update), then each file chunk by chunk into `<name>.tmp`, hashed as it comes and checked against
+the manifest's sha256. Nothing is replaced until every file is whole and matches; then otaboot.swap renames
+each old file to `<name>.bak` and the new one in (idempotent: a power cut is finished at the next boot, by
+otaboot, since this file may be the one half moved), sets the stage to `trial` and resets. A FAT filesystem
+(fscheck.py: the swap is not power-cut safe there), a bad signature,
+manifest or file abandons the update (the old files never moved) and says why in the node's `info`; a lost
+link resets the board, whose next boot retries (otaboot counts them).
 
 Safe mode (safemode.py, when `import app` fails with nothing to roll back to) uses its `Link`; it is a module of
 its own so that update mode does not carry its code.
@@ -149,10 +153,10 @@ class Fetcher(Link):
                         return size, memoryview(body)[_HEADER:]
         raise OSError("no chunk")
 
-    def get(self, index: int, size, digest: str, out) -> None:
+    def get(self, index: int, size, digest: str, out, key=None) -> None:
         """The whole of file `index` (its `size`, or None for the manifest) written to `out`, checked against
-        sha256 `digest`."""
-        h = sha256()
+        sha256 `digest`, or with `key` (64 bytes: one SHA-256 block, used as it is) against HMAC-SHA256."""
+        h = sha256(bytes(b ^ 0x36 for b in key)) if key else sha256()
         offset = 0
         while True:
             n, data = self.chunk(index, offset)
@@ -166,13 +170,26 @@ class Fetcher(Link):
             self.done += len(data)
             if offset >= n:
                 break
-        if "".join("%02x" % b for b in h.digest()) != digest:  # not binascii: a Python module on some ports
-            raise OtaAbort("sha256 of file %d" % index)
+        h = h.digest()
+        if key:
+            h = sha256(bytes(b ^ 0x5C for b in key) + h).digest()
+        if "".join("%02x" % b for b in h) != digest:  # not binascii: a Python module on some ports
+            raise OtaAbort("bad signature" if key else "sha256 of file %d" % index)
 
     def fetch(self, st) -> None:
         """The manifest, then each file into `<name>.tmp`; stage `swap` saved once all are whole and checked."""
+        import fscheck
+
+        if fscheck.fat():
+            raise OtaAbort("FAT filesystem")
+        with open("config.json") as f:  # here, not in nodeconfig: one more key in the app's config dict crossed
+            key = json.load(f).get("update_key")  # a dict size on the 64-bit port (a 38 KiB setup failed)
+        if type(key) is not str or len(key) != 64:
+            raise OtaAbort("no update key")
+        key = key.encode()
         with open("ota.man", "wb") as out:  # to the flash, and parsed from there: never whole in the heap
-            self.get(0, None, st["manifest"], out)
+            self.get(0, None, st["manifest"], out, key)
+        del key
         gc.collect()
         with open("ota.man") as f:
             manifest = json.load(f)
@@ -191,6 +208,7 @@ class Fetcher(Link):
                 or "/" in name
                 or name.startswith(".")
                 or name == "otaboot.mpy"
+                or name == "nodeconfig.mpy"  # schemas OTA_BOOT_FILES
                 or type(size) is not int
             ):
                 raise OtaAbort("manifest")

@@ -42,7 +42,9 @@ class PipeWDT:
 machine.WDT = PipeWDT  # pyright: ignore[reportAttributeAccessIssue]
 soft_timers.install()
 env = {"__name__": "__main__"}
-stdin = sys.stdin.buffer
+stdin = getattr(sys.stdin, "buffer", None)
+"""The raw bytes of stdin; None on MicroPython 1.19, whose sys.stdin (a TextIOWrapper) has no `buffer`: then
+its text is read and encoded (what the host sends is ASCII: code and Ctrl characters)."""
 poller = select.poll()
 poller.register(sys.stdin, select.POLLIN)
 
@@ -71,7 +73,7 @@ while True:
         code = b""
         while not code.endswith(b"\x04"):
             if poller.poll(20):
-                c = stdin.read(1)
+                c = stdin.read(1) if stdin is not None else sys.stdin.read(1).encode()
                 if not c:
                     raise SystemExit(0)  # the host closed the line
                 code += c

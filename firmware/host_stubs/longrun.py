@@ -49,6 +49,7 @@ def main():
     """In a function: its locals are not interned names (the qstr pool, firmware/device/diagnostics.py)."""
     clock = FastClock()
     app.sensor_from_config(CFG)  # its driver module stays loaded, as on the board; the run reads the pattern
+    gc.collect()  # as app.setup does between the sensor and the node
     node = app.Node(
         CFG,
         PatternSensor(clock),
