@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import REPO
-from tests.test_firmware_node import Subscriber, info_of
+from tests.firmware_fixtures import Subscriber, info_of
 from wsnav.firmware.build import build
 from wsnav.firmware.deploy import firmware_files
 from wsnav.firmware.ota import OtaServer, Update, make_update
@@ -100,7 +100,7 @@ def broker(creds: Path, tmp_path: Path) -> Iterator[SiteBroker]:
 
 
 class Infos:
-    """The node's `nodes/<node>/info` as the operator's subscriber (test_firmware_node's) sees it, each payload
+    """The node's `nodes/<node>/info` as the operator's subscriber (tests/firmware_fixtures.py) sees it, each payload
     checked against NodeInfo's bytes."""
 
     def __init__(self, broker: SiteBroker, creds: Path) -> None:
