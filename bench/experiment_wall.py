@@ -71,7 +71,9 @@ def main() -> None:
     if args.out is not None:
         cmd += f" --out {args.out}"
         where = f"{'a Mosquitto process' if args.run_broker == 'mosquitto' else 'an embedded amqtt broker'} of each run's own"
-        header = report_header(site.name, CONFIGS, args.runs, args.seed, args.workers, where, outcome, cmd)
+        header = report_header(
+            site.name, CONFIGS, args.runs, args.seed, args.workers, where, outcome, cmd, args.run_broker
+        )
         lines.append(f"report: {write_outputs(site, outcome, args.out, header)}")
     if args.runs != FULL_RUNS:
         scale = FULL_RUNS / args.runs

@@ -8,11 +8,14 @@ from __future__ import annotations
 import multiprocessing
 import os
 import platform
+import shutil
+import subprocess
 import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
+from importlib import metadata
 from pathlib import Path
 
 import numpy as np
@@ -112,6 +115,7 @@ def report_header(
     where: str,
     outcome: Outcome,
     reproduce: str,
+    run_broker: str | None = None,
 ) -> str:
     """The report's opening: what ran, how, on what machine, how fast, and the command that reproduces it."""
     o = outcome
@@ -124,15 +128,56 @@ def report_header(
             f"- Messages through {where}; emulated nodes with their own credentials (zone simulator), the agent "
             f"on robot1's connection, a simulated TurtleBot3; lock-step simulated time, {DT:g} s steps.",
             "- The obstacle is placed when the route starts and cleared when the robot stops.",
-            "- Agent CPU: thread CPU time inside the agent's step, per simulated second of the run. "
-            "Peak memory: the worker process's resident-set peak during the run (Linux VmHWM, reset as the run "
-            "starts; it includes the worker's zone simulator, and the broker when it is the embedded amqtt).",
+            "- Configurations take turns run by run (run i of a route under each, then run i+1), so a change in "
+            "the machine's load falls on every configuration alike.",
             f"- Wall time {o.wall_s:.0f} s on {workers} worker(s) ({os.cpu_count()} cores, "
             f"{platform.processor() or platform.machine()}, load {os.getloadavg()[0]:.1f} at the end) for "
             f"{o.simulated_s:.0f} s simulated: {o.simulated_s / max(o.wall_s, 1e-9):.0f}x real time.",
+            f"- Code: {provenance(run_broker)}.",
             f"- Reproduce: `{reproduce}`",
         ]
     )
+
+
+REPO = Path(__file__).resolve().parent.parent
+PACKAGES = ("numpy", "scipy", "pandas", "numba", "pyastar2d", "amqtt", "paho-mqtt", "pydantic", "matplotlib")
+"""The libraries whose versions can change a run's result or its speed, named in the report."""
+
+
+def _git(*args: str) -> str | None:
+    git = shutil.which("git")
+    if git is None:
+        return None
+    try:
+        done = subprocess.run([git, "-C", str(REPO), *args], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip() if done.returncode == 0 else None
+
+
+def provenance(run_broker: str | None) -> str:
+    """The code's commit (with `+ local changes` when the work tree differs from it), Python and the
+    dependencies' versions, and Mosquitto's when the runs used it: what a reader needs to rerun the same."""
+    commit = _git("rev-parse", "--short=12", "HEAD")
+    dirty = _git("status", "--porcelain", "--untracked-files=no")
+    code = "an unknown commit (not a git checkout)" if commit is None else f"commit {commit}"
+    if commit is not None and dirty:
+        code += " + local changes"
+    versions = []
+    for name in PACKAGES:
+        try:
+            versions.append(f"{name} {metadata.version(name)}")
+        except metadata.PackageNotFoundError:
+            continue
+    if run_broker == "mosquitto" and (mosquitto := shutil.which("mosquitto")) is not None:
+        try:
+            first = subprocess.run(
+                [mosquitto, "-h"], capture_output=True, text=True, timeout=10
+            ).stdout.splitlines()
+            versions.append(first[0].strip() if first else "mosquitto (version unknown)")
+        except (OSError, subprocess.SubprocessError):
+            versions.append("mosquitto (version unknown)")
+    return f"{code}; Python {platform.python_version()}, {', '.join(versions)}"
 
 
 def path_png(out: Path, route: str) -> Path:

@@ -69,12 +69,40 @@ def test_one_run_per_route_and_config_arrives_without_collisions_and_repeats_wit
             ["experiment", "--runs", "1", "--run-broker", "mosquitto", "--broker", "127.0.0.1:1883"],
             "--run-broker is the broker each run starts for itself: it does not go with --broker",
         ),
+        (["experiment", "--report-only"], "no runs.csv to render the report from"),
     ],
 )
 def test_bad_experiment_arguments_are_one_line(
     argv: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     assert main([*argv, "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    ("runs_csv", "message"),
+    [
+        (
+            "config,route\ndefault,A->B\n",
+            "not a runs table (no run, success, time_s, distance_m, blocked column)",
+        ),
+        (
+            "config,route,blocked,run,success,time_s,distance_m\ndefault,A->B,z1,0,True,fast,50.0\n",
+            "column time_s holds a value that is not a number",
+        ),
+        (
+            "config,route,blocked,run,success,time_s,distance_m\ndefault,A->B,z1,0,maybe,1,2\n",
+            "column success",
+        ),
+    ],
+)
+def test_a_report_from_a_broken_runs_table_is_one_line(
+    runs_csv: str, message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "runs.csv").write_text(runs_csv)
+    (tmp_path / "header.md").write_text("# test\n")
+    assert main(["experiment", "--report-only", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
 

@@ -52,6 +52,11 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         metavar="tcp://HOST:PORT",
         help="run each run as a task on this Dask cluster (docs/cluster.md) instead of the local processes",
     )
+    exp.add_argument(
+        "--report-only",
+        action="store_true",
+        help="render the report again from --out's runs.csv and header.md; nothing runs",
+    )
     exp.set_defaults(func=experiment_command)
 
     demo = sub.add_parser("demo", help="one `full` run of each route of the school: a table and a picture")

@@ -10,7 +10,7 @@ import numpy as np
 
 from wsnav.broker.mosquitto.process import MosquittoError
 from wsnav.experiments.cluster import ClusterError
-from wsnav.experiments.report import paths_figure
+from wsnav.experiments.report import ReportError, paths_figure, rerender
 from wsnav.experiments.run_plan import RunSpec, plan_runs
 from wsnav.experiments.runner import progress_line, report_header, run_experiment, write_outputs
 from wsnav.experiments.single_run import BrokerAt
@@ -52,6 +52,13 @@ def _cluster_size(address: str) -> int:
 
 
 def experiment(args: argparse.Namespace) -> int:
+    if args.report_only:
+        try:
+            report = rerender(args.out)
+        except ReportError as exc:
+            raise CliError(f"--report-only: {exc}") from None
+        print(f"wrote {report} from {args.out / 'runs.csv'} (nothing rerun)")
+        return 0
     if args.runs < 1:
         raise CliError(f"--runs must be at least 1, got {args.runs}")
     if args.workers < 1:
@@ -115,7 +122,9 @@ def experiment(args: argparse.Namespace) -> int:
         f"--configs {','.join(configs)} --out {args.out}"
         + (f" --run-broker {run_broker}" if run_broker != "amqtt" else "")
     )
-    header = report_header(site.name, configs, args.runs, args.seed, workers, where, outcome, reproduce)
+    header = report_header(
+        site.name, configs, args.runs, args.seed, workers, where, outcome, reproduce, run_broker
+    )
     report = write_outputs(site, outcome, args.out, header)
     t = outcome.table
     print(
