@@ -116,8 +116,10 @@ def report_header(
     outcome: Outcome,
     reproduce: str,
     run_broker: str | None = None,
+    code: str | None = None,
 ) -> str:
-    """The report's opening: what ran, how, on what machine, how fast, and the command that reproduces it."""
+    """The report's opening: what ran, how, on what machine, how fast, the code (`code`: `provenance()` taken
+    as the runs started; now if not given) and the command that reproduces it."""
     o = outcome
     return "\n".join(
         [
@@ -133,7 +135,7 @@ def report_header(
             f"- Wall time {o.wall_s:.0f} s on {workers} worker(s) ({os.cpu_count()} cores, "
             f"{platform.processor() or platform.machine()}, load {os.getloadavg()[0]:.1f} at the end) for "
             f"{o.simulated_s:.0f} s simulated: {o.simulated_s / max(o.wall_s, 1e-9):.0f}x real time.",
-            f"- Code: {provenance(run_broker)}.",
+            f"- Code: {code or provenance(run_broker)}.",
             f"- Reproduce: `{reproduce}`",
         ]
     )

@@ -12,7 +12,13 @@ from wsnav.broker.mosquitto.process import MosquittoError
 from wsnav.experiments.cluster import ClusterError
 from wsnav.experiments.report import ReportError, paths_figure, rerender
 from wsnav.experiments.run_plan import RunSpec, plan_runs
-from wsnav.experiments.runner import progress_line, report_header, run_experiment, write_outputs
+from wsnav.experiments.runner import (
+    progress_line,
+    provenance,
+    report_header,
+    run_experiment,
+    write_outputs,
+)
 from wsnav.experiments.single_run import BrokerAt
 from wsnav.robot_agent.agent_config import AgentConfigError, load_agent_config
 from wsnav.runtime.cli_support import CliError
@@ -103,6 +109,7 @@ def experiment(args: argparse.Namespace) -> int:
         )
     else:
         print(f"{len(specs)} runs ({args.runs} per route and configuration) on {workers} worker(s)")
+    code = provenance(run_broker)  # the code that runs, before anything can change it
     try:
         outcome = run_experiment(
             site.path,
@@ -123,7 +130,7 @@ def experiment(args: argparse.Namespace) -> int:
         + (f" --run-broker {run_broker}" if run_broker != "amqtt" else "")
     )
     header = report_header(
-        site.name, configs, args.runs, args.seed, workers, where, outcome, reproduce, run_broker
+        site.name, configs, args.runs, args.seed, workers, where, outcome, reproduce, run_broker, code
     )
     report = write_outputs(site, outcome, args.out, header)
     t = outcome.table
