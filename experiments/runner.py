@@ -14,7 +14,7 @@ import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
 
@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from wsnav.experiments.report import paths_figure, write_report
 from wsnav.experiments.run_plan import RunSpec
+from wsnav.experiments.run_record import record_name
 from wsnav.experiments.single_run import COLUMNS, DT, BrokerAt, RunResult
 from wsnav.experiments.worker import init_worker, work
 from wsnav.schemas.site import Site, load_site
@@ -37,6 +38,8 @@ class Outcome:
     trajectories: dict[tuple[str, str], NDArray[np.float64]]
     """(route, config) -> run 0's driven path."""
     wall_s: float
+    every_path: dict[tuple[str, str, int], NDArray[np.float64]] = field(default_factory=dict)
+    """(config, route, run) -> that run's driven path, for a picture per run."""
 
     @property
     def simulated_s(self) -> float:
@@ -52,9 +55,13 @@ def run_experiment(
     progress: Progress | None = None,
     scheduler: str | None = None,
     run_broker: str = "amqtt",
+    record: Path | None = None,
 ) -> Outcome:
     """Run `specs` (with an external `broker`: in this process, one after the other; with a `scheduler`
-    address: as tasks on that Dask cluster, `workers` unused); otherwise each run on its own `run_broker`."""
+    address: as tasks on that Dask cluster, `workers` unused); otherwise each run on its own `run_broker`.
+    `record`: a folder for one MCAP record per run (not on a cluster: its workers' disks are not this one)."""
+    if record is not None and scheduler is not None:
+        raise ValueError("runs on a cluster are not recorded")
     start = time.monotonic()
     done: list[tuple[RunSpec, RunResult]] = []
     if scheduler is not None:
@@ -66,7 +73,7 @@ def run_experiment(
 
         done = list(run_on_cluster(scheduler, load_site(site_dir), specs, arrived, run_broker).values())
     elif broker is not None or workers <= 1:
-        init_worker(site_dir, broker, run_broker)
+        init_worker(site_dir, broker, run_broker, record)
         for spec in specs:
             done.append(work(spec))
             if progress is not None:
@@ -74,7 +81,7 @@ def run_experiment(
     else:
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(
-            workers, ctx, initializer=init_worker, initargs=(site_dir, None, run_broker)
+            workers, ctx, initializer=init_worker, initargs=(site_dir, None, run_broker, record)
         ) as pool:
             futures = [pool.submit(work, spec) for spec in specs]
             for future in as_completed(futures):
@@ -84,7 +91,8 @@ def run_experiment(
     done.sort(key=lambda d: (d[0].config, d[0].route, d[0].run))
     table = pd.DataFrame([r.row for _, r in done], columns=list(COLUMNS))
     paths = {(s.route, s.config): r.trajectory for s, r in done if s.run == 0}
-    return Outcome(table, paths, time.monotonic() - start)
+    every = {(s.config, s.route, s.run): r.trajectory for s, r in done}
+    return Outcome(table, paths, time.monotonic() - start, every)
 
 
 def progress_line(started: float | None = None) -> Progress:
@@ -180,6 +188,22 @@ def provenance(run_broker: str | None) -> str:
         except (OSError, subprocess.SubprocessError):
             versions.append("mosquitto (version unknown)")
     return f"{code}; Python {platform.python_version()}, {', '.join(versions)}"
+
+
+def write_run_pictures(site: Site, outcome: Outcome, folder: Path) -> int:
+    """One PNG per run in `folder` (named as its MCAP record): its driven path over the map, its blocked zones
+    hatched; returns how many."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rows = {(str(r["config"]), str(r["route"]), int(r["run"])): r for r in outcome.table.to_dict("records")}
+    for (config, route, run), xy in sorted(outcome.every_path.items()):
+        row = rows[(config, route, run)]
+        blocked = str(row["blocked"])
+        name = record_name(config, route, run)
+        title = f"{config}, {route} run {run}, {blocked} blocked: {row['outcome']} after {float(row['time_s']):.0f} s"
+        paths_figure(
+            site, {config: xy}, [] if blocked == "none" else blocked.split("+"), title, folder / f"{name}.png"
+        )
+    return len(outcome.every_path)
 
 
 def path_png(out: Path, route: str) -> Path:

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from wsnav.experiments.lockstep import Deliveries, ExpectingBus, WatchedBus, settle
 from wsnav.experiments.run_plan import RunSpec
+from wsnav.experiments.run_record import RunRecorder, record_name
 from wsnav.navigation.navigator import NavEvent
 from wsnav.robot_agent.agent import RobotAgent
 from wsnav.robot_agent.agent_config import load_agent_config
@@ -172,7 +173,9 @@ def start_pose(site: Site, spec: RunSpec) -> tuple[float, float, float]:
     return x + START_SIGMA_M * dx, y + START_SIGMA_M * dy, yaw + START_SIGMA_RAD * dyaw
 
 
-def run_once(site: Site, spec: RunSpec, broker: BrokerAt) -> RunResult:
+def run_once(site: Site, spec: RunSpec, broker: BrokerAt, record: Path | None = None) -> RunResult:
+    """One run; with `record`, a folder, also its MCAP record there (and nothing else changes: the recorder
+    only reads)."""
     reset_peak_rss()
     clock = SimClock()
     world = SimWorldGrid(site.grid)
@@ -199,7 +202,13 @@ def run_once(site: Site, spec: RunSpec, broker: BrokerAt) -> RunResult:
         on_sent=sent,
     )
     try:
-        return _drive(site, spec, clock, robot, agent, sim, deliveries)
+        if record is None:
+            return _drive(site, spec, clock, robot, agent, sim, deliveries)
+        with RunRecorder(record / f"{record_name(spec.config, spec.route, spec.run)}.mcap", spec) as recorder:
+            bus.tap = recorder.messages
+            result = _drive(site, spec, clock, robot, agent, sim, deliveries, recorder)
+            recorder.result(result.row)
+            return result
     finally:
         sim.stop()
         world_bus.close()
@@ -214,6 +223,7 @@ def _drive(
     agent: RobotAgent,
     sim: ZoneSimulator,
     deliveries: Deliveries,
+    recorder: RunRecorder | None = None,
 ) -> RunResult:
     bus = agent.bus
     assert isinstance(bus, WatchedBus)
@@ -246,6 +256,9 @@ def _drive(
         robot.step(DT, now + DT)
         clock.advance(DT)
         stalls.update(clock.now(), robot.pose()[:2])
+        if recorder is not None:
+            recorder.navigator(now, nav.state, nav.path, nav.events)
+            recorder.pose(clock.now(), *robot.pose())
         sim.step(clock.now(), io_timeout_s=0.0)
         if not synced():
             settle(synced, poke, agent.bus.wait, "zone messages")

@@ -18,6 +18,7 @@ from wsnav.experiments.runner import (
     report_header,
     run_experiment,
     write_outputs,
+    write_run_pictures,
 )
 from wsnav.experiments.single_run import BrokerAt
 from wsnav.robot_agent.agent_config import AgentConfigError, load_agent_config
@@ -95,8 +96,14 @@ def experiment(args: argparse.Namespace) -> int:
         raise CliError(
             "--run-broker mosquitto: mosquitto is not installed (Debian: apt-get install mosquitto)"
         )
+    if args.record is not None and args.scheduler is not None:
+        raise CliError("--record writes on this machine's disk: it does not go with --scheduler")
+    if args.record is not None:
+        _recordable(args.record)
     site = _site(args.site)
     _writable(args.out)
+    if args.pictures is not None:
+        _writable(args.pictures)
     specs = _specs(site, configs, args.runs, args.seed)
     workers = 1 if broker is not None else min(args.workers, len(specs))
     own = "a Mosquitto process" if run_broker == "mosquitto" else "an embedded amqtt broker"
@@ -119,6 +126,7 @@ def experiment(args: argparse.Namespace) -> int:
             progress=progress_line(),
             scheduler=args.scheduler,
             run_broker=run_broker,
+            record=args.record,
         )
     except ClusterError as exc:
         raise CliError(f"--scheduler {args.scheduler}: {exc}") from None
@@ -141,7 +149,23 @@ def experiment(args: argparse.Namespace) -> int:
         f"({outcome.simulated_s / outcome.wall_s:.0f}x real time)"
     )
     print(f"wrote {report} and the table {args.out / 'runs.csv'}")
+    if args.record is not None:
+        print(f"wrote {len(specs)} run records (MCAP) to {args.record}")
+    if args.pictures is not None:
+        pictures = write_run_pictures(site, outcome, args.pictures)
+        print(f"wrote {pictures} run pictures to {args.pictures}")
     return 0
+
+
+def _recordable(folder: Path) -> None:
+    """The record folder exists and the mcap package is there, before any run starts."""
+    from wsnav.experiments.run_record import RecordError, require_mcap
+
+    _writable(folder)
+    try:
+        require_mcap()
+    except RecordError as exc:
+        raise CliError(f"--record: {exc}") from None
 
 
 def demo(args: argparse.Namespace) -> int:
