@@ -333,7 +333,7 @@ def bar_chart(summary: pd.DataFrame, metric: Metric, png: Path) -> Figure:
         ),
         fontsize=10,
     )
-    ax.legend(loc="lower right")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     fig.tight_layout()
     fig.savefig(png, dpi=110)
     return fig

@@ -229,6 +229,8 @@ def test_each_bar_says_how_many_runs_arrived_in_the_papers_colours_under_a_whole
     title = ax.title.get_window_extent()
     page = fig.bbox
     assert page.x0 <= title.x0 and title.x1 <= page.x1 and title.y1 <= page.y1, "the title fits the figure"
+    legend = ax.get_legend().get_window_extent()
+    assert legend.x0 >= ax.bbox.x1 and legend.x1 <= page.x1, "the legend beside the bars, not over them"
 
 
 def test_the_report_renders_again_from_its_runs_table_alone(tmp_path: Path) -> None:
@@ -242,3 +244,17 @@ def test_the_report_renders_again_from_its_runs_table_alone(tmp_path: Path) -> N
     again = rerender(out).read_text()
     assert again == first
     assert (out / "time_s.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_the_published_report_is_what_its_runs_table_renders_to(tmp_path: Path) -> None:
+    """docs/experiment/report.md and its summaries are the report code's output for the published runs.csv:
+    a change to the report's rules must come with the report rendered again (`--report-only`)."""
+    import shutil
+
+    published = SITES.parent / "docs" / "experiment"
+    for name in ("runs.csv", "header.md", *(p.name for p in published.glob("paths_*.png"))):
+        shutil.copy(published / name, tmp_path / name)
+    report = rerender(tmp_path)
+    assert report.read_text() == (published / "report.md").read_text()
+    for name in ("summary.csv", "summary_by_zone.csv"):
+        assert (tmp_path / name).read_text() == (published / name).read_text()
