@@ -229,7 +229,9 @@ def test_each_bar_says_how_many_runs_arrived_in_the_papers_colours_under_a_whole
     title = ax.title.get_window_extent()
     page = fig.bbox
     assert page.x0 <= title.x0 and title.x1 <= page.x1 and title.y1 <= page.y1, "the title fits the figure"
-    legend = ax.get_legend().get_window_extent()
+    box = ax.get_legend()
+    assert box is not None
+    legend = box.get_window_extent()
     assert legend.x0 >= ax.bbox.x1 and legend.x1 <= page.x1, "the legend beside the bars, not over them"
 
 
