@@ -1,7 +1,8 @@
 """One run kept whole, as an MCAP file that Foxglove (or the `mcap` CLI) opens: the robot's true pose at every
 step, each plan the navigator makes, every message the agent takes in with its simulated time of arrival, the
 navigator's state changes and its events (plans, recoveries, aborts), and the run's row. Written only on request
-(`wsnav experiment --record DIR`): a `default` run's 5 Hz plans make a few MB a run.
+(`wsnav experiment --record DIR`): 0.3 MB for a 217 s `full` run, 0.64 MB for a 423 s `default` run and
+its 2115 plans (zstd-compressed chunks).
 
 Log times are simulated nanoseconds since the run's world started (the clock the run keeps); channels carry
 JSON with a JSON schema each, the robot's pose as Foxglove's `foxglove.PoseInFrame` so its 3D panel draws it.
