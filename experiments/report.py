@@ -494,6 +494,30 @@ def deviations_section() -> list[str]:
     return ["## Deviations from the paper's experiment", "", *(f"- {d}" for d in DEVIATIONS), ""]
 
 
+def memory_section(table: pd.DataFrame) -> list[str]:
+    """Each configuration's peak memory per run, from tables whose runs measured it per run (those with the
+    run-process CPU column; before it, the figure grew with a worker's run order and is left out)."""
+    if "process_cpu_s" not in table.columns or "peak_mem_mb" not in table.columns:
+        return []
+    lines = [
+        "## Memory",
+        "",
+        "The run process's resident-set peak during each run (Linux VmHWM, reset as the run starts, after "
+        "the previous runs' garbage is collected): the agent, the simulated robot, the emulated nodes and "
+        "their MQTT clients, and the broker when it is the embedded amqtt.",
+        "",
+        "| config | runs | median (MB) | min (MB) | max (MB) |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for config in [c for c in CONFIG_ORDER if c in set(table["config"])]:
+        mem = table.loc[table["config"] == config, "peak_mem_mb"].to_numpy(dtype=np.float64)
+        lines.append(
+            f"| {config} | {len(mem)} | {sig3(float(np.median(mem)))} | {sig3(float(mem.min()))} | "
+            f"{sig3(float(mem.max()))} |"
+        )
+    return [*lines, ""]
+
+
 def stall_section(table: pd.DataFrame) -> list[str]:
     """The longest stall of each configuration, with the recoveries move_base ran in it: what remains when
     stock move_base would stall too."""
@@ -584,6 +608,7 @@ def write_report(table: pd.DataFrame, out: Path, header: str, path_figures: Sequ
         png = out / f"{metric.column}_by_zone.png"
         bar_chart(by_zone, metric, png)
         parts += [f"![{metric.label} by blocked zone]({png.name})", ""]
+    parts += memory_section(table)
     parts += stall_section(table)
     if path_figures:
         parts += ["## Paths (the paper's Figures 8-9)", ""]

@@ -260,3 +260,23 @@ def test_the_published_report_is_what_its_runs_table_renders_to(tmp_path: Path) 
     assert report.read_text() == (published / "report.md").read_text()
     for name in ("summary.csv", "summary_by_zone.csv"):
         assert (tmp_path / name).read_text() == (published / name).read_text()
+
+
+def test_both_cpu_figures_are_reported_each_labelled_for_what_it_is(tmp_path: Path) -> None:
+    """A table with the run process's CPU gives both figures (each with its own column, chart and definition)
+    and the memory per run; a table from code that did not measure it says so instead of showing a blank."""
+    rows = table()
+    rows["process_cpu_s"] = np.where(rows["config"] == "full", 1.5, 3.0)
+    rows["peak_mem_mb"] = np.where(rows["config"] == "full", 340.0, 350.0)
+    body = write_report(rows, tmp_path / "new", "# test").read_text()
+    assert "run-process CPU per simulated second (s/s) (arrived runs)" in body
+    assert "agent-step CPU per simulated second (s/s) (arrived runs)" in body
+    assert "Run-process CPU per simulated second: the CPU time of the whole process" in body
+    assert "](process_cpu_per_sim_s.png)" in body and "| full | 4 | 340 | 340 | 340 |" in body
+    summary = summarise(rows).set_index("config")
+    assert summary.loc["full", "process_cpu_per_sim_s_mean"] == pytest.approx(
+        np.mean([1.5 / (155 + i) for i in range(4)])
+    )
+    old = write_report(table(), tmp_path / "old", "# test").read_text()
+    assert "Run-process CPU is not in this runs table" in old
+    assert "run-process CPU per simulated second" not in old and "## Memory" not in old
