@@ -321,6 +321,7 @@ def bar_chart(summary: pd.DataFrame, metric: Metric, png: Path) -> Figure:
                     ha="center",
                     va="bottom",
                     fontsize=7,
+                    rotation=90 if len(groups) * len(configs) > 12 else 0,  # narrow bars: labels stand up
                 )
     ax.set_xticks(x, groups)
     ax.set_ylabel(textwrap.fill(metric.label, 34))
