@@ -61,6 +61,12 @@ def main() -> None:
         cpu = float(part["agent_cpu_s"].to_numpy(dtype=np.float64).sum())
         sim = float(part["time_s"].to_numpy(dtype=np.float64).sum())
         lines.append(f"  {config:8s} agent CPU {cpu:7.0f} s for {sim:6.0f} s simulated ({cpu / sim:.4f} s/s)")
+        process = float(part["process_cpu_s"].to_numpy(dtype=np.float64).sum())
+        mem = part["peak_mem_mb"].to_numpy(dtype=np.float64)
+        lines.append(
+            f"  {config:8s} run-process CPU {process:7.0f} s ({process / sim:.4f} s/s); "
+            f"peak memory {mem.min():.0f}-{mem.max():.0f} MB a run"
+        )
     cmd = "./.venv/bin/python -m bench.experiment_wall" + (
         f" --runs {args.runs}" if args.runs != FULL_RUNS else ""
     )
@@ -71,7 +77,9 @@ def main() -> None:
     if args.out is not None:
         cmd += f" --out {args.out}"
         where = f"{'a Mosquitto process' if args.run_broker == 'mosquitto' else 'an embedded amqtt broker'} of each run's own"
-        header = report_header(site.name, CONFIGS, args.runs, args.seed, args.workers, where, outcome, cmd)
+        header = report_header(
+            site.name, CONFIGS, args.runs, args.seed, args.workers, where, outcome, cmd, args.run_broker
+        )
         lines.append(f"report: {write_outputs(site, outcome, args.out, header)}")
     if args.runs != FULL_RUNS:
         scale = FULL_RUNS / args.runs

@@ -55,6 +55,8 @@ class WatchedBus:
         self.inner = inner
         self.deliveries = deliveries
         self._fetched: list[Message] = []
+        self.tap: Callable[[list[Message]], None] | None = None
+        """Sees every batch the agent polls (the run's record keeps them)."""
 
     def fetch(self) -> None:
         got = self.inner.poll()
@@ -70,6 +72,8 @@ class WatchedBus:
     def poll(self, max_messages: int | None = None) -> list[Message]:
         n = len(self._fetched) if max_messages is None else max_messages
         got, self._fetched = self._fetched[:n], self._fetched[n:]
+        if got and self.tap is not None:
+            self.tap(got)
         return got
 
     def wait(self, timeout_s: float) -> bool:

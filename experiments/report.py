@@ -1,17 +1,20 @@
-"""The experiment's report: success rate, mean and 95% confidence interval per route and configuration (the
-paper's Figures 10-12 as bar charts with error bars), paired differences between configurations that say what
-each change brings, stalls and move_base's recoveries, and one run's paths under each configuration.
+"""The experiment's report: success rate with its Wilson interval, mean and 95% confidence interval of every
+metric per route and configuration (the paper's Figures 10-12 as bar charts with error bars, each bar saying how
+many runs arrived), paired differences between configurations that say what each change brings, stalls and
+move_base's recoveries, the deviations from the paper, and one run's paths under each configuration.
 
-The rule for failed runs: time to goal counts every run, a run that did not arrive at the cap (a censored value,
-a lower bound of its true time); distance and CPU per simulated second are means over the runs that arrived.
-Every number is printed to three significant figures. Reads only the runs table (and the saved trajectories),
-so a report can be remade without rerunning anything.
+The rule for failed runs: a run that did not arrive (move_base's rules aborted it, or the 600 s cap ended it) is
+a failure and counts in the success rate; time, distance, replans and CPU are means over the runs that arrived
+(an aborted run ended at 81-253 s: counting it at the cap would make the mean depend on the cap). Every number is
+printed to three significant figures. Reads only the runs table (and the saved path figures), so a report can be
+remade from a published runs.csv without rerunning anything.
 """
 
 from __future__ import annotations
 
 import itertools
 import math
+import textwrap
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +28,9 @@ from scipy import stats
 from wsnav.schemas.site import Site
 from wsnav.schemas.site_render import draw_site, figure_for
 
-CONFIG_COLOURS = {"default": "tab:gray", "zones": "tab:orange", "full": "tab:blue"}
+CONFIG_COLOURS = {"default": "tab:orange", "zones": "tab:gray", "full": "tab:blue"}
+"""The paper's colours: orange for stock move_base (`default`), blue for wsnav (`full`); `zones`, which the paper
+does not have, in grey between them."""
 CONFIG_ORDER = ("default", "zones", "full")
 STEPS = {
     ("default", "zones"): "the sensor network (zone layer + Algorithm 3)",
@@ -34,7 +39,8 @@ STEPS = {
 }
 """What each paired comparison isolates (the configurations differ in exactly that)."""
 TIME_CAP_S = 600.0
-"""wsnav.experiments.single_run.TIMEOUT_SIM_S: a failed run's time counts as this (censored)."""
+"""wsnav.experiments.single_run.TIMEOUT_SIM_S: a run not arrived by then ends as a timeout."""
+LEVEL = 0.95
 
 STOCK_DIFFERENCES = (
     "global planner: A* (pyastar2d) over NavFn's cost model, at full resolution in `default` and `zones` "
@@ -64,9 +70,27 @@ class Metric:
 
 METRICS = (
     Metric("distance_m", "distance travelled (m)", "Figure 10"),
-    Metric("time_s", "time to goal (s, simulated; failures at the cap)", "Figure 11"),
-    Metric("cpu_per_sim_s", "agent CPU per simulated second (s/s)", "Figure 12"),
+    Metric("time_s", "time to goal (s, simulated)", "Figure 11"),
+    Metric("cpu_per_sim_s", "agent-step CPU per simulated second (s/s)", "Figure 12"),
+    Metric("process_cpu_per_sim_s", "run-process CPU per simulated second (s/s)", "Figure 12"),
 )
+"""Every metric is a mean over the runs that arrived."""
+SOURCE_COLUMN = {"cpu_per_sim_s": "agent_cpu_s", "process_cpu_per_sim_s": "process_cpu_s"}
+"""Derived metrics and the runs-table column each needs (a table from older code may lack it)."""
+
+
+def metrics_of(table: pd.DataFrame) -> tuple[Metric, ...]:
+    """The metrics this runs table can give (a column the code that wrote it did not measure is left out)."""
+    return tuple(m for m in METRICS if SOURCE_COLUMN.get(m.column, m.column) in table.columns)
+
+
+def wilson(successes: int, runs: int, level: float = LEVEL) -> tuple[float, float]:
+    """The Wilson score interval of a success rate (low, high), as fractions; sound at 0 and at n of n, where
+    the normal approximation's interval collapses to a point."""
+    if runs == 0:
+        return float("nan"), float("nan")
+    ci = stats.binomtest(successes, runs).proportion_ci(confidence_level=level, method="wilson")
+    return float(ci.low), float(ci.high)
 
 
 def mean_ci(values: Sequence[float] | NDArray[np.float64], level: float = 0.95) -> tuple[float, float, float]:
@@ -94,18 +118,27 @@ def sig3(x: float) -> str:
 
 
 def metric_values(group: pd.DataFrame, column: str) -> NDArray[np.float64]:
-    """A metric's values under the report's rule: time counts every run (failures at the cap), the others
-    only the runs that arrived."""
-    if column == "time_s":
-        success = group["success"].to_numpy(dtype=bool)
-        return np.where(success, group["time_s"].to_numpy(dtype=np.float64), TIME_CAP_S)
+    """A metric's values under the report's rule: over the runs that arrived (a failure is counted in the
+    success rate, not as a time)."""
     return group.loc[group["success"].to_numpy(dtype=bool), column].to_numpy(dtype=np.float64)
 
 
+def _outcomes(group: pd.DataFrame) -> tuple[int, int]:
+    """(aborted, timed out) among a group's failed runs; a table without `outcome` counts every failure as a
+    timeout."""
+    failed = ~group["success"].to_numpy(dtype=bool)
+    if "outcome" not in group.columns:
+        return 0, int(failed.sum())
+    outcome = group["outcome"].astype(str).to_numpy()
+    aborted = int((failed & (outcome == "aborted")).sum())
+    return aborted, int(failed.sum()) - aborted
+
+
 def summarise(table: pd.DataFrame, by: Sequence[str] = ("route",)) -> pd.DataFrame:
-    """One row per group (`by`, e.g. route, or route and blocked zone) and config: runs, successes,
-    collisions, stalls, recoveries, and mean/CI of every metric under the report's rule for failed runs.
-    `group` labels the row's group in charts."""
+    """One row per group (`by`, e.g. route, or route and blocked zone) and config: runs, successes with their
+    Wilson interval, aborts and timeouts, collisions, stalls, recoveries, and mean/CI of every metric over the
+    runs that arrived. `group` labels the row's group in charts."""
+    metrics = metrics_of(table)
     table = with_derived(table)
     keys = [*by, "config"]
     rows: list[dict[str, object]] = []
@@ -118,6 +151,10 @@ def summarise(table: pd.DataFrame, by: Sequence[str] = ("route",)) -> pd.DataFra
             "group": " ".join(str(values[k]) for k in by),
             "runs": len(group),
             "success": int(success.sum()),
+            "success_ci_low": wilson(int(success.sum()), len(group))[0],
+            "success_ci_high": wilson(int(success.sum()), len(group))[1],
+            "aborted": _outcomes(group)[0],
+            "timeouts": _outcomes(group)[1],
             "collisions": int(group["collisions"].to_numpy(dtype=np.int64).sum()),
             "replans_mean": float(ok["replans"].to_numpy(dtype=np.float64).mean())
             if len(ok)
@@ -125,7 +162,7 @@ def summarise(table: pd.DataFrame, by: Sequence[str] = ("route",)) -> pd.DataFra
             "stalled_s_mean": _mean_of(group, "stalled_s"),
             "recoveries_mean": _mean_of(group, "recoveries"),
         }
-        for metric in METRICS:
+        for metric in metrics:
             mean, low, high = mean_ci(metric_values(group, metric.column))
             row[f"{metric.column}_mean"] = mean
             row[f"{metric.column}_ci_low"] = low
@@ -155,12 +192,19 @@ def _mean_of(group: pd.DataFrame, column: str) -> float:
     return float(group[column].to_numpy(dtype=np.float64).mean())
 
 
+def summary_metrics(summary: pd.DataFrame) -> tuple[Metric, ...]:
+    """The metrics a summary (or a paired-difference table) carries."""
+    return tuple(
+        m for m in METRICS if f"{m.column}_mean" in summary.columns or f"{m.column}_diff" in summary.columns
+    )
+
+
 def paired_differences(
     table: pd.DataFrame, before: str, after: str, by: Sequence[str] = ("route",)
 ) -> pd.DataFrame:
     """Per group and metric: the mean of `after` - `before` over the runs with the same index (same raffled
-    zone, same seed), with its 95% Student-t interval; time over every pair (failures at the cap), the other
-    metrics over the pairs where both arrived."""
+    zone, same seed) where both arrived, with its 95% Student-t interval."""
+    metrics = metrics_of(table)
     table = with_derived(table)
     keys = [*by, "run"]
     a = table[table["config"] == before].set_index(keys)
@@ -173,40 +217,36 @@ def paired_differences(
     groups = common.droplevel("run").unique()
     for group_key in groups:
         a_g, b_g = a.xs(group_key, drop_level=False), b.xs(group_key, drop_level=False)
+        both = a_g["success"].to_numpy(dtype=bool) & b_g["success"].to_numpy(dtype=bool)
         row: dict[str, object] = {
             "group": " ".join(str(k) for k in (group_key if isinstance(group_key, tuple) else (group_key,))),
             "pairs": len(a_g),
-            "both_arrived": int(
-                (a_g["success"].to_numpy(dtype=bool) & b_g["success"].to_numpy(dtype=bool)).sum()
-            ),
+            "both_arrived": int(both.sum()),
         }
-        both = a_g["success"].to_numpy(dtype=bool) & b_g["success"].to_numpy(dtype=bool)
-        for metric in METRICS:
-            if metric.column == "time_s":
-                diff = metric_values(b_g, "time_s") - metric_values(a_g, "time_s")
-            else:
-                col = metric.column
-                diff = (b_g[col].to_numpy(dtype=np.float64) - a_g[col].to_numpy(dtype=np.float64))[both]
+        for metric in metrics:
+            col = metric.column
+            diff = (b_g[col].to_numpy(dtype=np.float64) - a_g[col].to_numpy(dtype=np.float64))[both]
             mean, low, high = mean_ci(diff)
-            row[f"{metric.column}_n"] = int(np.isfinite(diff).sum())
-            row[f"{metric.column}_diff"] = mean
-            row[f"{metric.column}_ci_low"] = low
-            row[f"{metric.column}_ci_high"] = high
+            row[f"{col}_n"] = int(np.isfinite(diff).sum())
+            row[f"{col}_diff"] = mean
+            row[f"{col}_ci_low"] = low
+            row[f"{col}_ci_high"] = high
         rows.append(row)
     return pd.DataFrame(rows)
 
 
 def paired_table(diff: pd.DataFrame, before: str, after: str) -> str:
     """Markdown: each group's paired differences, and whether the interval excludes zero."""
+    metrics = summary_metrics(diff)
     lines = [
         "| route | pairs | both arrived | "
-        + " | ".join(f"{m.label}: {after} - {before}" for m in METRICS)
+        + " | ".join(f"{m.label}: {after} - {before}" for m in metrics)
         + " |",
-        "|" + " --- |" * (3 + len(METRICS)),
+        "|" + " --- |" * (3 + len(metrics)),
     ]
     for r in diff.to_dict("records"):
         cells = [str(r["group"]), str(r["pairs"]), str(r["both_arrived"])]
-        for m in METRICS:
+        for m in metrics:
             mean, low, high = (float(r[f"{m.column}_{k}"]) for k in ("diff", "ci_low", "ci_high"))
             n = int(r[f"{m.column}_n"])  # type: ignore[arg-type]
             apart = n >= 2 and (high < 0 or low > 0)
@@ -216,15 +256,24 @@ def paired_table(diff: pd.DataFrame, before: str, after: str) -> str:
 
 
 def verdicts(summary: pd.DataFrame, better: str = "full", baseline: str = "default") -> pd.DataFrame:
-    """Per group and metric: is `better`'s mean lower than `baseline`'s, and do their 95% CIs stay apart?"""
+    """Per group: is `better`'s success rate or metric mean better than `baseline`'s, and do their 95%
+    intervals stay apart?"""
     rows: list[dict[str, object]] = []
     for group in summary["group"].unique():
         part = summary[summary["group"] == group].set_index("config")
         if better not in part.index or baseline not in part.index:
             continue
-        row: dict[str, object] = {"group": group}
-        for metric in METRICS:
-            b, d = part.loc[better], part.loc[baseline]
+        b, d = part.loc[better], part.loc[baseline]
+        rate_b, rate_d = (float(x["success"]) / float(x["runs"]) for x in (b, d))
+        higher = rate_b > rate_d
+        rate_apart = float(b["success_ci_low"]) > float(d["success_ci_high"])
+        row: dict[str, object] = {
+            "group": group,
+            "success": "higher, CIs apart"
+            if higher and rate_apart
+            else ("higher, CIs overlap" if higher else "not higher"),
+        }
+        for metric in summary_metrics(summary):
             lower = float(b[f"{metric.column}_mean"]) < float(d[f"{metric.column}_mean"])
             apart = float(b[f"{metric.column}_ci_high"]) < float(d[f"{metric.column}_ci_low"])
             row[metric.column] = (
@@ -235,44 +284,60 @@ def verdicts(summary: pd.DataFrame, better: str = "full", baseline: str = "defau
 
 
 def with_derived(table: pd.DataFrame) -> pd.DataFrame:
+    """The runs table with the per-simulated-second CPU figures its columns allow."""
     out = table.copy()
-    out["cpu_per_sim_s"] = out["agent_cpu_s"] / out["time_s"].where(out["time_s"] > 0)
+    seconds = out["time_s"].where(out["time_s"] > 0)
+    for derived, source in SOURCE_COLUMN.items():
+        if source in out.columns:
+            out[derived] = out[source] / seconds
     return out
 
 
-def bar_chart(summary: pd.DataFrame, metric: Metric, png: Path) -> None:
+def bar_chart(summary: pd.DataFrame, metric: Metric, png: Path) -> Figure:
+    """One bar per group and configuration with its 95% CI, and over each bar how many runs arrived (the runs
+    its mean is over); returns the figure, drawn and saved to `png`."""
     groups = list(dict.fromkeys(summary["group"]))
     configs = [c for c in CONFIG_COLOURS if c in set(summary["config"])] + sorted(
         set(summary["config"]) - set(CONFIG_COLOURS)
     )
-    fig = Figure(figsize=(max(7.5, 1.3 * len(groups)), 4.2))
+    fig = Figure(figsize=(max(7.5, 1.3 * len(groups)), 4.6))
     ax = fig.add_subplot()
     width = 0.8 / max(len(configs), 1)
     x = np.arange(len(groups))
     for i, config in enumerate(configs):
         part = summary[summary["config"] == config].set_index("group").reindex(groups)
         mean = part[f"{metric.column}_mean"].to_numpy(dtype=np.float64)
-        err = np.vstack(
-            [
-                mean - part[f"{metric.column}_ci_low"].to_numpy(dtype=np.float64),
-                part[f"{metric.column}_ci_high"].to_numpy(dtype=np.float64) - mean,
-            ]
-        )
-        ax.bar(
-            x + (i - (len(configs) - 1) / 2) * width,
-            mean,
-            width,
-            yerr=err,
-            capsize=4,
-            label=config,
-            color=CONFIG_COLOURS.get(config, f"C{i}"),
-        )
+        high = part[f"{metric.column}_ci_high"].to_numpy(dtype=np.float64)
+        err = np.vstack([mean - part[f"{metric.column}_ci_low"].to_numpy(dtype=np.float64), high - mean])
+        at = x + (i - (len(configs) - 1) / 2) * width
+        ax.bar(at, mean, width, yerr=err, capsize=4, label=config, color=CONFIG_COLOURS.get(config, f"C{i}"))
+        for xi, top, arrived, runs in zip(at, high, part["success"], part["runs"], strict=True):
+            if np.isfinite(top) and pd.notna(runs):
+                ax.annotate(
+                    f"{int(arrived)}/{int(runs)}",
+                    (float(xi), float(top)),
+                    xytext=(0, 2),
+                    textcoords="offset points",
+                    ha="center",
+                    va="bottom",
+                    fontsize=7,
+                    rotation=90 if len(groups) * len(configs) > 12 else 0,  # narrow bars: labels stand up
+                )
     ax.set_xticks(x, groups)
-    ax.set_ylabel(metric.label)
-    ax.set_title(f"{metric.label}: mean and 95% CI ({metric.figure} of the paper)")
-    ax.legend()
+    ax.set_ylabel(textwrap.fill(metric.label, 34))
+    ax.margins(y=0.12)
+    ax.set_title(
+        textwrap.fill(
+            f"{metric.figure} of the paper: {metric.label}, mean and 95% CI over the runs that arrived "
+            "(arrived/runs over each bar)",
+            80,
+        ),
+        fontsize=10,
+    )
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     fig.tight_layout()
     fig.savefig(png, dpi=110)
+    return fig
 
 
 def paths_figure(
@@ -303,37 +368,53 @@ def _fmt(mean: object, low: object, high: object) -> str:
     return f"{sig3(m)} [{sig3(lo)}, {sig3(hi)}]"
 
 
+def success_cell(successes: int, runs: int) -> str:
+    """`88.0% [76.2, 94.4]`: the success rate with its 95% Wilson interval, in per cent."""
+    if runs == 0:
+        return "n/a"
+    low, high = wilson(successes, runs)
+    return f"{sig3(100.0 * successes / runs)}% [{sig3(100.0 * low)}, {sig3(100.0 * high)}]"
+
+
 def markdown_table(summary: pd.DataFrame, by: Sequence[str] = ("route",)) -> str:
-    head = "| " + " | ".join(by) + " | config | runs | success | success rate | collisions | replans | "
-    head += "stalled (s) | recoveries | "
-    head += " | ".join(m.label for m in METRICS)
-    lines = [head + " |", "|" + " --- |" * (len(by) + 8 + len(METRICS))]
+    metrics = summary_metrics(summary)
+    head = "| " + " | ".join(by) + " | config | runs | arrived | success rate [95% Wilson] | aborted | "
+    head += (
+        "timed out | collisions | replans (arrived runs) | stalled (s, all runs) | recoveries (all runs) | "
+    )
+    head += " | ".join(f"{m.label} (arrived runs)" for m in metrics)
+    lines = [head + " |", "|" + " --- |" * (len(by) + 10 + len(metrics))]
     for r in summary.to_dict("records"):
         runs, success = int(r["runs"]), int(r["success"])  # type: ignore[arg-type]
         cells = [str(r[k]) for k in by] + [
             str(r["config"]),
             str(runs),
             str(success),
-            f"{sig3(100.0 * success / runs)}%" if runs else "n/a",
+            success_cell(success, runs),
+            str(r["aborted"]),
+            str(r["timeouts"]),
             str(r["collisions"]),
             sig3(float(r["replans_mean"])),  # type: ignore[arg-type]
             sig3(float(r["stalled_s_mean"])),  # type: ignore[arg-type]
             sig3(float(r["recoveries_mean"])),  # type: ignore[arg-type]
         ]
         cells += [
-            _fmt(r[f"{m.column}_mean"], r[f"{m.column}_ci_low"], r[f"{m.column}_ci_high"]) for m in METRICS
+            _fmt(r[f"{m.column}_mean"], r[f"{m.column}_ci_low"], r[f"{m.column}_ci_high"]) for m in metrics
         ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 def verdict_table(verdict: pd.DataFrame, what: str) -> str:
+    columns = [("success", "success rate")] + [
+        (m.column, m.label) for m in METRICS if m.column in verdict.columns
+    ]
     lines = [
-        f"| {what} | " + " | ".join(m.label for m in METRICS) + " |",
-        "|" + " --- |" * (1 + len(METRICS)),
+        f"| {what} | " + " | ".join(label for _, label in columns) + " |",
+        "|" + " --- |" * (1 + len(columns)),
     ]
     for r in verdict.to_dict("records"):
-        lines.append("| " + " | ".join([str(r["group"]), *(str(r[m.column]) for m in METRICS)]) + " |")
+        lines.append("| " + " | ".join([str(r["group"]), *(str(r[c]) for c, _ in columns)]) + " |")
     return "\n".join(lines)
 
 
@@ -345,16 +426,38 @@ def comparisons(configs: Sequence[str]) -> list[tuple[str, str]]:
     return out
 
 
-def rules_and_differences() -> list[str]:
+def rules_and_differences(metrics: Sequence[Metric] = METRICS) -> list[str]:
     """The report's rules for failed runs and figures, and what still separates `default` from stock."""
+    cpu = [
+        "Agent-step CPU per simulated second: thread CPU time inside the agent's step (costmap updates, "
+        "planning, control), per simulated second of the run: the share of one core the navigation's own work "
+        "would take at real-time pace. It is not the paper's figure, and the periodic replanning is most of "
+        "`default`'s."
+    ]
+    if any(m.column == "process_cpu_per_sim_s" for m in metrics):
+        cpu.append(
+            "Run-process CPU per simulated second: the CPU time of the whole process that ran the run (user + "
+            "system, every thread: the agent, the simulated robot and its lidar, the emulated nodes, the MQTT "
+            "clients, and the broker when it is the embedded amqtt), per simulated second: the closest this "
+            "simulation comes to the paper's move_base process CPU, an upper bound of it since the simulator "
+            "is in the same process."
+        )
+    else:
+        cpu.append(
+            "Run-process CPU is not in this runs table (the code that wrote it did not measure it): the report "
+            "shows the agent-step CPU only."
+        )
     return [
-        "How to read it: success counts the runs that arrived within the "
-        f"{TIME_CAP_S:.0f} s simulated-time cap. Time to goal counts every run: a run that did not arrive counts "
-        "as the cap (a censored value: its true time is at least that), so failures raise the mean instead of "
-        "vanishing. Distance and CPU per simulated second are means over the runs that arrived. Stalled: "
-        "simulated time in stretches of at least 10 s in which the robot got no 0.2 m further (move_base's "
-        "oscillation rule, measured alike for every configuration). Brackets: 95% Student-t intervals. Three "
-        "significant figures throughout.",
+        "How to read it: a run arrives, or fails: move_base's rules abort it (its recoveries all failed) or "
+        f"the {TIME_CAP_S:.0f} s simulated-time cap ends it. The success rate counts both failures, with its "
+        "95% Wilson interval. Time to goal, distance, replans and CPU are means over the runs that arrived (an "
+        "aborted run stops long before the cap, so counting it at the cap would make the mean depend on the "
+        "cap); over each bar, how many runs arrived of how many ran. Stalled and recoveries: means over every "
+        "run. Stalled: simulated time in stretches of at least 10 s in which the robot got no 0.2 m further "
+        "(move_base's oscillation rule, measured alike for every configuration). Brackets: 95% Student-t "
+        "intervals of the mean, Wilson for success rates. Three significant figures throughout.",
+        "",
+        *(f"- {c}" for c in cpu),
         "",
         "`default` is stock move_base on a TurtleBot3 (ROBOTIS' noetic parameters: planner 5 Hz, controller "
         "10 Hz, global costmap 10 Hz, 3 m local window, obstacle range 3.0 m, raytrace 3.5 m, inflation 1.0 m / "
@@ -363,6 +466,57 @@ def rules_and_differences() -> list[str]:
         "",
         *(f"- {d}" for d in STOCK_DIFFERENCES),
     ]
+
+
+DEVIATIONS = (
+    "The site: sites/school is the project's reconstruction of the paper's school floor (its Figures 5-7), "
+    "drawn from layout.yaml by sites/school/generate.py; the paper publishes no map, so distances and times "
+    "compare with the paper's in kind, not to the metre.",
+    "A run: one route (A->B, B->C or C->D) from a start drawn around the route's first point (5 cm and "
+    "0.05 rad standard deviation), with the route's raffled zone blocked as it starts; the paper chains the "
+    "three routes in one drive, so its robot starts each route where the previous one ended.",
+    "Zone states: come from emulated nodes (wsnav's zone simulator: the firmware's logic, not ESP8266s) over "
+    "MQTT through a real broker; each node sees the obstacle 0.5-2.0 s after it appears (detection delay "
+    "drawn per run), and reports it as the firmware does.",
+    "No path: `zones` and `full` wait for a zone to clear when the zone layer leaves no path (Algorithm 3's "
+    "wait) instead of aborting after planner patience as `default` (stock move_base) does; every raffled zone "
+    "of the school leaves a longer way round (site.yaml), so the wait is there for sites where it does not.",
+    "Time: simulated, in lock step (50 ms steps) as fast as the machine allows; the paper's runs were in real "
+    "time on a TurtleBot3, so its CPU is a process's share of a core over wall time, these are CPU seconds "
+    "per simulated second (the same ratio had the run been paced in real time, without the idle costs a "
+    "paced process has).",
+    "Local costmap: the controller reads a window of the global costmap; the paper's smaller local costmap "
+    "in `full` is its `local_costmap_size_m` window, not a separate costmap with its own update rate.",
+)
+"""What differs between this experiment and the paper's, for the report's deviations section."""
+
+
+def deviations_section() -> list[str]:
+    return ["## Deviations from the paper's experiment", "", *(f"- {d}" for d in DEVIATIONS), ""]
+
+
+def memory_section(table: pd.DataFrame) -> list[str]:
+    """Each configuration's peak memory per run, from tables whose runs measured it per run (those with the
+    run-process CPU column; before it, the figure grew with a worker's run order and is left out)."""
+    if "process_cpu_s" not in table.columns or "peak_mem_mb" not in table.columns:
+        return []
+    lines = [
+        "## Memory",
+        "",
+        "The run process's resident-set peak during each run (Linux VmHWM, reset as the run starts, after "
+        "the previous runs' garbage is collected): the agent, the simulated robot, the emulated nodes and "
+        "their MQTT clients, and the broker when it is the embedded amqtt.",
+        "",
+        "| config | runs | median (MB) | min (MB) | max (MB) |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for config in [c for c in CONFIG_ORDER if c in set(table["config"])]:
+        mem = table.loc[table["config"] == config, "peak_mem_mb"].to_numpy(dtype=np.float64)
+        lines.append(
+            f"| {config} | {len(mem)} | {sig3(float(np.median(mem)))} | {sig3(float(mem.min()))} | "
+            f"{sig3(float(mem.max()))} |"
+        )
+    return [*lines, ""]
 
 
 def stall_section(table: pd.DataFrame) -> list[str]:
@@ -403,17 +557,24 @@ def stall_section(table: pd.DataFrame) -> list[str]:
     return parts
 
 
+HEADER_FILE = "header.md"
+"""The report's opening as the run wrote it (what ran, where, how fast, the code and its dependencies), kept
+beside runs.csv so that the report can be rendered again from the published files alone."""
+
+
 def write_report(table: pd.DataFrame, out: Path, header: str, path_figures: Sequence[Path] = ()) -> Path:
     """report.md plus PNGs in `out` (one per metric by route, the paper's figures, and one per metric by route
-    and blocked zone); returns the report's path."""
+    and blocked zone), and the header in header.md; returns the report's path."""
     out.mkdir(parents=True, exist_ok=True)
+    (out / HEADER_FILE).write_text(header.rstrip("\n") + "\n")
+    metrics = metrics_of(table)
     summary = summarise(table)
     summary.to_csv(out / "summary.csv", index=False)
     by_zone = summarise(table, ("route", "blocked"))
     by_zone.to_csv(out / "summary_by_zone.csv", index=False)
     configs = [c for c in CONFIG_ORDER if c in set(table["config"])]
     configs += sorted(set(table["config"]) - set(configs))
-    parts = [header, "", *rules_and_differences(), ""]
+    parts = [header, "", *rules_and_differences(metrics), "", *deviations_section()]
     parts += ["## By route (the paper's Figures 10-12)", "", markdown_table(summary), ""]
     for before, after in comparisons(configs):
         diff = paired_differences(table, before, after)
@@ -423,13 +584,13 @@ def write_report(table: pd.DataFrame, out: Path, header: str, path_figures: Sequ
         parts += [
             f"### {before} -> {after}: {what}",
             "",
-            "Mean paired difference (run i of a route under both: same zone, same seed) with its 95% interval; "
-            "`*`: the interval excludes zero (two pairs or more).",
+            "Mean paired difference (run i of a route under both: same zone, same seed) over the pairs where "
+            "both arrived, with its 95% interval; `*`: the interval excludes zero (two pairs or more).",
             "",
             paired_table(diff, before, after),
             "",
         ]
-    for metric in METRICS:
+    for metric in metrics:
         png = out / f"{metric.column}.png"
         bar_chart(summary, metric, png)
         parts += [f"![{metric.label}]({png.name})", ""]
@@ -444,10 +605,11 @@ def write_report(table: pd.DataFrame, out: Path, header: str, path_figures: Sequ
     ]
     if {"full", "default"} <= set(configs):
         parts += [verdict_table(verdicts(by_zone), "route and zone: full vs default"), ""]
-    for metric in METRICS:
+    for metric in metrics:
         png = out / f"{metric.column}_by_zone.png"
         bar_chart(by_zone, metric, png)
         parts += [f"![{metric.label} by blocked zone]({png.name})", ""]
+    parts += memory_section(table)
     parts += stall_section(table)
     if path_figures:
         parts += ["## Paths (the paper's Figures 8-9)", ""]
@@ -456,3 +618,45 @@ def write_report(table: pd.DataFrame, out: Path, header: str, path_figures: Sequ
     report = out / "report.md"
     report.write_text("\n".join(parts))
     return report
+
+
+NEEDED = ("run", "success", "time_s", "distance_m")
+NUMERIC = ("collisions", "replans", "recoveries", "stalled_s", "agent_cpu_s", "process_cpu_s")
+
+
+def _booleans(values: object) -> NDArray[np.bool_]:
+    """`success` as written by the runner (True/False), whatever pandas made of it."""
+    text = np.char.lower(np.char.strip(np.asarray(values, dtype=str)))
+    if not np.isin(text, ["true", "false"]).all():
+        raise ValueError("success")
+    return text == "true"
+
+
+class ReportError(Exception):
+    """The folder holds no runs table to render a report from; one line for the user."""
+
+
+def rerender(out: Path) -> Path:
+    """The report again from `out`'s runs.csv and header.md (and the path figures already there), nothing
+    rerun: how a reader checks that a published report is what its table says."""
+    runs_csv = out / "runs.csv"
+    try:
+        table = pd.read_csv(runs_csv, keep_default_na=False)
+        header = (out / HEADER_FILE).read_text().rstrip("\n")
+    except FileNotFoundError as exc:
+        raise ReportError(f"{out}: no {Path(str(exc.filename)).name} to render the report from") from None
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise ReportError(f"{runs_csv}: not a runs table ({type(exc).__name__})") from None
+    missing = [c for c in (*NEEDED, "config", "route", "blocked") if c not in table]
+    if missing:
+        raise ReportError(f"{runs_csv}: not a runs table (no {', '.join(missing)} column)")
+    try:
+        table["success"] = _booleans(table["success"])
+    except ValueError:
+        raise ReportError(f"{runs_csv}: column success holds a value that is not True or False") from None
+    for column in [c for c in (*NEEDED, *NUMERIC) if c in table and c != "success"]:
+        try:
+            table[column] = pd.to_numeric(table[column])
+        except ValueError:
+            raise ReportError(f"{runs_csv}: column {column} holds a value that is not a number") from None
+    return write_report(table, out, header, sorted(out.glob("paths_*.png")))

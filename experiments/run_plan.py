@@ -34,7 +34,9 @@ def route_name(start: str, goal: str) -> str:
 
 
 def plan_runs(spec: SiteFile, configs: list[str], runs: int, seed: int) -> list[RunSpec]:
-    """All runs, ordered config-major so a progress bar shows each configuration's share."""
+    """All runs, configurations interleaved run by run (run i of a route under each configuration, then run
+    i+1): a drift in the machine's load while the experiment runs falls on every configuration alike instead of
+    on whichever ran last."""
     out: list[RunSpec] = []
     for r_index, route in enumerate(spec.routes):
         streams = [run_stream(seed, r_index, i) for i in range(runs)]
@@ -53,4 +55,4 @@ def plan_runs(spec: SiteFile, configs: list[str], runs: int, seed: int) -> list[
                         seed=seeds[i],
                     )
                 )
-    return sorted(out, key=lambda s: (configs.index(s.config), s.route, s.run))
+    return sorted(out, key=lambda s: (s.run, s.route, configs.index(s.config)))

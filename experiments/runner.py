@@ -8,11 +8,14 @@ from __future__ import annotations
 import multiprocessing
 import os
 import platform
+import shutil
+import subprocess
 import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from importlib import metadata
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +24,7 @@ from numpy.typing import NDArray
 
 from wsnav.experiments.report import paths_figure, write_report
 from wsnav.experiments.run_plan import RunSpec
+from wsnav.experiments.run_record import record_name
 from wsnav.experiments.single_run import COLUMNS, DT, BrokerAt, RunResult
 from wsnav.experiments.worker import init_worker, work
 from wsnav.schemas.site import Site, load_site
@@ -34,6 +38,8 @@ class Outcome:
     trajectories: dict[tuple[str, str], NDArray[np.float64]]
     """(route, config) -> run 0's driven path."""
     wall_s: float
+    every_path: dict[tuple[str, str, int], NDArray[np.float64]] = field(default_factory=dict)
+    """(config, route, run) -> that run's driven path, for a picture per run."""
 
     @property
     def simulated_s(self) -> float:
@@ -49,9 +55,13 @@ def run_experiment(
     progress: Progress | None = None,
     scheduler: str | None = None,
     run_broker: str = "amqtt",
+    record: Path | None = None,
 ) -> Outcome:
     """Run `specs` (with an external `broker`: in this process, one after the other; with a `scheduler`
-    address: as tasks on that Dask cluster, `workers` unused); otherwise each run on its own `run_broker`."""
+    address: as tasks on that Dask cluster, `workers` unused); otherwise each run on its own `run_broker`.
+    `record`: a folder for one MCAP record per run (not on a cluster: its workers' disks are not this one)."""
+    if record is not None and scheduler is not None:
+        raise ValueError("runs on a cluster are not recorded")
     start = time.monotonic()
     done: list[tuple[RunSpec, RunResult]] = []
     if scheduler is not None:
@@ -63,7 +73,7 @@ def run_experiment(
 
         done = list(run_on_cluster(scheduler, load_site(site_dir), specs, arrived, run_broker).values())
     elif broker is not None or workers <= 1:
-        init_worker(site_dir, broker, run_broker)
+        init_worker(site_dir, broker, run_broker, record)
         for spec in specs:
             done.append(work(spec))
             if progress is not None:
@@ -71,7 +81,7 @@ def run_experiment(
     else:
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(
-            workers, ctx, initializer=init_worker, initargs=(site_dir, None, run_broker)
+            workers, ctx, initializer=init_worker, initargs=(site_dir, None, run_broker, record)
         ) as pool:
             futures = [pool.submit(work, spec) for spec in specs]
             for future in as_completed(futures):
@@ -81,7 +91,8 @@ def run_experiment(
     done.sort(key=lambda d: (d[0].config, d[0].route, d[0].run))
     table = pd.DataFrame([r.row for _, r in done], columns=list(COLUMNS))
     paths = {(s.route, s.config): r.trajectory for s, r in done if s.run == 0}
-    return Outcome(table, paths, time.monotonic() - start)
+    every = {(s.config, s.route, s.run): r.trajectory for s, r in done}
+    return Outcome(table, paths, time.monotonic() - start, every)
 
 
 def progress_line(started: float | None = None) -> Progress:
@@ -112,8 +123,11 @@ def report_header(
     where: str,
     outcome: Outcome,
     reproduce: str,
+    run_broker: str | None = None,
+    code: str | None = None,
 ) -> str:
-    """The report's opening: what ran, how, on what machine, how fast, and the command that reproduces it."""
+    """The report's opening: what ran, how, on what machine, how fast, the code (`code`: `provenance()` taken
+    as the runs started; now if not given) and the command that reproduces it."""
     o = outcome
     return "\n".join(
         [
@@ -124,15 +138,72 @@ def report_header(
             f"- Messages through {where}; emulated nodes with their own credentials (zone simulator), the agent "
             f"on robot1's connection, a simulated TurtleBot3; lock-step simulated time, {DT:g} s steps.",
             "- The obstacle is placed when the route starts and cleared when the robot stops.",
-            "- Agent CPU: thread CPU time inside the agent's step, per simulated second of the run. "
-            "Peak memory: the worker process's resident-set peak during the run (Linux VmHWM, reset as the run "
-            "starts; it includes the worker's zone simulator, and the broker when it is the embedded amqtt).",
+            "- Configurations take turns run by run (run i of a route under each, then run i+1), so a change in "
+            "the machine's load falls on every configuration alike.",
             f"- Wall time {o.wall_s:.0f} s on {workers} worker(s) ({os.cpu_count()} cores, "
             f"{platform.processor() or platform.machine()}, load {os.getloadavg()[0]:.1f} at the end) for "
             f"{o.simulated_s:.0f} s simulated: {o.simulated_s / max(o.wall_s, 1e-9):.0f}x real time.",
+            f"- Code: {code or provenance(run_broker)}.",
             f"- Reproduce: `{reproduce}`",
         ]
     )
+
+
+REPO = Path(__file__).resolve().parent.parent
+PACKAGES = ("numpy", "scipy", "pandas", "numba", "pyastar2d", "amqtt", "paho-mqtt", "pydantic", "matplotlib")
+"""The libraries whose versions can change a run's result or its speed, named in the report."""
+
+
+def _git(*args: str) -> str | None:
+    git = shutil.which("git")
+    if git is None:
+        return None
+    try:
+        done = subprocess.run([git, "-C", str(REPO), *args], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip() if done.returncode == 0 else None
+
+
+def provenance(run_broker: str | None) -> str:
+    """The code's commit (with `+ local changes` when the work tree differs from it), Python and the
+    dependencies' versions, and Mosquitto's when the runs used it: what a reader needs to rerun the same."""
+    commit = _git("rev-parse", "--short=12", "HEAD")
+    dirty = _git("status", "--porcelain", "--untracked-files=no")
+    code = "an unknown commit (not a git checkout)" if commit is None else f"commit {commit}"
+    if commit is not None and dirty:
+        code += " + local changes"
+    versions = []
+    for name in PACKAGES:
+        try:
+            versions.append(f"{name} {metadata.version(name)}")
+        except metadata.PackageNotFoundError:
+            continue
+    if run_broker == "mosquitto" and (mosquitto := shutil.which("mosquitto")) is not None:
+        try:
+            first = subprocess.run(
+                [mosquitto, "-h"], capture_output=True, text=True, timeout=10
+            ).stdout.splitlines()
+            versions.append(first[0].strip() if first else "mosquitto (version unknown)")
+        except (OSError, subprocess.SubprocessError):
+            versions.append("mosquitto (version unknown)")
+    return f"{code}; Python {platform.python_version()}, {', '.join(versions)}"
+
+
+def write_run_pictures(site: Site, outcome: Outcome, folder: Path) -> int:
+    """One PNG per run in `folder` (named as its MCAP record): its driven path over the map, its blocked zones
+    hatched; returns how many."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rows = {(str(r["config"]), str(r["route"]), int(r["run"])): r for r in outcome.table.to_dict("records")}
+    for (config, route, run), xy in sorted(outcome.every_path.items()):
+        row = rows[(config, route, run)]
+        blocked = str(row["blocked"])
+        name = record_name(config, route, run)
+        title = f"{config}, {route} run {run}, {blocked} blocked: {row['outcome']} after {float(row['time_s']):.0f} s"
+        paths_figure(
+            site, {config: xy}, [] if blocked == "none" else blocked.split("+"), title, folder / f"{name}.png"
+        )
+    return len(outcome.every_path)
 
 
 def path_png(out: Path, route: str) -> Path:

@@ -7,8 +7,10 @@ part of what is measured) and cleared once the robot has stopped, so the next ru
 
 from __future__ import annotations
 
+import gc
 import math
 import resource
+import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +20,7 @@ from numpy.typing import NDArray
 
 from wsnav.experiments.lockstep import Deliveries, ExpectingBus, WatchedBus, settle
 from wsnav.experiments.run_plan import RunSpec
+from wsnav.experiments.run_record import RunRecorder, record_name
 from wsnav.navigation.navigator import NavEvent
 from wsnav.robot_agent.agent import RobotAgent
 from wsnav.robot_agent.agent_config import load_agent_config
@@ -69,9 +72,10 @@ COLUMNS = (
     "recovery_log",
     "planning_ms",
     "agent_cpu_s",
+    "process_cpu_s",
     "peak_mem_mb",
 )
-NONDETERMINISTIC = ("planning_ms", "agent_cpu_s", "peak_mem_mb")
+NONDETERMINISTIC = ("planning_ms", "agent_cpu_s", "process_cpu_s", "peak_mem_mb")
 """Columns that measure the machine rather than the run (the rest are the same for the same seed)."""
 
 
@@ -141,8 +145,11 @@ PROC_SELF = Path("/proc/self")
 
 
 def reset_peak_rss() -> None:
-    """Start this run's resident-set peak afresh (Linux: writing 5 to clear_refs resets VmHWM), so a worker's
-    earlier runs do not leak into this run's number; elsewhere the process's lifetime peak stays."""
+    """Start this run's resident-set peak afresh: first free what earlier runs left in reference cycles (the
+    costmaps, plans and clients of a run hold each other; left to the collector's thresholds they piled up,
+    and a worker's peak grew with its run order, 346 -> 712 MB over 225 runs), then (Linux) write 5 to
+    clear_refs, which resets VmHWM; elsewhere the process's lifetime peak stays."""
+    gc.collect()
     try:
         (PROC_SELF / "clear_refs").write_text("5")
     except OSError:
@@ -166,7 +173,9 @@ def start_pose(site: Site, spec: RunSpec) -> tuple[float, float, float]:
     return x + START_SIGMA_M * dx, y + START_SIGMA_M * dy, yaw + START_SIGMA_RAD * dyaw
 
 
-def run_once(site: Site, spec: RunSpec, broker: BrokerAt) -> RunResult:
+def run_once(site: Site, spec: RunSpec, broker: BrokerAt, record: Path | None = None) -> RunResult:
+    """One run; with `record`, a folder, also its MCAP record there (and nothing else changes: the recorder
+    only reads)."""
     reset_peak_rss()
     clock = SimClock()
     world = SimWorldGrid(site.grid)
@@ -193,7 +202,13 @@ def run_once(site: Site, spec: RunSpec, broker: BrokerAt) -> RunResult:
         on_sent=sent,
     )
     try:
-        return _drive(site, spec, clock, robot, agent, sim, deliveries)
+        if record is None:
+            return _drive(site, spec, clock, robot, agent, sim, deliveries)
+        with RunRecorder(record / f"{record_name(spec.config, spec.route, spec.run)}.mcap", spec) as recorder:
+            bus.tap = recorder.messages
+            result = _drive(site, spec, clock, robot, agent, sim, deliveries, recorder)
+            recorder.result(result.row)
+            return result
     finally:
         sim.stop()
         world_bus.close()
@@ -208,6 +223,7 @@ def _drive(
     agent: RobotAgent,
     sim: ZoneSimulator,
     deliveries: Deliveries,
+    recorder: RunRecorder | None = None,
 ) -> RunResult:
     bus = agent.bus
     assert isinstance(bus, WatchedBus)
@@ -228,6 +244,7 @@ def _drive(
     agent.step(clock.now())  # take in the world and the zone states before planning
     agent.set_goal(site.point(spec.goal), spec.goal, clock.now())
     cpu0 = agent.stats.cpu_s
+    process_cpu0 = time.process_time()
     trajectory: list[tuple[float, float]] = [robot.pose()[:2]]
     stalls = StallMeter(clock.now(), robot.pose()[:2])
     next_sample = TRAJECTORY_EVERY_S
@@ -239,6 +256,9 @@ def _drive(
         robot.step(DT, now + DT)
         clock.advance(DT)
         stalls.update(clock.now(), robot.pose()[:2])
+        if recorder is not None:
+            recorder.navigator(now, nav.state, nav.path, nav.events)
+            recorder.pose(clock.now(), *robot.pose())
         sim.step(clock.now(), io_timeout_s=0.0)
         if not synced():
             settle(synced, poke, agent.bus.wait, "zone messages")
@@ -246,6 +266,7 @@ def _drive(
             trajectory.append(robot.pose()[:2])
             next_sample += TRAJECTORY_EVERY_S
     elapsed = clock.now() - t0
+    process_cpu_s = time.process_time() - process_cpu0
     stalls.close(clock.now())
     trajectory.append(robot.pose()[:2])
     counters = agent.counters()
@@ -266,6 +287,7 @@ def _drive(
         "recovery_log": recovery_log(nav.events, t0),
         "planning_ms": float(counters["planning_ms"]),
         "agent_cpu_s": round(agent.stats.cpu_s - cpu0, 6),
+        "process_cpu_s": round(process_cpu_s, 6),
         "peak_mem_mb": round(peak_rss_mb(), 1),
     }
     for zone in spec.blocked:

@@ -23,6 +23,7 @@ _site: Site | None = None
 _site_dir: Path | None = None
 _broker: BrokerAt | None = None
 _run_broker = "amqtt"
+_record: Path | None = None
 
 
 def quiet_worker_logs() -> None:
@@ -33,13 +34,17 @@ def quiet_worker_logs() -> None:
         logging.getLogger(component).setLevel(logging.ERROR)
 
 
-def init_worker(site_dir: Path, broker: BrokerAt | None, run_broker: str = "amqtt") -> None:
-    global _site, _site_dir, _broker, _run_broker
+def init_worker(
+    site_dir: Path, broker: BrokerAt | None, run_broker: str = "amqtt", record: Path | None = None
+) -> None:
+    """`record`: a folder for each run's MCAP record, or None."""
+    global _site, _site_dir, _broker, _run_broker, _record
     quiet_worker_logs()
     _site = load_site(site_dir)
     _site_dir = site_dir
     _broker = broker
     _run_broker = run_broker
+    _record = record
 
 
 def work(spec: RunSpec) -> tuple[RunSpec, RunResult]:
@@ -47,8 +52,8 @@ def work(spec: RunSpec) -> tuple[RunSpec, RunResult]:
     run reaches this one and the same seed gives the same row whatever ran before in this worker."""
     assert _site is not None and _site_dir is not None
     if _broker is not None:
-        return spec, run_once(_site, spec, _broker)
-    return run_with_own_broker(_site, spec, _run_broker)
+        return spec, run_once(_site, spec, _broker, _record)
+    return run_with_own_broker(_site, spec, _run_broker, _record)
 
 
 _credentials: dict[str, tuple[SiteFile, tempfile.TemporaryDirectory[str]]] = {}
@@ -65,15 +70,17 @@ def _credentials_of(site: Site) -> Path:
     return Path(known[1].name)
 
 
-def run_with_own_broker(site: Site, spec: RunSpec, kind: str = "amqtt") -> tuple[RunSpec, RunResult]:
+def run_with_own_broker(
+    site: Site, spec: RunSpec, kind: str = "amqtt", record: Path | None = None
+) -> tuple[RunSpec, RunResult]:
     """One run on a fresh broker of its own (`kind`, one of RUN_BROKERS; credentials in a temporary folder):
-    needs the parsed site only."""
+    needs the parsed site only. `record`: a folder for the run's MCAP record, or None."""
     if kind == "mosquitto":
         creds = _credentials_of(site)
         with (
             tempfile.TemporaryDirectory(prefix="wsnav-run-") as tmp,
             mosquitto_process(site.spec, creds, Path(tmp)) as mq,
         ):
-            return spec, run_once(site, spec, BrokerAt(mq.host, mq.port, creds))
+            return spec, run_once(site, spec, BrokerAt(mq.host, mq.port, creds), record)
     with BrokerThread(site) as own:
-        return spec, run_once(site, spec, BrokerAt(own.host, own.port, own.credentials_dir))
+        return spec, run_once(site, spec, BrokerAt(own.host, own.port, own.credentials_dir), record)

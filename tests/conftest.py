@@ -85,6 +85,8 @@ SLOW_TESTS = {
     "test_broker_storage.py::test_full_disk_is_loud_loses_nothing_while_running_and_counts_what_is_lost",
     "test_experiments_run.py::test_a_row_of_the_published_experiment_comes_out_again_to_the_digit",
     "test_experiments_run.py::test_a_run_on_its_own_mosquitto_gives_the_row_and_path_it_gives_on_amqtt",
+    "test_experiments_report.py::test_the_published_report_is_what_its_runs_table_renders_to",
+    "test_experiments_run.py::test_a_recorded_run_keeps_every_pose_plan_zone_message_and_event_with_its_time_and_drives_the_same",
     "test_experiments_run.py::test_one_run_per_route_and_config_arrives_without_collisions_and_repeats_with_the_seed",
     "test_firmware_mqtt.py::test_keepalive_pings_are_sent_by_the_node",
     "test_firmware_mqtt.py::test_missing_pingresp_is_detected",

@@ -56,6 +56,24 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         metavar="tcp://HOST:PORT",
         help="run each run as a task on this Dask cluster (docs/cluster.md) instead of the local processes",
     )
+    exp.add_argument(
+        "--record",
+        type=Path,
+        metavar="DIR",
+        help="keep every run whole: one MCAP file per run in DIR (pose, plans, the agent's messages with their "
+        "times, the navigator's states and recoveries; Foxglove opens them); needs the `experiment` extra",
+    )
+    exp.add_argument(
+        "--pictures",
+        type=Path,
+        metavar="DIR",
+        help="draw each run's driven path over the map, one PNG per run in DIR",
+    )
+    exp.add_argument(
+        "--report-only",
+        action="store_true",
+        help="render the report again from --out's runs.csv and header.md; nothing runs",
+    )
     exp.set_defaults(func=experiment_command)
 
     demo = sub.add_parser("demo", help="one `full` run of each route of the school: a table and a picture")

@@ -10,9 +10,16 @@ import numpy as np
 
 from wsnav.broker.mosquitto.process import MosquittoError
 from wsnav.experiments.cluster import ClusterError
-from wsnav.experiments.report import paths_figure
+from wsnav.experiments.report import ReportError, paths_figure, rerender
 from wsnav.experiments.run_plan import RunSpec, plan_runs
-from wsnav.experiments.runner import progress_line, report_header, run_experiment, write_outputs
+from wsnav.experiments.runner import (
+    progress_line,
+    provenance,
+    report_header,
+    run_experiment,
+    write_outputs,
+    write_run_pictures,
+)
 from wsnav.experiments.single_run import BrokerAt
 from wsnav.robot_agent.agent_config import AgentConfigError, load_agent_config
 from wsnav.runtime.cli_support import CliError
@@ -52,6 +59,13 @@ def _cluster_size(address: str) -> int:
 
 
 def experiment(args: argparse.Namespace) -> int:
+    if args.report_only:
+        try:
+            report = rerender(args.out)
+        except ReportError as exc:
+            raise CliError(f"--report-only: {exc}") from None
+        print(f"wrote {report} from {args.out / 'runs.csv'} (nothing rerun)")
+        return 0
     if args.runs < 1:
         raise CliError(f"--runs must be at least 1, got {args.runs}")
     if args.workers < 1:
@@ -82,8 +96,14 @@ def experiment(args: argparse.Namespace) -> int:
         raise CliError(
             "--run-broker mosquitto: mosquitto is not installed (Debian: apt-get install mosquitto)"
         )
+    if args.record is not None and args.scheduler is not None:
+        raise CliError("--record writes on this machine's disk: it does not go with --scheduler")
+    if args.record is not None:
+        _recordable(args.record)
     site = _site(args.site)
     _writable(args.out)
+    if args.pictures is not None:
+        _writable(args.pictures)
     specs = _specs(site, configs, args.runs, args.seed)
     workers = 1 if broker is not None else min(args.workers, len(specs))
     own = "a Mosquitto process" if run_broker == "mosquitto" else "an embedded amqtt broker"
@@ -96,6 +116,7 @@ def experiment(args: argparse.Namespace) -> int:
         )
     else:
         print(f"{len(specs)} runs ({args.runs} per route and configuration) on {workers} worker(s)")
+    code = provenance(run_broker)  # the code that runs, before anything can change it
     try:
         outcome = run_experiment(
             site.path,
@@ -105,6 +126,7 @@ def experiment(args: argparse.Namespace) -> int:
             progress=progress_line(),
             scheduler=args.scheduler,
             run_broker=run_broker,
+            record=args.record,
         )
     except ClusterError as exc:
         raise CliError(f"--scheduler {args.scheduler}: {exc}") from None
@@ -115,7 +137,9 @@ def experiment(args: argparse.Namespace) -> int:
         f"--configs {','.join(configs)} --out {args.out}"
         + (f" --run-broker {run_broker}" if run_broker != "amqtt" else "")
     )
-    header = report_header(site.name, configs, args.runs, args.seed, workers, where, outcome, reproduce)
+    header = report_header(
+        site.name, configs, args.runs, args.seed, workers, where, outcome, reproduce, run_broker, code
+    )
     report = write_outputs(site, outcome, args.out, header)
     t = outcome.table
     print(
@@ -125,7 +149,23 @@ def experiment(args: argparse.Namespace) -> int:
         f"({outcome.simulated_s / outcome.wall_s:.0f}x real time)"
     )
     print(f"wrote {report} and the table {args.out / 'runs.csv'}")
+    if args.record is not None:
+        print(f"wrote {len(specs)} run records (MCAP) to {args.record}")
+    if args.pictures is not None:
+        pictures = write_run_pictures(site, outcome, args.pictures)
+        print(f"wrote {pictures} run pictures to {args.pictures}")
     return 0
+
+
+def _recordable(folder: Path) -> None:
+    """The record folder exists and the mcap package is there, before any run starts."""
+    from wsnav.experiments.run_record import RecordError, require_mcap
+
+    _writable(folder)
+    try:
+        require_mcap()
+    except RecordError as exc:
+        raise CliError(f"--record: {exc}") from None
 
 
 def demo(args: argparse.Namespace) -> int:
