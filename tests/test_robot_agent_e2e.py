@@ -241,7 +241,7 @@ def test_forged_statuses_and_goals_are_logged_once_per_kind_then_summed_up_with_
 ) -> None:
     """60 forged statuses of robot2 and 60 bad goals used to give one line in all: now one line per kind at
     once, then one line with the count of the rest after the interval (the zone intake's rule)."""
-    caplog.set_level(logging.WARNING)
+    caplog.set_level(logging.WARNING, logger="wsnav.robot_agent.agent")  # a worker quiets it in-process
     with Rig(tmp_path) as rig:
         robot2 = connect(rig.broker, "robot2")
         site = rig.site.name
@@ -271,7 +271,7 @@ def test_forged_statuses_and_goals_are_logged_once_per_kind_then_summed_up_with_
 def test_a_broker_outage_is_said_once_with_the_stale_policy_and_its_end_once(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING)
+    caplog.set_level(logging.WARNING, logger="wsnav.robot_agent.agent")  # a worker quiets it in-process
     with Rig(tmp_path) as rig:
         port, creds = rig.broker.port, tmp_path / "creds"
         shutil.copytree(rig.broker.credentials_dir, creds)  # the broker's own are removed when it stops
