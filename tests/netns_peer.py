@@ -2,7 +2,8 @@
 
 - `flood HOST USER PASS SECONDS`: QoS 0 zone states of node USER as fast as paho takes them;
 - `probe HOST USER PASS COUNT BIND`: COUNT QoS 1 zone states of node USER, one every 0.1 s, from address BIND;
-- `watch HOST USER PASS SECONDS`: subscribe to every zone state for SECONDS.
+- `watch HOST USER PASS SECONDS`: subscribe to every zone state, say `subscribed` once subscribed, then count
+  for SECONDS.
 Each prints one JSON line: what it sent, or how many messages it received per topic.
 """
 
@@ -11,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+import threading
 import time
 from collections import Counter
 
@@ -55,7 +57,12 @@ def main() -> None:
         got: Counter[str] = Counter()
         client = _client(host, user, password)
         client.on_message = lambda _c, _u, msg: got.update([msg.topic])
+        subscribed = threading.Event()
+        client.on_subscribe = lambda *_a: subscribed.set()
         client.subscribe(f"wsn/{SITE}/zones/#", 1)
+        if not subscribed.wait(60):
+            sys.exit("watch: no SUBACK within 60 s")
+        print("subscribed", flush=True)  # the test starts the senders only now: nothing is sent unwatched
         time.sleep(float(amount))
         print(json.dumps(dict(got)), flush=True)
     client.disconnect()

@@ -99,6 +99,7 @@ def test_a_flooding_node_is_held_to_its_byte_rate_and_the_other_node_gets_throug
             check=True, timeout=60,
         )  # fmt: skip
         watch = peer(BROKER_NS, "watch", "127.0.0.1", "robot1", password["robot1"], str(SECONDS + 4))
+        assert watch.stdout is not None and watch.stdout.readline().strip() == "subscribed", result(watch)
         flood = peer(NODES_NS, "flood", f"{PREFIX}.1", "n1", password["n1"], str(SECONDS))
         probe = peer(NODES_NS, "probe", f"{PREFIX}.1", "n2", password["n2"], "40", f"{PREFIX}.3")
         flooded, probed, seen = result(flood), result(probe), result(watch)
