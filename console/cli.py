@@ -87,6 +87,11 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     )
     block.add_argument("--reason", help="shown to operators and in the robots' status")
     block.add_argument("--id", dest="block_id", help="the block's id (default: a new one)")
+    block.add_argument(
+        "--extend",
+        metavar="ID",
+        help="extend block ID by --for TIME instead (same id: robots hold the block throughout)",
+    )
     block.set_defaults(func=_run("terminal", "block_command"))
     block._negative_number_matcher = re.compile(r"^-\.?\d")
 

@@ -18,7 +18,7 @@ MAX_EVENTS = 100_000
 class Event:
     t: float
     kind: str
-    """block_set, block_lifted, block_expired, node_offline, node_online, robot_waiting, robot_cancelled,
+    """block_set, block_extended, block_lifted, block_expired, node_offline, node_online, robot_waiting, robot_cancelled,
     robot_arrived"""
     subject: str
     text: str

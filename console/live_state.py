@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from wsnav.console.alerts import AlertBoard
 from wsnav.console.event_log import EventLog
 from wsnav.console.site_view import Key, SiteView
 from wsnav.runtime.bus import Bus
@@ -60,7 +61,14 @@ class PageFeed:
 
 
 class LiveState:
-    def __init__(self, view: SiteView, bus: Bus, clock: Clock, events: EventLog | None = None) -> None:
+    def __init__(
+        self,
+        view: SiteView,
+        bus: Bus,
+        clock: Clock,
+        events: EventLog | None = None,
+        alerts: AlertBoard | None = None,
+    ) -> None:
         self.view = view
         self.bus = bus
         self.clock = clock
@@ -71,6 +79,8 @@ class LiveState:
         self._thread = threading.Thread(target=self._run, name="console-mqtt", daemon=True)
         self.connected = bus.connected
         self.events = events
+        self.alerts = alerts if alerts is not None else AlertBoard()
+        """Node offline, robot stuck or given up, block expiring: under `lock`, like the view."""
         self._sent: dict[Key, object] = {}
         """What the pages were last sent of each zone and node (its look, without times)."""
         self.failed: str | None = None
@@ -97,6 +107,7 @@ class LiveState:
     def snapshot(self) -> dict[str, Any]:
         with self.lock:
             snap = self.view.snapshot(self.clock.now())
+            snap["alerts"] = self.alerts.entries()
         snap["broker_connected"] = self.link_up
         snap["events"] = self.recent_events()
         if self.failed is not None:
@@ -168,6 +179,7 @@ class LiveState:
                 with self.lock:
                     now = self.clock.now()
                     expired = self.view.expire(now)
+                    self.alerts.on_clock(self.view, now)
                 dirty |= expired
                 self._forget_expired(expired)
                 with self.lock:
@@ -177,9 +189,13 @@ class LiveState:
                 dirty |= {("node", n) for n, f in now_fresh.items() if fresh.get(n) != f}
                 zone_states, fresh = states, now_fresh
                 flush_at = mono
-            if self.view.events and flush_at is None:
-                flush_at = mono
-            if (dirty or self.view.events) and flush_at is not None and mono >= flush_at:
+            if (self.view.events or self.alerts.changed) and flush_at is None:
+                flush_at = mono  # an acknowledgement from a page, too, reaches the other pages at once
+            if (
+                (dirty or self.view.events or self.alerts.changed)
+                and flush_at is not None
+                and mono >= flush_at
+            ):
                 self._flush(dirty)
                 dirty = set()
                 flush_at = None
@@ -211,6 +227,7 @@ class LiveState:
         """What happened since the last flush: written to the log, and sent to the pages."""
         with self.lock:
             happened, self.view.events = self.view.events, []
+            self.alerts.on_events(happened, self.view)
         if happened and self.events is not None:
             try:
                 self.events.add(happened)
@@ -243,6 +260,10 @@ class LiveState:
         with self.lock:
             now = self.clock.now()
             event["now"] = now
+            self.alerts.on_clock(self.view, now)
+            if self.alerts.changed:
+                self.alerts.changed = False
+                event["alerts"] = self.alerts.entries()
             for kind, ident in sorted(dirty):
                 if kind == "zone":
                     look = self.view.zone_look(ident, now)

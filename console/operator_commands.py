@@ -99,6 +99,27 @@ def block(
     return block_id, Publication(topics.operator_block(site.name, block_id), msg.to_payload(), True)
 
 
+def extend(site: Site, block_id: str, current: OperatorBlock, *, now: float, by_s: float) -> Publication:
+    """The same block (same id, area and reason) with its expiry `by_s` later: published over the retained one, so
+    a robot holds the block throughout (lifting and setting again would clear the area in between)."""
+    if not _ID.match(block_id):
+        raise CommandError(f"not a valid block id: {block_id!r}")
+    if current.expires_at is None:
+        raise CommandError(f"block {block_id} lasts until lifted: there is nothing to extend")
+    if not 0 < by_s <= MAX_BLOCK_S:
+        raise CommandError(
+            f"extend by more than 0 s and at most {MAX_BLOCK_S / 86400:g} days, not {by_s:g} s"
+        )
+    expires_at = round(max(current.expires_at, now) + by_s, 3)
+    if expires_at - now > MAX_BLOCK_S:
+        raise CommandError(
+            f"a block lasts at most {MAX_BLOCK_S / 86400:g} days from now; this one would last "
+            f"{(expires_at - now) / 86400:.1f}"
+        )
+    msg = current.model_copy(update={"expires_at": expires_at})
+    return Publication(topics.operator_block(site.name, block_id), msg.to_payload(), True)
+
+
 def unblock(site: Site, block_id: str) -> Publication:
     """Lifting is an empty retained message: the broker forgets the block, every robot drops it."""
     if not _ID.match(block_id):

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import uvicorn
 
+from wsnav.console.alerts import AckStore, AlertBoard
 from wsnav.console.auth import Authenticator, open_store
 from wsnav.console.event_log import EventLog, log_path
 from wsnav.console.live_state import LiveState
@@ -26,11 +27,24 @@ def open_event_log(state_dir: Path, site: str) -> EventLog | None:
         return None
 
 
+def open_alerts(state_dir: Path, site: str, now: float) -> AlertBoard:
+    """Alerts whose acknowledgements are kept beside the event log (in its file)."""
+    try:
+        return AlertBoard(AckStore(log_path(state_dir, site), now))
+    except (OSError, sqlite3.Error) as exc:
+        print(f"console: acknowledgements not kept ({exc}): alerts are shown", file=sys.stderr, flush=True)
+        return AlertBoard()
+
+
 def console_command(args: argparse.Namespace) -> int:
     host, port = args.bind
     link = connect(args, "console")
     live = LiveState(
-        SiteView(link.site), link.bus, link.clock, open_event_log(args.state_dir, link.site.name)
+        SiteView(link.site),
+        link.bus,
+        link.clock,
+        open_event_log(args.state_dir, link.site.name),
+        open_alerts(args.state_dir, link.site.name, link.clock.now()),
     )
     app = ConsoleApp(
         link.site,

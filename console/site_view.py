@@ -194,7 +194,15 @@ class SiteView:
         if msg.robot != robot_id:
             return self._drop("mismatch", f"status of {msg.robot} on {robot_id}'s topic", at)
         before = robot.status.state if robot.status is not None else None
-        if not retained and msg.state != before and msg.state in ("waiting", "arrived", "cancelled"):
+        before_reason = robot.status.reason if robot.status is not None else None
+        # a new goal cancelled again for another reason (the operator's cancel, then a goal in a blocked zone) is
+        # another event, though the state word did not change
+        again = msg.state == before == "cancelled" and msg.reason != before_reason
+        if (
+            not retained
+            and (msg.state != before or again)
+            and msg.state in ("waiting", "arrived", "cancelled")
+        ):
             why = f": {msg.reason}" if msg.reason else ""
             self._event(at, f"robot_{msg.state}", robot_id, f"robot {robot_id} {msg.state}{why}")
         robot.status, robot.heard_at = msg, at
@@ -221,7 +229,10 @@ class SiteView:
             self.blocks[block_id] = BlockView(msg, at)
             if msg.zone is not None:
                 keys.add(("zone", msg.zone))
-            if not retained and (before is None or before.block != msg):
+            if not retained and before is not None and _extended(before.block, msg):
+                left = "" if msg.expires_at is None else f", {msg.expires_at - at:.0f} s left"
+                self._event(at, "block_extended", block_id, f"block {block_id} extended: {_where(msg)}{left}")
+            elif not retained and (before is None or before.block != msg):
                 self._event(at, "block_set", block_id, f"block {block_id} set: {_where(msg)}")
         elif before is not None and not retained:
             self._event(at, "block_lifted", block_id, f"block {block_id} lifted: {_where(before.block)}")
@@ -340,6 +351,13 @@ class SiteView:
             "robots": robots,
             "blocks": [self.entry(("block", b), now) for b in sorted(self.blocks)],
         }
+
+
+def _extended(before: OperatorBlock, after: OperatorBlock) -> bool:
+    """The same block with a later expiry (`wsnav block --extend`, the page's Extend)."""
+    if before.expires_at is None or after.expires_at is None or after.expires_at <= before.expires_at:
+        return False
+    return before.model_copy(update={"expires_at": after.expires_at}) == after
 
 
 def _where(block: OperatorBlock) -> str:

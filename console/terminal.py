@@ -20,6 +20,7 @@ from wsnav.console.operator_commands import CommandError, Publication
 from wsnav.console.operator_link import OperatorLink, connect
 from wsnav.console.site_view import SiteView
 from wsnav.runtime.cli_support import CliError
+from wsnav.schemas.messages import MAX_OPERATOR_PAYLOAD_BYTES, OperatorBlock, PayloadError, parse_payload
 from wsnav.schemas.site import SiteError, load_site
 
 SETTLE_QUIET_S = 0.5
@@ -229,6 +230,8 @@ def _parse_xy(text: str, what: str) -> tuple[float, ...]:
 
 
 def block_command(args: argparse.Namespace) -> int:
+    if args.extend is not None:
+        return _extend_block(args)
     if (args.zone is None) == (args.polygon is None):
         raise CliError("give a ZONE or --polygon X,Y X,Y X,Y (not both)")
     polygon = None
@@ -271,17 +274,55 @@ def unblock_command(args: argparse.Namespace) -> int:
     except CommandError as exc:
         link.bus.close()
         raise CliError(str(exc)) from None
-    link.bus.subscribe(pub.topic)
-    held = False  # any retained word on the topic, even one the view would drop (a block on a removed zone)
+    _held_block(link, pub.topic, args.block_id)
+    _send(link, pub)
+    print(f"lifted: {args.block_id}")
+    return 0
+
+
+def _held_block(link: OperatorLink, topic: str, block_id: str) -> bytes:
+    """The block the broker holds on `topic` (any retained word, even one the view would drop: a block on a
+    removed zone); none within UNBLOCK_LOOKUP_S is one line and exit 2."""
+    link.bus.subscribe(topic)
+    held = b""
     deadline = time.monotonic() + UNBLOCK_LOOKUP_S
     while not held and (left := deadline - time.monotonic()) > 0:
         if link.bus.wait(left):
-            held = any(msg.topic == pub.topic and msg.payload for msg in link.bus.poll())
+            held = next((m.payload for m in link.bus.poll() if m.topic == topic and m.payload), b"")
     if not held:
         link.bus.close()
-        raise CliError(f"no active block {args.block_id!r} (`wsnav status` lists the blocks in force)")
+        raise CliError(f"no active block {block_id!r} (`wsnav status` lists the blocks in force)")
+    return held
+
+
+def _extend_block(args: argparse.Namespace) -> int:
+    """`wsnav block --extend ID --for TIME`: the block the broker holds, its expiry TIME later, same id."""
+    if (
+        args.zone is not None
+        or args.polygon is not None
+        or args.reason is not None
+        or args.block_id is not None
+    ):
+        raise CliError("--extend ID takes only --for TIME (the block keeps its area and reason)")
+    if args.duration is None:
+        raise CliError("--extend ID needs --for TIME: how much longer (e.g. --for 10m)")
+    try:
+        by_s = commands.parse_duration(args.duration)
+    except CommandError as exc:
+        raise CliError(f"--for: {exc}") from None
+    link = connect(args, "block")
+    try:
+        topic = commands.unblock(link.site, args.extend).topic
+        current = parse_payload(
+            OperatorBlock, _held_block(link, topic, args.extend), max_bytes=MAX_OPERATOR_PAYLOAD_BYTES
+        )
+        pub = commands.extend(link.site, args.extend, current, now=link.clock.now(), by_s=by_s)
+    except (CommandError, PayloadError) as exc:
+        link.bus.close()
+        raise CliError(f"{args.extend}: {exc}") from None
     _send(link, pub)
-    print(f"lifted: {args.block_id}")
+    expires = json.loads(pub.payload)["expires_at"]
+    print(f"extended: {args.extend} until {time.strftime('%H:%M:%S', time.localtime(expires))}")
     return 0
 
 

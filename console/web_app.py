@@ -5,6 +5,8 @@
     GET  /api/site                        the site's geometry: map bounds, zones, nodes, points, robots
     POST /api/blocks                      {"zone": Z} or {"polygon": [[x, y], ...]}, "for_s", "reason", "id"
     DELETE /api/blocks/{id}               lift a block
+    POST /api/blocks/{id}/extend          {"for_s": S}: the same block, expiring S later (never lifted meanwhile)
+    POST /api/alerts/{id}/ack             acknowledge an alert (kept across reloads and restarts)
     POST /api/robots/{id}/goal            {"point": NAME} or {"pose": [x, y, yaw]}
     POST /api/robots/{id}/cancel
     POST /api/login, /api/logout          {"username", "password"}: the operator's
@@ -143,6 +145,14 @@ class ConsoleApp:
                 Route("/api/blocks", self.guarded(self.add_block, write=True), methods=["POST"]),
                 Route(
                     "/api/blocks/{block_id}", self.guarded(self.lift_block, write=True), methods=["DELETE"]
+                ),
+                Route(
+                    "/api/blocks/{block_id}/extend",
+                    self.guarded(self.extend_block, write=True),
+                    methods=["POST"],
+                ),
+                Route(
+                    "/api/alerts/{alert_id}/ack", self.guarded(self.ack_alert, write=True), methods=["POST"]
                 ),
                 Route("/api/robots/{robot}/goal", self.guarded(self.send_goal, write=True), methods=["POST"]),
                 Route(
@@ -326,6 +336,34 @@ class ConsoleApp:
             raise Refused(400, str(exc)) from None
         self._publish(pub)
         return JSONResponse({"id": block_id, "lifted": True})
+
+    async def extend_block(self, request: Request) -> Response:
+        block_id = request.path_params["block_id"]
+        data = await self._json(request)
+        unknown = set(data) - {"for_s"}
+        if unknown:
+            raise Refused(400, f"unknown field(s): {', '.join(sorted(unknown))}")
+        by_s = _number(data.get("for_s"), "for_s")
+        assert by_s is not None
+        with self.live.lock:
+            view = self.live.view.blocks.get(block_id)
+        if view is None:
+            raise Refused(404, f"no active block {block_id!r}")
+        try:
+            pub = commands.extend(self.site, block_id, view.block, now=self.clock.now(), by_s=by_s)
+        except CommandError as exc:
+            raise Refused(400, str(exc)) from None
+        self._publish(pub)
+        return JSONResponse({"id": block_id, "block": json.loads(pub.payload)})
+
+    async def ack_alert(self, request: Request) -> Response:
+        alert_id = request.path_params["alert_id"]
+        await self._json(request)
+        with self.live.lock:
+            known = self.live.alerts.acknowledge(alert_id, self.clock.now())
+        if not known:
+            raise Refused(404, f"no alert {alert_id!r} in force (over already?)")
+        return JSONResponse({"id": alert_id, "acknowledged": True})
 
     async def send_goal(self, request: Request) -> Response:
         data = await self._json(request)

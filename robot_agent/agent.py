@@ -42,6 +42,7 @@ from wsnav.schemas import topics
 from wsnav.schemas.goal_check import GoalRefused, read_goal
 from wsnav.schemas.messages import (
     MAX_OPERATOR_PAYLOAD_BYTES,
+    OPERATOR_CANCEL_REASON,
     ROBOT_PATH_POINTS,
     PayloadError,
     RobotStatus,
@@ -292,7 +293,7 @@ class RobotAgent:
         if self.zone_layer is not None and (zones_changed_at < math.inf or self._zone_timer.due(now)):
             self._update_zones(now, zones_changed_at, react=goal is None and not cancel)
         if cancel:
-            self.navigator.cancel(now, "cancelled by the operator")
+            self.navigator.cancel(now, OPERATOR_CANCEL_REASON)
         elif goal is not None:
             self.set_goal(goal[0], goal[1], now)
         if self.config.obstacle_layer and self._costmap_timer.due(now):

@@ -36,6 +36,7 @@ from wsnav.runtime.clock import WallClock
 from wsnav.schemas import topics
 from wsnav.schemas.credentials import Credentials
 from wsnav.schemas.goal_check import GoalRefused, read_goal
+from wsnav.schemas.messages import OPERATOR_CANCEL_REASON
 from wsnav.schemas.ros_map import FREE
 from wsnav.schemas.site import Site
 from wsnav.zones.cost_values import LETHAL_OBSTACLE
@@ -413,7 +414,7 @@ class ZoneBridgeNode:
             return
         say(f"MQTT goal: {payload.decode(errors='replace')[:200]}")
         if target == "cancel":
-            self._act(self.supervisor.cancel("cancelled by the operator"))
+            self._act(self.supervisor.cancel(OPERATOR_CANCEL_REASON))
             return
         pose, label = target
         self._mqtt_goals += 1

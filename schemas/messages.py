@@ -259,6 +259,11 @@ class RobotStatus(_Message):
     payloads, then the site file's radius for this robot applies."""
 
 
+OPERATOR_CANCEL_REASON = "cancelled by the operator"
+"""A status's `reason` when the robot stopped because an operator cancelled its goal (any other `cancelled` is the
+robot giving up: the console raises an alert for those)."""
+
+
 class RobotGoal(_Message):
     """`robots/<robot>/goal`: a named point of the site or an [x, y, yaw] pose; `cancel` stops the robot."""
 

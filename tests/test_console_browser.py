@@ -7,7 +7,10 @@ The tests share one stack and run in order: the broker outage comes last.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import re
 import select
 import signal
 import socket
@@ -18,13 +21,14 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
+import axe_playwright_python
 import pytest
 
 from tests.conftest import require_tool
 from tests.console_fixtures import ConsoleStack, NodeS1, chromium, observer, start_console, until
-from tests.stack_fixtures import P2, SITE, WSNAV, make_site, stack_on
+from tests.stack_fixtures import P1, P2, SITE, WSNAV, make_site, stack_on
 from wsnav.schemas import topics
-from wsnav.schemas.messages import RobotStatus, parse_payload
+from wsnav.schemas.messages import NodeStatus, RobotStatus, parse_payload
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -60,11 +64,11 @@ def browser() -> Iterator[Any]:
         yield b
 
 
-@pytest.fixture
-def page(browser: Any, site_stack: ConsoleStack) -> Iterator[Any]:
-    context = browser.new_context(
-        viewport={"width": 1400, "height": 800}, bypass_csp=True
-    )  # waits evaluate strings
+@contextlib.contextmanager
+def logged_in(browser: Any, site_stack: ConsoleStack, **context_args: Any) -> Iterator[Any]:
+    """A page of the console, logged in, its zones drawn; no script error on it (checked at the end)."""
+    context_args.setdefault("viewport", {"width": 1400, "height": 800})
+    context = browser.new_context(bypass_csp=True, **context_args)  # waits evaluate strings
     page = context.new_page()
     errors: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))
@@ -72,10 +76,19 @@ def page(browser: Any, site_stack: ConsoleStack) -> Iterator[Any]:
     page.fill("input[name=password]", site_stack.password)
     page.click("button[type=submit]")
     page.wait_for_url(site_stack.url + "/")
-    page.wait_for_function("document.querySelector('#zone-upper')?.dataset.state === 'clear'")
-    yield page
-    context.close()
+    page.wait_for_function("document.querySelector('#zone-upper')?.dataset.state")
+    try:
+        yield page
+    finally:
+        context.close()
     assert not errors, errors
+
+
+@pytest.fixture
+def page(browser: Any, site_stack: ConsoleStack) -> Iterator[Any]:
+    with logged_in(browser, site_stack) as page:
+        page.wait_for_function("document.querySelector('#zone-upper')?.dataset.state === 'clear'")
+        yield page
 
 
 def click_world(page: Any, x: float, y: float) -> None:
@@ -290,6 +303,7 @@ def test_a_goal_clicked_is_reached_and_a_drawn_block_makes_the_robot_replan_then
     replans0 = site_stack.robot_status().get("replans", 0)
     page.click("#robot-row-robot1 .click-goal")
     click_world(page, P2[0], P2[1])
+    page.click("#goal-confirm")
     until(
         "the robot under way to the clicked goal",
         lambda: (s := site_stack.robot_status())["state"] == "navigating" and s["pose"][0] > -1.6,
@@ -365,6 +379,7 @@ def test_a_point_chosen_by_keyboard_moves_nothing_until_go_and_errors_show_next_
     page.fill("#block-for", "10m")
     page.click("#robot-row-robot1 .click-goal")
     click_world(page, 0.0, 0.0)  # the sandbox's centre pillar
+    page.click("#goal-confirm")
     page.wait_for_function("document.querySelector('#action-error').textContent.includes('wall')")
     assert in_view("#action-error")
     assert page.evaluate("document.querySelector('#mode-line').nextElementSibling.id") == "action-error"
@@ -497,6 +512,297 @@ def test_a_phone_lays_the_page_out_at_its_own_width(browser: Any, site_stack: Co
             assert box is not None and box["x"] >= 0 and box["x"] + box["width"] <= 390, button
     finally:
         context.close()
+
+
+AXE_JS = Path(axe_playwright_python.__file__).parent / "axe.min.js"
+PHONE: dict[str, Any] = {"viewport": {"width": 390, "height": 844}, "is_mobile": True, "has_touch": True}
+
+
+def serious_axe_findings(page: Any) -> list[str]:
+    """axe-core's serious and critical findings on the page as it is (the rules axe runs by default)."""
+    page.add_script_tag(path=str(AXE_JS))
+    result = page.evaluate("axe.run(document, {resultTypes: ['violations']})")
+    return [
+        f"{v['id']} ({v['impact']}): {v['help']}: {[n['target'] for n in v['nodes']][:4]}"
+        for v in result["violations"]
+        if v["impact"] in ("serious", "critical")
+    ]
+
+
+def api_block(site_stack: ConsoleStack, zone: str, for_s: float) -> str:
+    code, made = site_stack.request(
+        "POST", "/api/blocks", {"zone": zone, "for_s": for_s}, basic=("operator", site_stack.password)
+    )
+    assert code == 201, made
+    return made["id"]
+
+
+def api_lift(site_stack: ConsoleStack, block_id: str) -> None:
+    site_stack.request("DELETE", f"/api/blocks/{block_id}", basic=("operator", site_stack.password))
+
+
+def test_axe_core_finds_nothing_serious_on_a_desktop_or_a_phone(
+    browser: Any, site_stack: ConsoleStack
+) -> None:
+    """Logged in, with the robot, both zones, an operator block and its alert on the page."""
+    block_id = api_block(site_stack, "lower", 50)  # within a minute of its expiry: an alert too
+    try:
+        for shape in ({}, PHONE):
+            with logged_in(browser, site_stack, **shape) as page:
+                page.wait_for_selector(f"#block-row-{block_id}")
+                page.wait_for_selector("#robot-robot1 .robot")
+                page.wait_for_selector("#alert-list li.block_expiring")
+                assert serious_axe_findings(page) == [], shape or "desktop"
+    finally:
+        api_lift(site_stack, block_id)
+
+
+def test_alerts_are_acknowledged_stay_so_across_a_reload_and_come_back_when_it_happens_anew(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    """Node offline, robot given up, block expiring: each an alert the operator acknowledges, kept by the console
+    (a reload shows it acknowledged); the same condition beginning again is a new alert."""
+    node = site_stack.node
+    link = topics.node_status(SITE, "s1")
+
+    def s1_says(word: str) -> None:
+        node.bus.publish(link, NodeStatus(node="s1", status=word).to_payload(), qos=1, retain=True)  # type: ignore[arg-type]
+
+    offline = "#alert-list li.node_offline"
+    s1_says("offline")
+    page.wait_for_selector(offline, timeout=5000)
+    assert "s1" in page.inner_text(offline) and page.get_attribute(offline, "data-acknowledged") == "false"
+    page.click(f"{offline} .ack")
+    page.wait_for_selector(f"{offline}[data-acknowledged=true]", timeout=5000)
+    page.reload()
+    page.wait_for_selector(f"{offline}[data-acknowledged=true]", timeout=10000)
+    assert page.is_hidden(f"{offline} .ack")
+    s1_says("online")
+    page.wait_for_selector(offline, state="detached", timeout=5000)
+    s1_says("offline")  # anew: a new alert, to acknowledge again
+    page.wait_for_selector(f"{offline}[data-acknowledged=false]", timeout=5000)
+    s1_says("online")
+    page.wait_for_selector(offline, state="detached", timeout=5000)
+
+    # The robot gives up: its goal lies in a zone the operator blocked.
+    block_id = api_block(site_stack, "upper", 120)
+    try:
+        page.wait_for_function("document.querySelector('#zone-upper').dataset.state === 'blocked'")
+        until(
+            "the robot holding the block", lambda: "upper" in site_stack.robot_status()["blocked_zones"], 10
+        )
+        code, answer = site_stack.request(
+            "POST", "/api/robots/robot1/goal", {"pose": [0.0, 0.6]}, basic=("operator", site_stack.password)
+        )
+        assert code == 202, answer
+        aborted = "#alert-list li.robot_aborted"
+        page.wait_for_selector(aborted, timeout=10000)
+        assert "robot1" in page.inner_text(aborted)
+        page.click(f"{aborted} .ack")
+        page.wait_for_selector(f"{aborted}[data-acknowledged=true]", timeout=5000)
+    finally:
+        api_lift(site_stack, block_id)
+    # A block close to its expiry.
+    block_id = api_block(site_stack, "lower", 40)
+    try:
+        expiring = "#alert-list li.block_expiring"
+        page.wait_for_selector(expiring, timeout=5000)
+        said = page.inner_text(expiring)
+        assert block_id in said and "in " in said.split("expires soon")[1], said  # counting down
+    finally:
+        api_lift(site_stack, block_id)
+    page.wait_for_selector(expiring, state="detached", timeout=5000)
+    # Alerts come from live messages: a console's page after a reload shows no alert for the broker's replay.
+    state = site_stack.state()
+    assert [a["kind"] for a in state["alerts"]] == ["robot_aborted"] and state["alerts"][0]["acknowledged"]
+    site_stack.request("POST", "/api/robots/robot1/cancel", basic=("operator", site_stack.password))
+
+
+def test_a_block_is_extended_without_lifting_it_from_the_page_the_api_and_the_cli(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    """The robots read operator/blocks/<id>: an extension is one retained message with a later expiry, never the
+    empty one that lifts the block; the robot holds the zone blocked throughout."""
+    stack = site_stack.stack
+    bus = observer(stack, topics.all_operator_blocks(SITE), topics.robot_status(SITE, "robot1"))
+    page.select_option("#block-zone", "lower")
+    page.fill("#block-for", "30s")
+    page.click("#block-zone-btn")
+    row = page.wait_for_selector("#blocks tbody tr", timeout=5000)
+    block_id = (row.get_attribute("id") or "").removeprefix("block-row-")
+    page.wait_for_selector("#alert-list li.block_expiring", timeout=5000)
+    first = next(b for b in site_stack.state()["blocks"] if b["id"] == block_id)["expires_at"]
+    until("the robot holding the block", lambda: "lower" in site_stack.robot_status()["blocked_zones"], 10)
+    bus.poll()
+    page.fill("#block-for", "10m")
+    page.click(f"#block-row-{block_id} .extend")
+    until(
+        "the block 10 min longer",
+        lambda: any(
+            b["id"] == block_id and b["expires_at"] > first + 590 for b in site_stack.state()["blocks"]
+        ),
+        5,
+    )
+    page.wait_for_selector("#alert-list li.block_expiring", state="detached", timeout=5000)
+    args = [
+        "--site",
+        str(stack.site),
+        "--broker",
+        stack.broker_addr,
+        "--credentials",
+        str(stack.creds / "operator.json"),
+    ]
+    out = subprocess.run(
+        [*WSNAV, "block", "--extend", block_id, "--for", "5m", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 0 and out.stdout.startswith(f"extended: {block_id} until"), out.stderr
+    blocks = site_stack.state()["blocks"]
+    assert [b["id"] for b in blocks] == [block_id] and blocks[0]["expires_at"] == pytest.approx(
+        first + 900, abs=1.0
+    )
+    time.sleep(1.0)
+    words, statuses = [], []
+    for msg in bus.poll():
+        if topics.parse(msg.topic).kind == "operator_block":  # type: ignore[union-attr]
+            words.append((msg.topic, msg.payload))
+        else:
+            statuses.append(parse_payload(RobotStatus, msg.payload))
+    assert [t for t, _ in words] == [topics.operator_block(SITE, block_id)] * 2, words
+    assert all(p for _, p in words), "an extension lifted the block on the robots' topic"
+    assert [json.loads(p)["expires_at"] for _, p in words] == pytest.approx(
+        [first + 600, first + 900], abs=1.0
+    )
+    assert statuses and all("lower" in s.blocked_zones for s in statuses), "the robot saw the zone clear"
+    typo = subprocess.run(
+        [*WSNAV, "block", "--extend", "op-nosuch", "--for", "5m", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert (
+        typo.returncode == 2
+        and "no active block 'op-nosuch'" in typo.stderr
+        and "Traceback" not in typo.stderr
+    )
+    code, answer = site_stack.request(
+        "POST", f"/api/blocks/{block_id}/extend", {"for_s": "ten"}, basic=("operator", site_stack.password)
+    )
+    assert code == 400 and "finite number" in answer["error"]
+    bus.close()
+    page.click(f"#block-row-{block_id} .lift")
+    until("the block lifted", lambda: site_stack.state()["blocks"] == [], 5)
+
+
+def test_a_goal_clicked_on_the_map_moves_nothing_until_the_operator_confirms_it(
+    page: Any, site_stack: ConsoleStack
+) -> None:
+    bus = observer(site_stack.stack, f"{topics.ROOT}/{SITE}/robots/+/goal")
+    page.click("#robot-row-robot1 .click-goal")
+    click_world(page, P2[0], P2[1])
+    page.wait_for_selector("#goal-confirm")
+    asked = re.search(r"Send robot1 to \((\S+), (\S+)\)\?", page.inner_text("#mode-line"))
+    assert asked and [float(v) for v in asked.groups()] == pytest.approx([P2[0], P2[1]], abs=0.05)
+    time.sleep(1.0)
+    assert bus.poll() == [], "a click on the map sent a goal without confirmation"
+    page.click("#goal-cancel")
+    page.click("#robot-row-robot1 .click-goal")
+    click_world(page, P1[0] + 0.3, P1[1])
+    click_world(page, P2[0], P2[1])  # another click picks another target
+    page.keyboard.press("Enter")  # the confirmation has focus
+    goals: list[bytes] = []
+    until(
+        "the confirmed goal",
+        lambda: (bus.wait(0.2) and goals.extend(m.payload for m in bus.poll())) or goals,
+        5,
+    )
+    time.sleep(0.5)
+    goals.extend(m.payload for m in bus.poll())
+    assert len(goals) == 1 and json.loads(goals[0])["goal"][:2] == pytest.approx([P2[0], P2[1]], abs=0.05)
+    page.click("#robot-row-robot1 .cancel")
+    bus.close()
+
+
+def _screen_distance(page: Any, a: tuple[float, ...], b: tuple[float, ...]) -> float:
+    (ax, ay), (bx, by) = (page.evaluate(f"window.worldToClient({p[0]}, {p[1]})") for p in (a, b))
+    return float(((ax - bx) ** 2 + (ay - by) ** 2) ** 0.5)
+
+
+def test_the_map_zooms_and_pans_and_shows_robots_apart_from_the_named_points(
+    browser: Any, page: Any, site_stack: ConsoleStack
+) -> None:
+    """Robots were 9x5 px triangles in the named points' blue; plans and trails 1 px; no zoom or pan."""
+    robot = page.wait_for_selector("#robot-robot1 .robot")
+    point = page.wait_for_selector("#layer-points .point")
+    rbox, pbox = robot.bounding_box(), point.bounding_box()
+    assert rbox["width"] >= 16 and rbox["width"] >= 2.5 * pbox["width"], (rbox, pbox)
+    look = (
+        "(e) => { const s = getComputedStyle(e); return [s.fill, s.stroke, s.strokeWidth, s.vectorEffect]; }"
+    )
+    r_fill, r_stroke, _, _ = robot.evaluate(look)
+    p_fill, _, _, _ = point.evaluate(look)
+    assert r_fill != p_fill and r_stroke not in ("none", r_fill)
+    for line in ("trail", "path", "goal"):
+        _, _, width, effect = page.eval_on_selector(f"#robot-robot1 .{line}", look)
+        scale = (
+            1.0
+            if effect == "non-scaling-stroke"
+            else page.evaluate("document.querySelector('#map').getScreenCTM().a")
+        )
+        assert float(width.removesuffix("px")) * scale >= 2.0, (line, width, effect)
+
+    base = _screen_distance(page, P1, P2)
+    page.focus("#map")
+    page.keyboard.press("+")
+    assert _screen_distance(page, P1, P2) == pytest.approx(1.5 * base, rel=0.02)
+    x0 = page.evaluate(f"window.worldToClient({P1[0]}, {P1[1]})")[0]
+    page.keyboard.press("ArrowRight")
+    assert page.evaluate(f"window.worldToClient({P1[0]}, {P1[1]})")[0] < x0 - 10, "ArrowRight did not pan"
+    page.keyboard.press("-")
+    page.keyboard.press("0")
+    assert _screen_distance(page, P1, P2) == pytest.approx(base, rel=0.02)
+    page.click("#zoom-in")
+    assert _screen_distance(page, P1, P2) == pytest.approx(1.5 * base, rel=0.02)
+    page.click("#zoom-reset")
+    at = page.evaluate(f"window.worldToClient({P2[0]}, {P2[1]})")
+    page.mouse.move(*at)
+    page.mouse.wheel(0, -400)
+    page.wait_for_function("Number(document.querySelector('#map').dataset.zoom) > 1.5")
+    after = page.evaluate(f"window.worldToClient({P2[0]}, {P2[1]})")
+    assert abs(after[0] - at[0]) < 3 and abs(after[1] - at[1]) < 3, "the wheel zoom moved the point under it"
+    page.mouse.move(at[0] - 100, at[1])
+    page.mouse.down()
+    page.mouse.move(at[0] - 40, at[1], steps=4)
+    page.mouse.up()
+    moved = page.evaluate(f"window.worldToClient({P2[0]}, {P2[1]})")
+    assert moved[0] - after[0] == pytest.approx(60, abs=3), "a drag did not pan the map"
+    page.click("#zoom-reset")
+    shots = os.environ.get("WSNAV_CONSOLE_SHOTS")
+    if shots:
+        page.screenshot(path=str(Path(shots) / "console-desktop.png"))
+    with logged_in(browser, site_stack, **PHONE) as phone:
+        phone.wait_for_selector("#robot-robot1 .robot")
+        base = _screen_distance(phone, P1, P2)
+        cdp = phone.context.new_cdp_session(phone)
+        cx, cy = phone.evaluate(f"window.worldToClient({(P1[0] + P2[0]) / 2}, {P1[1]})")
+
+        def fingers(kind: str, spread: float) -> None:
+            points = [{"x": cx - spread, "y": cy, "id": 0}, {"x": cx + spread, "y": cy, "id": 1}]
+            cdp.send(
+                "Input.dispatchTouchEvent",
+                {"type": kind, "touchPoints": points if kind != "touchEnd" else []},
+            )
+
+        fingers("touchStart", 30)
+        for spread in (40, 50, 60):
+            fingers("touchMove", spread)
+        fingers("touchEnd", 60)
+        assert _screen_distance(phone, P1, P2) == pytest.approx(2 * base, rel=0.1), "a pinch did not zoom"
+        phone.click("#zoom-reset")
+        if shots:
+            phone.screenshot(path=str(Path(shots) / "console-phone.png"), full_page=True)
 
 
 def test_a_zone_block_and_a_drawn_polygon_from_the_page_are_lifted_from_the_page(

@@ -4,10 +4,13 @@
 // world point (x, y) is drawn at (x, -y).
 
 const SVG = "http://www.w3.org/2000/svg";
-const state = { zones: {}, nodes: {}, robots: {}, blocks: {}, trails: {}, offset: 0, connected: true, streamOk: true };
+const state = { zones: {}, nodes: {}, robots: {}, blocks: {}, trails: {}, alerts: [], offset: 0, connected: true, streamOk: true };
 let geo = null;
 let csrf = null;
-let mode = null; // {kind: "goal", robot} | {kind: "rect", start} | {kind: "poly", points: []}
+let mode = null; // {kind: "goal", robot} | {kind: "confirm", robot, pose} | {kind: "rect", start} | {kind: "poly", points: []}
+let home = null; // the whole map's viewBox [x, y, w, h] (SVG coordinates: y down)
+let view = null; // the part shown: zoom and pan change it
+const MAX_ZOOM = 20;
 const $ = (id) => document.getElementById(id);
 
 function el(tag, attrs, parent) {
@@ -65,10 +68,13 @@ function drawSite() {
   const [x0, y0, x1, y1] = geo.bounds;
   const w = x1 - x0, h = y1 - y0;
   const svg = $("map");
-  svg.setAttribute("viewBox", `${x0} ${-y1} ${w} ${h}`);
+  home = [x0, -y1, w, h];
+  setView(home);
   const img = $("map-image");
   Object.entries({ x: x0, y: -y1, width: w, height: h, preserveAspectRatio: "none" }).forEach(([k, v]) => img.setAttribute(k, v));
   const fs = Math.max(w, h) / 70;
+  geo.fs = fs;
+  geo.robotR = Math.max(fs * 0.9, 0.12); // robots: a disc far larger than a named point (fs / 3)
   svg.style.setProperty("--fs", fs);
   $("site-name").textContent = geo.site;
   const zl = $("layer-zones");
@@ -131,20 +137,25 @@ function renderRobot(r) {
   while (trail.length && trail[0][2] && trail[0][2] < horizon) trail.shift();
   const layer = $("layer-robots");
   let g = $(`robot-${r.id}`);
+  const R = geo.robotR;
   if (!g) {
     g = el("g", { id: `robot-${r.id}`, class: "robot-group" }, layer);
     el("polyline", { class: "trail" }, g);
     el("polyline", { class: "path" }, g);
-    el("circle", { class: "goal", r: 0.3 }, g);
-    el("polygon", { class: "robot" }, g);
-    el("text", { class: "robot-label", "font-size": Math.max(...geo.bounds.map(Math.abs)) / 70 }, g);
+    el("circle", { class: "goal", r: R }, g);
+    el("circle", { class: "robot", r: R }, g);
+    el("polygon", { class: "robot-heading" }, g);
+    el("text", { class: "robot-label", "font-size": geo.fs * 1.2 }, g);
   }
   const [x, y, yaw] = r.pose;
-  const s = 0.35;
-  const nose = [x + s * Math.cos(yaw), y + s * Math.sin(yaw)];
-  const left = [x + s * 0.6 * Math.cos(yaw + 2.5), y + s * 0.6 * Math.sin(yaw + 2.5)];
-  const right = [x + s * 0.6 * Math.cos(yaw - 2.5), y + s * 0.6 * Math.sin(yaw - 2.5)];
-  g.querySelector(".robot").setAttribute("points", pts([nose, left, right]));
+  // a disc with a white arrowhead pointing where the robot faces
+  const nose = [x + R * 0.85 * Math.cos(yaw), y + R * 0.85 * Math.sin(yaw)];
+  const left = [x + R * 0.6 * Math.cos(yaw + 2.4), y + R * 0.6 * Math.sin(yaw + 2.4)];
+  const right = [x + R * 0.6 * Math.cos(yaw - 2.4), y + R * 0.6 * Math.sin(yaw - 2.4)];
+  const disc = g.querySelector(".robot");
+  disc.setAttribute("cx", x);
+  disc.setAttribute("cy", -y);
+  g.querySelector(".robot-heading").setAttribute("points", pts([nose, left, right]));
   g.querySelector(".trail").setAttribute("points", pts(trail));
   g.querySelector(".path").setAttribute("points", r.path ? pts([r.pose, ...r.path]) : "");
   const goal = g.querySelector(".goal");
@@ -155,8 +166,8 @@ function renderRobot(r) {
     goal.removeAttribute("display");
   } else goal.setAttribute("display", "none");
   const label = g.querySelector(".robot-label");
-  label.setAttribute("x", x + 0.4);
-  label.setAttribute("y", -y - 0.4);
+  label.setAttribute("x", x + R * 1.2);
+  label.setAttribute("y", -y - R * 1.2);
   label.textContent = r.id;
 }
 
@@ -168,6 +179,48 @@ function renderBlock(b) {
   if (!shape) shape = el("polygon", { id: `block-${b.id}`, class: "opblock" }, layer);
   const poly = b.polygon || (geo.zones.find((z) => z.id === b.zone) || {}).polygon;
   shape.setAttribute("points", poly ? pts(poly) : "");
+}
+
+function renderAlerts() {
+  const list = $("alert-list");
+  const ids = new Set(state.alerts.map((a) => a.id));
+  for (const li of [...list.children]) if (!ids.has(li.dataset.id)) li.remove();
+  for (const a of state.alerts) {
+    let li = list.querySelector(`li[data-id="${a.id}"]`);
+    if (!li) {
+      li = document.createElement("li");
+      li.dataset.id = a.id;
+      li.id = `alert-${a.id}`;
+      const text = document.createElement("span");
+      text.className = "alert-text";
+      li.appendChild(text);
+      const when = document.createElement("span");
+      when.className = "alert-when";
+      li.appendChild(when);
+      const ack = button(li, "Acknowledge", "ack", () => api("POST", `/api/alerts/${a.id}/ack`, {}, li));
+      ack.setAttribute("aria-label", `acknowledge: ${a.text}`);
+      list.appendChild(li);
+    }
+    li.className = `alert ${a.kind}` + (a.acknowledged ? " acked" : "");
+    li.dataset.acknowledged = String(a.acknowledged);
+    setText(li.querySelector(".alert-text"), a.text);
+    const ack = li.querySelector(".ack");
+    ack.hidden = a.acknowledged;
+  }
+  $("alerts").hidden = state.alerts.length === 0;
+  const open = state.alerts.filter((a) => !a.acknowledged).length;
+  $("alerts-title").textContent = open ? `Alerts (${open} to acknowledge)` : "Alerts (all acknowledged)";
+  renderAlertTimes();
+}
+
+function renderAlertTimes() {
+  const now = serverNow();
+  for (const a of state.alerts) {
+    const li = document.getElementById(`alert-${a.id}`);
+    if (!li) continue;
+    const when = a.until != null ? `in ${fmtAge(Math.max(0, a.until - now))}` : `${fmtAge(Math.max(0, now - a.since))} ago`;
+    setText(li.querySelector(".alert-when"), (a.acknowledged ? "acknowledged, " : "") + when);
+  }
 }
 
 const MAX_EVENTS_SHOWN = 50;
@@ -250,7 +303,17 @@ function robotRow(r) {
 function blockRow(b) {
   const isNew = !document.getElementById(`block-row-${b.id}`);
   const tr = row($("blocks"), `block-row-${b.id}`, 5);
-  if (isNew) button(tr.cells[4], "Lift", "lift", () => api("DELETE", `/api/blocks/${b.id}`, undefined, $("blocks")));
+  if (isNew) {
+    button(tr.cells[4], "Lift", "lift", () => api("DELETE", `/api/blocks/${b.id}`, undefined, tr.cells[4]));
+    // the same block, expiring later: robots never see the area clear in between
+    const ext = button(tr.cells[4], "Extend", "extend", () => {
+      const s = durationS(tr.cells[4]);
+      if (s != null) api("POST", `/api/blocks/${b.id}/extend`, { for_s: s }, tr.cells[4]);
+    });
+    ext.title = "extend by the duration in the form above (e.g. 10m)";
+    ext.setAttribute("aria-label", `extend block ${b.id} by the duration in the form`);
+  }
+  tr.cells[4].querySelector(".extend").disabled = b.expires_at == null;
   setText(tr.cells[0], b.id);
   setText(tr.cells[1], b.zone || `polygon of ${b.polygon.length}`);
   setText(tr.cells[3], b.reason || "");
@@ -303,6 +366,7 @@ function renderClock() {
   const counts = Object.values(state.zones).reduce((a, z) => ((a[z.state] = (a[z.state] || 0) + 1), a), {});
   $("counts").textContent = Object.entries(counts).map(([k, v]) => `${v} ${k}`).join(", ");
   $("clock").textContent = new Date(now * 1000).toLocaleTimeString();
+  renderAlertTimes();
 }
 
 function applyFilter() {
@@ -352,6 +416,10 @@ function apply(ev) {
   (ev.blocks || []).forEach(renderBlock);
   (ev.gone || []).forEach(dropBlock);
   if (ev.type === "snapshot") $("events").replaceChildren();
+  if (ev.alerts) {
+    state.alerts = ev.alerts;
+    renderAlerts();
+  }
   (ev.events || []).forEach(renderEvent);
   renderBanner();
   scheduleTables();
@@ -374,24 +442,157 @@ function connect() {
   };
 }
 
+// -- zoom and pan: the SVG's viewBox is the part of the map shown ------------------------------------------
+
+function setView(v) {
+  const [, , hw, hh] = home;
+  let [x, y, w, h] = v;
+  const scale = Math.min(1, Math.max(1 / MAX_ZOOM, w / hw));
+  const cx = x + w / 2, cy = y + h / 2;
+  w = hw * scale;
+  h = hh * scale;
+  // keep the view's centre on the map
+  const mx = Math.min(Math.max(cx, home[0]), home[0] + hw), my = Math.min(Math.max(cy, home[1]), home[1] + hh);
+  view = [mx - w / 2, my - h / 2, w, h];
+  $("map").setAttribute("viewBox", view.join(" "));
+  const zoom = hw / w;
+  $("map").dataset.zoom = zoom.toFixed(3);
+  $("zoom-level").textContent = `${zoom < 10 ? zoom.toFixed(1) : zoom.toFixed(0)}x`;
+}
+
+// Zoom by `factor` (> 1: in) keeping the SVG point (sx, sy) where it is on the screen; the view's centre if none.
+function zoomAt(factor, sx, sy) {
+  const [x, y, w, h] = view;
+  if (sx === undefined) [sx, sy] = [x + w / 2, y + h / 2];
+  const nw = w / factor, nh = h / factor;
+  setView([sx - ((sx - x) / w) * nw, sy - ((sy - y) / h) * nh, nw, nh]);
+}
+
+// Pan by a fraction of the view (dx, dy; +x right, +y down on the screen).
+function panBy(dx, dy) {
+  const [x, y, w, h] = view;
+  setView([x + dx * w, y + dy * h, w, h]);
+}
+
+function svgPoint(clientX, clientY) {
+  const svg = $("map");
+  const p = svg.createSVGPoint();
+  p.x = clientX;
+  p.y = clientY;
+  return p.matrixTransform(svg.getScreenCTM().inverse());
+}
+
+let panned = false; // the last press dragged the map: its click picks nothing
+function setupZoom() {
+  const svg = $("map");
+  $("zoom-in").addEventListener("click", () => zoomAt(1.5));
+  $("zoom-out").addEventListener("click", () => zoomAt(1 / 1.5));
+  $("zoom-reset").addEventListener("click", () => setView(home));
+  svg.addEventListener(
+    "wheel",
+    (ev) => {
+      ev.preventDefault();
+      const p = svgPoint(ev.clientX, ev.clientY);
+      zoomAt(Math.exp(-ev.deltaY * (ev.deltaMode === 1 ? 0.05 : 0.002)), p.x, p.y);
+    },
+    { passive: false },
+  );
+  svg.addEventListener("keydown", (ev) => {
+    const step = 0.1;
+    const keys = {
+      "+": () => zoomAt(1.5), "=": () => zoomAt(1.5), "-": () => zoomAt(1 / 1.5), "_": () => zoomAt(1 / 1.5),
+      "0": () => setView(home),
+      ArrowLeft: () => panBy(-step, 0), ArrowRight: () => panBy(step, 0),
+      ArrowUp: () => panBy(0, -step), ArrowDown: () => panBy(0, step),
+    };
+    const act = keys[ev.key];
+    if (!act || ev.ctrlKey || ev.metaKey || ev.altKey) return;
+    ev.preventDefault();
+    act();
+  });
+  // Drag with one pointer pans (unless drawing a rectangle); two touching fingers pinch-zoom and pan.
+  const down = new Map(); // pointerId -> [clientX, clientY]
+  let start = null; // {view, points: [[x, y], ...] at the start of the gesture}
+  const gesture = () => ({ view: view.slice(), points: [...down.values()].map((p) => p.slice()) });
+  svg.addEventListener("pointerdown", (ev) => {
+    if (ev.button !== 0 || (mode && mode.kind === "rect")) return;
+    down.set(ev.pointerId, [ev.clientX, ev.clientY]);
+    start = gesture();
+    panned = false;
+  });
+  svg.addEventListener("pointermove", (ev) => {
+    if (!down.has(ev.pointerId) || !start) return;
+    down.set(ev.pointerId, [ev.clientX, ev.clientY]);
+    const now = [...down.values()];
+    if (now.length !== start.points.length) {
+      start = gesture();
+      return;
+    }
+    const rect = svg.getBoundingClientRect();
+    const perPx = Math.max(start.view[2] / rect.width, start.view[3] / rect.height); // "meet": the larger
+    const mid = (ps) => [ps.reduce((a, p) => a + p[0], 0) / ps.length, ps.reduce((a, p) => a + p[1], 0) / ps.length];
+    const [m0, m1] = [mid(start.points), mid(now)];
+    if (!panned && Math.hypot(m1[0] - m0[0], m1[1] - m0[1]) < 5 && now.length === 1) return;
+    panned = true;
+    let factor = 1;
+    if (now.length === 2) {
+      const d = (ps) => Math.hypot(ps[0][0] - ps[1][0], ps[0][1] - ps[1][1]) || 1;
+      factor = d(now) / d(start.points);
+    }
+    const [x, y, w, h] = start.view;
+    // the start's midpoint (in SVG units) follows the fingers' midpoint, scaled about it
+    const sx = x + w / 2 + (m0[0] - rect.left - rect.width / 2) * perPx;
+    const sy = y + h / 2 + (m0[1] - rect.top - rect.height / 2) * perPx;
+    const nw = w / factor, nh = h / factor, np = perPx / factor;
+    const cx = sx - (m1[0] - rect.left - rect.width / 2) * np;
+    const cy = sy - (m1[1] - rect.top - rect.height / 2) * np;
+    setView([cx - nw / 2, cy - nh / 2, nw, nh]);
+  });
+  const up = (ev) => {
+    down.delete(ev.pointerId);
+    start = down.size ? gesture() : null;
+  };
+  svg.addEventListener("pointerup", up);
+  svg.addEventListener("pointercancel", up);
+}
+
 // -- steering -------------------------------------------------------------------------------------------
 
 function setMode(m) {
   mode = m;
   $("layer-draft").replaceChildren();
-  $("mode-line").textContent = !m ? "" : m.kind === "goal" ? `Click the map: goal for ${m.robot} (Esc cancels)` : m.kind === "rect" ? "Drag a rectangle on the map (Esc cancels)" : "Click the corners; double-click closes the polygon (Esc cancels)";
+  const line = $("mode-line");
+  if (m && m.kind === "confirm") {
+    // Nothing moves a robot until the operator confirms the target the click chose.
+    const [x, y] = m.pose;
+    el("circle", { class: "goal draft-goal", cx: x, cy: -y, r: geo.robotR }, $("layer-draft"));
+    line.replaceChildren(`Send ${m.robot} to (${x.toFixed(2)}, ${y.toFixed(2)})? `);
+    const ok = button(line, "Confirm", "confirm", () => {
+      setMode(null);
+      api("POST", `/api/robots/${m.robot}/goal`, { pose: [x, y, 0] }, $("mode-line"));
+    });
+    ok.id = "goal-confirm";
+    button(line, "Cancel", "cancel-goal", () => setMode(null)).id = "goal-cancel";
+    ok.focus();
+    return;
+  }
+  line.textContent = !m ? "" : m.kind === "goal" ? `Click the map: goal for ${m.robot} (Esc cancels)` : m.kind === "rect" ? "Drag a rectangle on the map (Esc cancels)" : "Click the corners; double-click closes the polygon (Esc cancels)";
 }
 
-function blockBody(extra) {
-  const body = { ...extra, reason: $("block-reason").value || undefined };
+// "90s", "10m", "2h" from the form's duration field, in seconds; an error next to `near` if it is none.
+function durationS(near) {
   const text = $("block-for").value.trim();
   const m = /^(\d+(?:\.\d+)?)\s*([smhd]?)$/.exec(text);
   if (!m) {
-    showError(`not a duration: ${text} (e.g. 90s, 10m, 2h)`, $("block-form"));
+    showError(`not a duration: ${text} (e.g. 90s, 10m, 2h)`, near);
     return null;
   }
-  body.for_s = parseFloat(m[1]) * { "": 1, s: 1, m: 60, h: 3600, d: 86400 }[m[2]];
-  return body;
+  return parseFloat(m[1]) * { "": 1, s: 1, m: 60, h: 3600, d: 86400 }[m[2]];
+}
+
+function blockBody(extra) {
+  const forS = durationS($("block-form"));
+  return forS == null ? null : { ...extra, reason: $("block-reason").value || undefined, for_s: forS };
 }
 
 function setupSteering() {
@@ -429,12 +630,10 @@ function setupSteering() {
     if (body) api("POST", "/api/blocks", body, $("mode-line"));
   });
   svg.addEventListener("click", (ev) => {
-    if (!mode) return;
+    if (!mode || panned) return;
     const p = worldFromEvent(ev);
-    if (mode.kind === "goal") {
-      const robot = mode.robot;
-      setMode(null);
-      api("POST", `/api/robots/${robot}/goal`, { pose: [p[0], p[1], 0] }, $("mode-line"));
+    if (mode.kind === "goal" || mode.kind === "confirm") {
+      setMode({ kind: "confirm", robot: mode.robot, pose: p }); // another click picks another target
     } else if (mode.kind === "poly") {
       mode.points.push(p);
     }
@@ -464,6 +663,7 @@ async function main() {
   csrf = (await session.json()).csrf;
   geo = await (await fetch("/api/site")).json();
   drawSite();
+  setupZoom();
   setupSteering();
   connect();
   setInterval(renderClock, 1000);
