@@ -559,6 +559,8 @@ def test_axe_core_finds_nothing_serious_on_a_desktop_or_a_phone(
                 page.wait_for_selector("#robot-robot1 .robot")
                 page.wait_for_selector("#alert-list li.block_expiring")
                 assert serious_axe_findings(page) == [], shape or "desktop"
+                width = page.evaluate("window.innerWidth")
+                assert page.evaluate("document.documentElement.scrollWidth") <= width + 1, "wider than the screen"
     finally:
         api_lift(site_stack, block_id)
 
