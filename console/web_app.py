@@ -7,6 +7,7 @@
     DELETE /api/blocks/{id}               lift a block
     POST /api/blocks/{id}/extend          {"for_s": S}: the same block, expiring S later (never lifted meanwhile)
     POST /api/alerts/{id}/ack             acknowledge an alert (kept across reloads and restarts)
+    POST /api/alerts/ack-all              acknowledge every alert in force (a mass outage)
     POST /api/robots/{id}/goal            {"point": NAME} or {"pose": [x, y, yaw]}
     POST /api/robots/{id}/cancel
     POST /api/login, /api/logout          {"username", "password"}: the operator's
@@ -154,6 +155,7 @@ class ConsoleApp:
                 Route(
                     "/api/alerts/{alert_id}/ack", self.guarded(self.ack_alert, write=True), methods=["POST"]
                 ),
+                Route("/api/alerts/ack-all", self.guarded(self.ack_all_alerts, write=True), methods=["POST"]),
                 Route("/api/robots/{robot}/goal", self.guarded(self.send_goal, write=True), methods=["POST"]),
                 Route(
                     "/api/robots/{robot}/cancel", self.guarded(self.cancel_goal, write=True), methods=["POST"]
@@ -364,6 +366,15 @@ class ConsoleApp:
         if not known:
             raise Refused(404, f"no alert {alert_id!r} in force (over already?)")
         return JSONResponse({"id": alert_id, "acknowledged": True})
+
+    async def ack_all_alerts(self, request: Request) -> Response:
+        await self._json(request)
+        with self.live.lock:
+            now = self.clock.now()
+            ids = [a.id for a in self.live.alerts.alerts.values() if not a.acknowledged]
+            for alert_id in ids:
+                self.live.alerts.acknowledge(alert_id, now)
+        return JSONResponse({"acknowledged": ids})
 
     async def send_goal(self, request: Request) -> Response:
         data = await self._json(request)

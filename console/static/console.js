@@ -210,6 +210,7 @@ function renderAlerts() {
   $("alerts").hidden = state.alerts.length === 0;
   const open = state.alerts.filter((a) => !a.acknowledged).length;
   $("alerts-title").textContent = open ? `Alerts (${open} to acknowledge)` : "Alerts (all acknowledged)";
+  $("alerts-ack-all").hidden = open < 2;
   renderAlertTimes();
 }
 
@@ -651,6 +652,7 @@ function setupSteering() {
     if (body) api("POST", "/api/blocks", body, $("mode-line"));
   });
   $("filter").addEventListener("input", applyFilter);
+  $("alerts-ack-all").addEventListener("click", () => api("POST", "/api/alerts/ack-all", {}, $("alerts-ack-all")));
   $("logout").addEventListener("click", async () => {
     await api("POST", "/api/logout");
     window.location.assign("/login");
