@@ -707,6 +707,11 @@ def test_a_block_is_extended_without_lifting_it_from_the_page_the_api_and_the_cl
     bus.close()
     page.click(f"#block-row-{block_id} .lift")
     until("the block lifted", lambda: site_stack.state()["blocks"] == [], 5)
+    # The error line went into the lifted block's row, and the row is gone: the next error is still shown.
+    page.wait_for_selector(f"#block-row-{block_id}", state="detached", timeout=5000)
+    page.fill("#block-for", "soon")
+    page.click("#block-zone-btn")
+    page.wait_for_function("document.querySelector('#action-error')?.textContent.includes('not a duration')")
 
 
 def test_a_goal_clicked_on_the_map_moves_nothing_until_the_operator_confirms_it(

@@ -43,7 +43,14 @@ window.worldToClient = function (x, y) {
 
 // An action's error is shown next to the control that acted (`near`), in view: the one error line moves there.
 function showError(text, near) {
-  const box = $("action-error");
+  let box = $("action-error");
+  if (!box) {
+    // it left with the row it was shown in (a block lifted): a new one
+    box = document.createElement("p");
+    Object.assign(box, { id: "action-error", className: "error" });
+    box.setAttribute("role", "alert");
+    (near || $("map-pane")).appendChild(box);
+  }
   if (near && near.tagName === "TD") near.appendChild(box);
   else if (near && box.previousElementSibling !== near) near.insertAdjacentElement("afterend", box);
   box.textContent = text;
@@ -184,7 +191,7 @@ function renderBlock(b) {
 function renderAlerts() {
   const list = $("alert-list");
   const ids = new Set(state.alerts.map((a) => a.id));
-  for (const li of [...list.children]) if (!ids.has(li.dataset.id)) li.remove();
+  for (const li of [...list.querySelectorAll("li")]) if (!ids.has(li.dataset.id)) li.remove();
   for (const a of state.alerts) {
     let li = list.querySelector(`li[data-id="${a.id}"]`);
     if (!li) {
@@ -197,7 +204,7 @@ function renderAlerts() {
       const when = document.createElement("span");
       when.className = "alert-when";
       li.appendChild(when);
-      const ack = button(li, "Acknowledge", "ack", () => api("POST", `/api/alerts/${a.id}/ack`, {}, li));
+      const ack = button(li, "Acknowledge", "ack", () => api("POST", `/api/alerts/${a.id}/ack`, {}, list));
       ack.setAttribute("aria-label", `acknowledge: ${a.text}`);
       list.appendChild(li);
     }
@@ -652,7 +659,7 @@ function setupSteering() {
     if (body) api("POST", "/api/blocks", body, $("mode-line"));
   });
   $("filter").addEventListener("input", applyFilter);
-  $("alerts-ack-all").addEventListener("click", () => api("POST", "/api/alerts/ack-all", {}, $("alerts-ack-all")));
+  $("alerts-ack-all").addEventListener("click", () => api("POST", "/api/alerts/ack-all", {}, $("alert-list")));
   $("logout").addEventListener("click", async () => {
     await api("POST", "/api/logout");
     window.location.assign("/login");
