@@ -529,7 +529,7 @@ def serious_axe_findings(page: Any) -> list[str]:
         AXE_TAGS,
     )
     return [
-        f"{v['id']} ({v['impact']}): {v['help']}: {[n['target'] for n in v['nodes']][:4]}"
+        f"{v['id']} ({v['impact']}): {v['help']}: {[(n['target'], n['failureSummary']) for n in v['nodes']][:4]}"
         for v in result["violations"]
         if v["impact"] in ("serious", "critical")
     ]
@@ -775,6 +775,9 @@ def test_the_map_zooms_and_pans_and_shows_robots_apart_from_the_named_points(
     page.focus("#map")
     page.keyboard.press("+")
     assert _screen_distance(page, P1, P2) == pytest.approx(1.5 * base, rel=0.02)
+    # markers keep their size on the screen: zoomed in, a robot does not cover the corridor it drives in
+    for shape, box in ((robot, rbox), (point, pbox)):
+        assert shape.bounding_box()["width"] == pytest.approx(box["width"], rel=0.05)
     x0 = page.evaluate(f"window.worldToClient({P1[0]}, {P1[1]})")[0]
     page.keyboard.press("ArrowRight")
     assert page.evaluate(f"window.worldToClient({P1[0]}, {P1[1]})")[0] < x0 - 10, "ArrowRight did not pan"

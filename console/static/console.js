@@ -11,6 +11,22 @@ let mode = null; // {kind: "goal", robot} | {kind: "confirm", robot, pose} | {ki
 let home = null; // the whole map's viewBox [x, y, w, h] (SVG coordinates: y down)
 let view = null; // the part shown: zoom and pan change it
 const MAX_ZOOM = 20;
+let zoom = 1;
+
+// A marker (a point, a node, a robot, a label) keeps its size on the screen whatever the zoom: drawn around
+// (0, 0) as at zoom 1, and placed at the world point (x, y).
+function marker(parent, x, y, attrs) {
+  const g = el("g", { ...attrs, class: `marker ${(attrs && attrs.class) || ""}` }, parent);
+  placeMarker(g, x, y);
+  return g;
+}
+function placeMarker(g, x, y) {
+  if (x !== undefined) {
+    g.dataset.x = x;
+    g.dataset.y = y;
+  }
+  g.setAttribute("transform", `translate(${g.dataset.x} ${-g.dataset.y}) scale(${1 / zoom})`);
+}
 const $ = (id) => document.getElementById(id);
 
 function el(tag, attrs, parent) {
@@ -90,19 +106,20 @@ function drawSite() {
     el("polygon", { points: pts(z.polygon), class: "zone unknown", id: `zone-${z.id}`, "data-state": "unknown" }, zl);
     const cx = z.polygon.reduce((a, p) => a + p[0], 0) / z.polygon.length;
     const cy = z.polygon.reduce((a, p) => a + p[1], 0) / z.polygon.length;
-    el("text", { x: cx, y: -cy, class: "zone-label", "font-size": fs, "text-anchor": "middle" }, zl).textContent = z.id;
+    el("text", { class: "zone-label", "font-size": fs, "text-anchor": "middle" }, marker(zl, cx, cy)).textContent = z.id;
     const opt = document.createElement("option");
     opt.value = opt.textContent = z.id;
     select.appendChild(opt);
   }
   const pl = $("layer-points");
   for (const [name, [x, y]] of Object.entries(geo.points)) {
-    el("circle", { cx: x, cy: -y, r: fs / 3, class: "point" }, pl);
-    el("text", { x: x + fs / 2, y: -y, class: "point-label", "font-size": fs }, pl).textContent = name;
+    const m = marker(pl, x, y);
+    el("circle", { r: fs / 3, class: "point" }, m);
+    el("text", { x: fs / 2, class: "point-label", "font-size": fs }, m).textContent = name;
   }
   const nl = $("layer-nodes");
   for (const n of geo.nodes) {
-    el("circle", { cx: n.position[0], cy: -n.position[1], r: fs / 4, class: "node silent", id: `node-${n.id}` }, nl);
+    el("circle", { r: fs / 4, class: "node silent", id: `node-${n.id}` }, marker(nl, n.position[0], n.position[1]));
   }
 }
 
@@ -149,33 +166,26 @@ function renderRobot(r) {
     g = el("g", { id: `robot-${r.id}`, class: "robot-group" }, layer);
     el("polyline", { class: "trail" }, g);
     el("polyline", { class: "path" }, g);
-    el("circle", { class: "goal", r: R }, g);
-    el("circle", { class: "robot", r: R }, g);
-    el("polygon", { class: "robot-heading" }, g);
-    el("text", { class: "robot-label", "font-size": geo.fs * 1.2 }, g);
+    el("circle", { class: "goal", r: R }, marker(g, 0, 0, { class: "goal-mark" }));
+    const m = marker(g, 0, 0, { class: "robot-mark" });
+    el("circle", { class: "robot", r: R }, m);
+    el("polygon", { class: "robot-heading" }, m);
+    el("text", { class: "robot-label", x: R * 1.2, y: -R * 1.2, "font-size": geo.fs * 1.2 }, m);
   }
   const [x, y, yaw] = r.pose;
   // a disc with a white arrowhead pointing where the robot faces
-  const nose = [x + R * 0.85 * Math.cos(yaw), y + R * 0.85 * Math.sin(yaw)];
-  const left = [x + R * 0.6 * Math.cos(yaw + 2.4), y + R * 0.6 * Math.sin(yaw + 2.4)];
-  const right = [x + R * 0.6 * Math.cos(yaw - 2.4), y + R * 0.6 * Math.sin(yaw - 2.4)];
-  const disc = g.querySelector(".robot");
-  disc.setAttribute("cx", x);
-  disc.setAttribute("cy", -y);
-  g.querySelector(".robot-heading").setAttribute("points", pts([nose, left, right]));
+  const at = (k, a) => [R * k * Math.cos(yaw + a), R * k * Math.sin(yaw + a)];
+  placeMarker(g.querySelector(".robot-mark"), x, y);
+  g.querySelector(".robot-heading").setAttribute("points", pts([at(0.85, 0), at(0.6, 2.4), at(0.6, -2.4)]));
   g.querySelector(".trail").setAttribute("points", pts(trail));
   g.querySelector(".path").setAttribute("points", r.path ? pts([r.pose, ...r.path]) : "");
-  const goal = g.querySelector(".goal");
+  const goal = g.querySelector(".goal-mark");
   const gp = typeof r.goal === "string" ? geo.points[r.goal] : r.goal;
   if (gp && r.state !== "arrived" && r.state !== "cancelled") {
-    goal.setAttribute("cx", gp[0]);
-    goal.setAttribute("cy", -gp[1]);
+    placeMarker(goal, gp[0], gp[1]);
     goal.removeAttribute("display");
   } else goal.setAttribute("display", "none");
-  const label = g.querySelector(".robot-label");
-  label.setAttribute("x", x + R * 1.2);
-  label.setAttribute("y", -y - R * 1.2);
-  label.textContent = r.id;
+  g.querySelector(".robot-label").textContent = r.id;
 }
 
 function renderBlock(b) {
@@ -463,8 +473,10 @@ function setView(v) {
   const mx = Math.min(Math.max(cx, home[0]), home[0] + hw), my = Math.min(Math.max(cy, home[1]), home[1] + hh);
   view = [mx - w / 2, my - h / 2, w, h];
   $("map").setAttribute("viewBox", view.join(" "));
-  const zoom = hw / w;
+  const was = zoom;
+  zoom = hw / w;
   $("map").dataset.zoom = zoom.toFixed(3);
+  if (zoom !== was) for (const g of document.querySelectorAll("#world .marker")) placeMarker(g);
   $("zoom-level").textContent = `${zoom < 10 ? zoom.toFixed(1) : zoom.toFixed(0)}x`;
 }
 
@@ -573,7 +585,7 @@ function setMode(m) {
   if (m && m.kind === "confirm") {
     // Nothing moves a robot until the operator confirms the target the click chose.
     const [x, y] = m.pose;
-    el("circle", { class: "goal draft-goal", cx: x, cy: -y, r: geo.robotR }, $("layer-draft"));
+    el("circle", { class: "goal draft-goal", r: geo.robotR }, marker($("layer-draft"), x, y));
     line.replaceChildren(`Send ${m.robot} to (${x.toFixed(2)}, ${y.toFixed(2)})? `);
     const ok = button(line, "Confirm", "confirm", () => {
       setMode(null);
