@@ -10,6 +10,7 @@ or a console restart sees the same ones.
 
 from __future__ import annotations
 
+import logging
 import sqlite3
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +19,8 @@ from typing import Any
 from wsnav.console.event_log import Event
 from wsnav.console.site_view import SiteView
 from wsnav.schemas.messages import OPERATOR_CANCEL_REASON
+
+log = logging.getLogger(__name__)
 
 EXPIRING_S = 60.0
 """An operator block this close to its expiry raises an alert: extend it, or let it go."""
@@ -66,10 +69,19 @@ class AckStore:
         self._db.execute("DELETE FROM alert_acks WHERE t < ?", (now - ACK_KEEP_S,))
 
     def add(self, alert: str, at: float) -> None:
-        self._db.execute("INSERT OR REPLACE INTO alert_acks (id, t) VALUES (?, ?)", (alert, at))
+        """Kept if the disk allows: a full disk must neither stop the console's intake nor fail the request (the
+        acknowledgement then holds in memory, until a restart)."""
+        try:
+            self._db.execute("INSERT OR REPLACE INTO alert_acks (id, t) VALUES (?, ?)", (alert, at))
+        except sqlite3.Error as exc:
+            log.warning("acknowledgement of %s not kept: %s", alert, exc)
 
     def has(self, alert: str) -> bool:
-        return self._db.execute("SELECT 1 FROM alert_acks WHERE id = ?", (alert,)).fetchone() is not None
+        try:
+            return self._db.execute("SELECT 1 FROM alert_acks WHERE id = ?", (alert,)).fetchone() is not None
+        except sqlite3.Error as exc:
+            log.warning("acknowledgements not read: %s", exc)
+            return False
 
     def close(self) -> None:
         self._db.close()

@@ -128,3 +128,17 @@ def test_what_an_extension_refuses(site: Site) -> None:
     # an expired block still shown is extended from now, not from its past expiry
     late = commands.extend(site, "b1", soon, now=500.0, by_s=60)
     assert json.loads(late.payload)["expires_at"] == pytest.approx(560.0)
+
+
+def test_an_acknowledgement_the_disk_refuses_holds_in_memory_and_stops_nothing(
+    site: Site, tmp_path: Path
+) -> None:
+    """A store that fails (here: its connection closed under it, standing in for a full or vanished disk) must not
+    stop the bus thread that raises alerts, nor fail the page's request."""
+    store = AckStore(tmp_path / "events-tiny.sqlite", 0.0)
+    console = Console(site, store)
+    console.node("online", 1.0)
+    store.close()
+    [alert] = console.node("offline", 2.0)
+    assert console.board.acknowledge(str(alert["id"]), 3.0)
+    assert console.board.entries()[0]["acknowledged"] is True
