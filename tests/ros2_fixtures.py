@@ -58,13 +58,17 @@ class NativePeer:
     """A peer program as a child process printing JSON lines: `{"ready": true}`, then one line per sample, kept
     in `samples` as they arrive; its stderr goes to a file (a crash's last words, without a pipe to fill)."""
 
-    def __init__(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> None:
+    def __init__(
+        self, name: str, argv: list[str], env: dict[str, str] | None = None, *, commands: bool = False
+    ) -> None:
+        """`commands`: its stdin is a pipe the test writes to (`command`)."""
         self.name = name
         self.samples: list[dict[str, Any]] = []
         self._err = tempfile.TemporaryFile("w+")  # noqa: SIM115  # lives as long as the peer; closed by the GC
         self.proc = subprocess.Popen(
             argv,
             cwd=REPO,
+            stdin=subprocess.PIPE if commands else None,
             stdout=subprocess.PIPE,
             stderr=self._err,
             text=True,
@@ -86,6 +90,11 @@ class NativePeer:
                 self._ready.set()
             else:
                 self.samples.append(item)
+
+    def command(self, line: str) -> None:
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
 
     def stderr(self) -> str:
         self._err.seek(0)

@@ -1,0 +1,186 @@
+"""`wsnav ros2 bridge --robot` against a NavigateToPose action server on Debian's Cyclone DDS 0.10.2 (what Humble's
+and Jazzy's rmw_cyclonedds run on), its own native process (tests/dds_peers/nav2_action_server.c, built with idlc
+and gcc), through a real amqtt broker: MQTT goals reach it and its SUCCEEDED reaches MQTT, a goal in a zone that
+becomes blocked is cancelled on the wire, a zone blocked around the robot sends it the goal to the way out (then
+on to its goal), and a zone flipping 20 times in 2 s does not make 20 goals.
+
+What the stand-in leaves out of Nav2's bt_navigator: no behaviour tree, planner, controller, costmap or tf (its
+goals never move the robot: the test moves it by publishing /amcl_pose, and ends goals with "succeed"); no
+feedback topic, no get_result service, no result timeout (every goal it saw stays in its status list); no goal
+checks (frames, the `behavior_tree` field); no clientid matching before replying (rmw_cyclonedds's server waits up
+to 100 ms for a client's reply reader when the request writer names a clientid; the bridge's names none); no
+ros_discovery_info. Not here: rmw_fastrtps (its services carry the request id in RTPS inline QoS, which the bridge
+does not write), rclcpp, Nav2 itself.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import shutil
+import subprocess
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.conftest import REPO, require_tool
+from tests.ros2_fixtures import NativePeer, bridge_args, domain_id
+from tests.ros_fixtures import WsnavChild, slow_heartbeat_school, wait_until
+from tests.test_ros2_dds_peers import clean_env, require_header
+from tests.test_ros_bridge_move_base import Operator, send_goal, zone_state
+from wsnav.broker.amqtt.embedded import BrokerThread
+from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
+from wsnav.schemas import topics
+from wsnav.schemas.site import load_site
+
+pytestmark = pytest.mark.slow
+
+SOURCES = [REPO / "tests" / "dds_peers" / n for n in ("nav2_action.idl", "nav2_action_server.c")]
+B = (29.0, 22.8)
+Z1 = [(17.0, 5.9), (19.0, 5.9), (19.0, 8.5), (17.0, 8.5)]
+"""School's z1 (south corridor by the science rooms), watched by n1."""
+
+
+def in_box(x: float, y: float, polygon: list[tuple[float, float]]) -> bool:
+    """Inside an axis-aligned zone (z1 and z4 are rectangles)."""
+    xs, ys = [p[0] for p in polygon], [p[1] for p in polygon]
+    return min(xs) <= x <= max(xs) and min(ys) <= y <= max(ys)
+
+
+@pytest.fixture(scope="session")
+def nav2_server() -> Path:
+    """The stand-in, built once per source version (idlc -t: no type information, as rmw_cyclonedds)."""
+    require_header("cyclonedds-dev")
+    idlc, gcc = require_tool("idlc"), require_tool("gcc")
+    digest = hashlib.sha256(b"".join(p.read_bytes() for p in SOURCES)).hexdigest()[:16]
+    out = Path(tempfile.gettempdir()) / f"wsnav-nav2-server-{digest}"
+    if not (out / "nav2_action_server").exists():
+        work = Path(tempfile.mkdtemp(prefix="wsnav-nav2-server-build-"))
+        try:
+            subprocess.run([idlc, "-t", "-o", str(work), str(SOURCES[0])], check=True)
+            subprocess.run(
+                [gcc, "-O1", "-o", str(work / "nav2_action_server"), f"-I{work}", str(SOURCES[1]),
+                 str(work / "nav2_action.c"), "-lddsc", "-lm"],
+                check=True,
+            )  # fmt: skip
+            with contextlib.suppress(OSError):  # another run built it meanwhile
+                work.rename(out)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    return out / "nav2_action_server"
+
+
+class Rig:
+    def __init__(
+        self, server: NativePeer, bridge: WsnavChild, operator: Operator, n1: MqttBus, z4: Any
+    ) -> None:
+        self.server, self.bridge, self.operator, self.n1, self.z4 = server, bridge, operator, n1, z4
+        self.seq = 10
+
+    def goals(self) -> list[dict[str, Any]]:
+        return [s for s in list(self.server.samples) if "goal" in s]
+
+    def cancels(self) -> list[dict[str, Any]]:
+        return [s for s in list(self.server.samples) if "cancel" in s]
+
+    def new_goal(self, after: int, what: str, timeout_s: float = 15.0) -> dict[str, Any]:
+        wait_until(lambda: len(self.goals()) > after, timeout_s, what)
+        return self.goals()[after]
+
+    def set_z1(self, state: str) -> None:
+        self.seq += 1
+        zone_state(self.n1, "z1", "n1", state, self.seq)
+
+    def state(self, want: str, what: str) -> Any:
+        return self.operator.wait_status(what, lambda s: s.state == want)
+
+
+@pytest.fixture
+def rig(tmp_path: Path, nav2_server: Path) -> Iterator[Rig]:
+    site_dir = slow_heartbeat_school(tmp_path)
+    site = load_site(site_dir)
+    domain = domain_id() + 5
+    with BrokerThread(site_dir) as broker:
+        server = NativePeer("Nav2 stand-in", [str(nav2_server), str(domain)], clean_env(), commands=True)
+        bus = connect_with_credentials(broker.host, broker.port, broker.credentials("operator"))
+        bus.subscribe(topics.robot_status("school", "robot1"))
+        z4 = next(z for z in site.spec.zones if z.id == "z4")
+        node4 = next(n.id for n in site.spec.nodes if n.zone == "z4")
+        links = {
+            n: connect_with_credentials(broker.host, broker.port, broker.credentials(n))
+            for n in ("n1", node4)
+        }
+        args = bridge_args(
+            site, f"{broker.host}:{broker.port}", broker.credentials_dir / "robot1.json", domain
+        )
+        bridge = WsnavChild([*args, "--robot", "robot1", "--nav2-resend"], clean_env())
+        try:
+            bridge.wait_for("MQTT broker connected", 60)
+            server.command("pose 12.0 7.2 0.0")  # at A
+            rig = Rig(server, bridge, Operator(bus, "school"), links["n1"], (z4, links[node4], node4))
+            rig.operator.wait_status("the robot's status from its /amcl_pose", lambda s: s.pose[0] == 12.0)
+            yield rig
+        finally:
+            code = server.stop()
+            bridge.stop()
+            print("bridge output:", *bridge.lines, sep="\n")  # shown when a test fails
+            bus.close()
+            for link in links.values():
+                link.close()
+    assert code == 0, f"the stand-in exited {code}: {server.stderr()}"
+
+
+def test_nav2_gets_mqtt_goals_cancels_in_blocked_zones_escapes_and_is_not_flooded(rig: Rig) -> None:
+    # An MQTT goal goes to Nav2 as a NavigateToPose goal; its SUCCEEDED comes back as "arrived".
+    send_goal(rig.operator, "B")
+    goal = rig.new_goal(0, "the MQTT goal at the action server")
+    assert (goal["x"], goal["y"], goal["frame_id"]) == (*B, "map")
+    status = rig.state("navigating", "navigating to B")
+    assert status.goal == "B"
+    rig.server.command("succeed")
+    rig.state("arrived", "arrived, from the server's SUCCEEDED")
+
+    # A goal in a zone that becomes blocked is cancelled at the server.
+    z4, node4_link, node4 = rig.z4
+    inside = (25.0, 15.0)
+    assert in_box(*inside, [tuple(p) for p in z4.polygon])
+    send_goal(rig.operator, [*inside, 0.0])
+    goal = rig.new_goal(1, "the goal into z4")
+    rig.state("navigating", "navigating into z4")
+    zone_state(node4_link, "z4", node4, "blocked", 5)
+    wait_until(lambda: bool(rig.cancels()), 15, "the cancel of the goal in blocked z4")
+    assert rig.cancels()[0]["cancel"] == goal["goal"]
+    status = rig.state("cancelled", "cancelled")
+    assert status.reason is not None and "z4" in status.reason
+
+    # A zone blocked around the robot: the one goal out of it, then on to B once at the exit.
+    rig.server.command("pose 18.0 7.2 0.0")  # inside z1
+    rig.operator.wait_status("the robot in z1", lambda s: s.pose[0] == 18.0)
+    send_goal(rig.operator, "B")
+    rig.new_goal(2, "the goal to B")
+    rig.state("navigating", "navigating to B")
+    rig.set_z1("blocked")
+    out = rig.new_goal(3, "the goal out of z1")
+    assert not in_box(out["x"], out["y"], Z1), out
+    assert (out["x"], out["y"]) != B
+    assert "leaving blocked z1" in (rig.operator.latest().reason or "")  # type: ignore[union-attr]
+    rig.server.command(f"pose {out['x']} {out['y']} 0.0")
+    rig.server.command("succeed")
+    on = rig.new_goal(4, "the goal to B again, from the exit")
+    assert (on["x"], on["y"]) == B
+    assert len(rig.goals()) == 5 and not rig.cancels()[1:]
+
+    # z1 flips 20 times in 2 s (a clear is a cheaper zone: a replan): the re-sends are rate-limited.
+    before = len(rig.goals())
+    for i in range(20):
+        rig.set_z1("clear" if i % 2 == 0 else "blocked")
+        time.sleep(0.1)
+    time.sleep(1.5)
+    resent = rig.goals()[before:]
+    assert 1 <= len(resent) <= 6, resent
+    assert all((g["x"], g["y"]) == B for g in resent), resent
+    assert rig.operator.latest().state == "navigating"  # type: ignore[union-attr]
