@@ -243,4 +243,4 @@ def serve(
                     failed_writes = 0
                 log.debug("zone grid written")
         if robot is not None:
-            robot.flush()
+            robot.flush(now)

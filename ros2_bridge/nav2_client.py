@@ -95,7 +95,7 @@ class Nav2Client:
 
         send_request = topic(request_topic(names.send_goal), SendGoalRequest)
         self._send = DataWriter(participant, send_request, qos=services)
-        self.client_id = int(self._send.instance_handle)
+        self.client_id = int(self._send.instance_handle) & 0xFFFF_FFFF_FFFF_FFFF
         """rmw_cyclonedds's client id: its request writer's instance handle, as the header's first 8 bytes."""
         self._requests = DataReader(participant, send_request, qos=services)
         self._replies = DataReader(
@@ -118,6 +118,11 @@ class Nav2Client:
         self._plan = DataReader(participant, topic(dds_topic(names.plan), Path), qos=plan_qos)
 
     # -- what goes to Nav2 ---------------------------------------------------------------------------------
+
+    def server_listening(self) -> bool:
+        """A server reads the send_goal requests (beside the bridge's own watcher of them): a request written
+        before it is matched is lost, as rclcpp's clients wait for the server for the same reason."""
+        return self._send.get_publication_matched_status().current_count > 1
 
     def send_goal(self, goal_uuid: bytes, pose: RobotPose) -> None:
         x, y, yaw = pose

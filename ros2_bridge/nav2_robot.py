@@ -15,6 +15,8 @@ import logging
 import time
 from dataclasses import dataclass, field
 
+from cyclonedds.core import DDSException
+
 from wsnav.ros2_bridge.nav2_client import Nav2Client, RobotPose
 from wsnav.ros2_bridge.nav2_supervisor import CancelGoal, Nav2Action, Nav2Supervisor, SendGoal
 from wsnav.ros_bridge.move_base_supervisor import Action
@@ -29,6 +31,7 @@ from wsnav.zones.zone_layer import BlockedArea
 log = logging.getLogger(__name__)
 
 STATUS_PERIOD_S = 0.5
+HOLD_GOALS_S = 30.0
 
 
 def say(text: str, warn: bool) -> None:
@@ -50,6 +53,7 @@ class Nav2Robot:
     _mqtt_goals: int = 0
     _next_status: float = 0.0
     _told_frames: set[str] = field(default_factory=set)
+    _held_since: float | None = None
 
     @property
     def goal_topic(self) -> str:
@@ -85,15 +89,36 @@ class Nav2Robot:
         self._outbox += sup.carry(actions)
         return grid_changed
 
-    def flush(self) -> None:
-        """Send the goals and cancels decided, in order."""
+    def flush(self, now: float) -> None:
+        """Send the goals and cancels decided, in order, once Nav2's action server listens (held up to
+        HOLD_GOALS_S, then dropped and the goal cancelled: a goal sent much later would start a drive nobody
+        awaits). A write DDS refuses is one warning; the rest still go."""
+        if not self._outbox:
+            self._held_since = None
+            return
+        if not self.client.server_listening():
+            if self._held_since is None:
+                self._held_since = now
+                say("Nav2's navigate_to_pose server is not listening: holding goals until it is", True)
+            elif now - self._held_since > HOLD_GOALS_S:
+                self._outbox.clear()
+                self._held_since = None
+                sup = self.supervisor.sup
+                if sup.state == "navigating":
+                    sup.state, sup.reason = "cancelled", f"Nav2 did not listen within {HOLD_GOALS_S:g} s"
+                say(f"goals held for Nav2 dropped after {HOLD_GOALS_S:g} s", True)
+            return
+        self._held_since = None
         for action in self._outbox:
-            if isinstance(action, CancelGoal):
-                say(f"cancel goal {action.uuid.hex()}: {action.reason}", False)
-                self.client.cancel(action.uuid)
-            elif isinstance(action, SendGoal):  # pyright: ignore[reportUnnecessaryIsInstance]
-                say(f"goal {action.uuid.hex()} -> {action.goal.pose} ({action.reason})", False)
-                self.client.send_goal(action.uuid, action.goal.pose)
+            try:
+                if isinstance(action, CancelGoal):
+                    say(f"cancel goal {action.uuid.hex()}: {action.reason}", False)
+                    self.client.cancel(action.uuid)
+                else:
+                    say(f"goal {action.uuid.hex()} -> {action.goal.pose} ({action.reason})", False)
+                    self.client.send_goal(action.uuid, action.goal.pose)
+            except DDSException as exc:
+                say(f"not sent to Nav2 ({exc})", True)
         self._outbox.clear()
 
     def _mqtt_goal(self, payload: bytes) -> None:

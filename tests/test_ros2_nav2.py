@@ -2,10 +2,11 @@
 and Jazzy's rmw_cyclonedds run on), its own native process (tests/dds_peers/nav2_action_server.c, built with idlc
 and gcc), through a real amqtt broker: MQTT goals reach it and its SUCCEEDED reaches MQTT, a goal in a zone that
 becomes blocked is cancelled on the wire, a zone blocked around the robot sends it the goal to the way out (then
-on to its goal), and a zone flipping 20 times in 2 s does not make 20 goals.
+on to its goal), and a zone on the plan (/plan) flipping 20 times in 2 s does not make 20 goals.
 
 What the stand-in leaves out of Nav2's bt_navigator: no behaviour tree, planner, controller, costmap or tf (its
-goals never move the robot: the test moves it by publishing /amcl_pose, and ends goals with "succeed"); no
+goals never move the robot: the test moves it by publishing /amcl_pose, publishes planner_server's /plan, and
+ends goals with "succeed"); no
 feedback topic, no get_result service, no result timeout (every goal it saw stays in its status list); no goal
 checks (frames, the `behavior_tree` field); no clientid matching before replying (rmw_cyclonedds's server waits up
 to 100 ms for a client's reply reader when the request writer names a clientid; the bridge's names none); no
@@ -168,13 +169,17 @@ def test_nav2_gets_mqtt_goals_cancels_in_blocked_zones_escapes_and_is_not_floode
     assert not in_box(out["x"], out["y"], Z1), out
     assert (out["x"], out["y"]) != B
     assert "leaving blocked z1" in (rig.operator.latest().reason or "")  # type: ignore[union-attr]
-    rig.server.command(f"pose {out['x']} {out['y']} 0.0")
-    rig.server.command("succeed")
+    rig.server.command(
+        f"pose {out['x']} {out['y']} 0.0"
+    )  # out: the bridge goes on without waiting for the exit
     on = rig.new_goal(4, "the goal to B again, from the exit")
     assert (on["x"], on["y"]) == B
     assert len(rig.goals()) == 5 and not rig.cancels()[1:]
 
-    # z1 flips 20 times in 2 s (a clear is a cheaper zone: a replan): the re-sends are rate-limited.
+    # z1, on the plan, flips 20 times in 2 s: each flip is a replan for Algorithm 3, the re-sends rate-limited
+    # (without the policy's interval: 20).
+    rig.server.command(f"plan {out['x']} {out['y']} 28.0 7.2")  # east along the south corridor, through z1
+    time.sleep(0.5)
     before = len(rig.goals())
     for i in range(20):
         rig.set_z1("clear" if i % 2 == 0 else "blocked")

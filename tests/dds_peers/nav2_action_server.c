@@ -8,7 +8,9 @@
  * ends it CANCELED (reply ERROR_NONE with the goal), of another one answers ERROR_GOAL_TERMINATED or
  * ERROR_UNKNOWN_GOAL_ID. What it leaves out of bt_navigator is said in the test.
  *
- * stdin, one command a line: "pose X Y YAW" publishes /amcl_pose; "succeed" ends the executing goal SUCCEEDED.
+ * stdin, one command a line: "pose X Y YAW" publishes /amcl_pose; "plan X0 Y0 X1 Y1" publishes /plan (reliable,
+ * volatile, depth 1, as planner_server), a straight line of 5 cm steps; "succeed" ends the executing goal
+ * SUCCEEDED.
  * stdout, one JSON line each: {"ready": true}; every goal request and every cancel request it took. */
 #include <math.h>
 #include <poll.h>
@@ -92,6 +94,9 @@ int main(int argc, char **argv) {
                                     "rt/navigate_to_pose/_action/status", latched, 1);
   dds_entity_t pose_wr = endpoint(pp, &geometry_msgs_msg_dds__PoseWithCovarianceStamped__desc, "rt/amcl_pose",
                                   latched, 1);
+  dds_qos_t *plans = qos_of(DDS_DURABILITY_VOLATILE, 1);
+  dds_entity_t plan_wr = endpoint(pp, &nav_msgs_msg_dds__Path__desc, "rt/plan", plans, 1);
+  dds_delete_qos(plans);
   dds_delete_qos(services);
   dds_delete_qos(latched);
   printf("{\"ready\": true}\n");
@@ -103,8 +108,23 @@ int main(int argc, char **argv) {
     struct pollfd in = {.fd = 0, .events = POLLIN};
     if (commands && poll(&in, 1, 0) > 0) {
       if (!fgets(line, sizeof line, stdin)) { commands = 0; continue; }
-      double x, y, yaw;
-      if (sscanf(line, "pose %lf %lf %lf", &x, &y, &yaw) == 3) {
+      double x, y, yaw, x1, y1;
+      if (sscanf(line, "plan %lf %lf %lf %lf", &x, &y, &x1, &y1) == 4) {
+        static geometry_msgs_msg_dds__PoseStamped_ poses[4096];
+        uint32_t n = (uint32_t)fmin(4095, ceil(hypot(x1 - x, y1 - y) / 0.05)) + 1;
+        memset(poses, 0, sizeof poses);
+        for (uint32_t i = 0; i < n; i++) {
+          double f = n > 1 ? (double)i / (n - 1) : 0.0;
+          poses[i].header.frame_id = "map";
+          poses[i].pose.position.x = x + f * (x1 - x);
+          poses[i].pose.position.y = y + f * (y1 - y);
+          poses[i].pose.orientation.w = 1.0;
+        }
+        nav_msgs_msg_dds__Path_ path = {.header = {.frame_id = "map"}};
+        path.poses._length = path.poses._maximum = n;
+        path.poses._buffer = poses;
+        dds_write(plan_wr, &path);
+      } else if (sscanf(line, "pose %lf %lf %lf", &x, &y, &yaw) == 3) {
         geometry_msgs_msg_dds__PoseWithCovarianceStamped_ p;
         memset(&p, 0, sizeof p);
         p.header.frame_id = "map";
