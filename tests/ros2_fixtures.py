@@ -146,3 +146,23 @@ def bridge_args(site: Site, broker: str, credentials: Path, domain: int) -> list
         "ros2", "bridge", "--site", str(site.path), "--broker", broker, "--credentials", str(credentials),
         "--domain", str(domain), "--log-level", "info",
     ]  # fmt: skip
+
+
+HEADERS = {
+    "cyclonedds-dev": Path("/usr/include/dds/dds.h"),
+    "libfastrtps-dev": Path("/usr/include/fastdds/dds/domain/DomainParticipant.hpp"),
+}
+ROS_ENV = ("ROS_LOCALHOST_ONLY", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_STATIC_PEERS", "CYCLONEDDS_URI")
+
+
+def require_header(package: str) -> None:
+    """A Debian -dev package's header: skip without it, fail under WSNAV_REQUIRE_TOOLS=1 (CI)."""
+    if not HEADERS[package].exists():
+        if os.environ.get("WSNAV_REQUIRE_TOOLS") == "1":
+            pytest.fail(f"{HEADERS[package]} missing: apt-get install {package} (WSNAV_REQUIRE_TOOLS=1)")
+        pytest.skip(f"{package} not installed")
+
+
+def clean_env() -> dict[str, str]:
+    """This process's environment without ROS 2's discovery variables or a Cyclone config of the caller's."""
+    return {k: v for k, v in os.environ.items() if k not in ROS_ENV}

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import os
 import shutil
 import subprocess
 import tempfile
@@ -30,7 +29,7 @@ import pytest
 from numpy.typing import NDArray
 
 from tests.conftest import REPO, require_tool
-from tests.ros2_fixtures import NativePeer, bridge_args, domain_id, expected_grid
+from tests.ros2_fixtures import NativePeer, bridge_args, clean_env, domain_id, expected_grid, require_header
 from tests.ros_fixtures import WsnavChild, slow_heartbeat_school, wait_until
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.ros_bridge.zone_feed import ZoneFeed
@@ -46,19 +45,6 @@ pytestmark = pytest.mark.slow
 
 SOURCES = REPO / "tests" / "dds_peers"
 GRID = "rt/wsn/zone_grid"
-HEADERS = {
-    "cyclonedds-dev": Path("/usr/include/dds/dds.h"),
-    "libfastrtps-dev": Path("/usr/include/fastdds/dds/domain/DomainParticipant.hpp"),
-}
-ROS_ENV = ("ROS_LOCALHOST_ONLY", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_STATIC_PEERS", "CYCLONEDDS_URI")
-
-
-def require_header(package: str) -> None:
-    """A Debian -dev package's header: skip without it, fail under WSNAV_REQUIRE_TOOLS=1 (CI)."""
-    if not HEADERS[package].exists():
-        if os.environ.get("WSNAV_REQUIRE_TOOLS") == "1":
-            pytest.fail(f"{HEADERS[package]} missing: apt-get install {package} (WSNAV_REQUIRE_TOOLS=1)")
-        pytest.skip(f"{package} not installed")
 
 
 def build(out: Path) -> None:
@@ -130,11 +116,6 @@ def start_peers(
 
 def readers(peers: list[NativePeer]) -> list[NativePeer]:
     return [p for p in peers if "bare" not in p.name]
-
-
-def clean_env() -> dict[str, str]:
-    """This process's environment without ROS 2's discovery variables or a Cyclone config of the caller's."""
-    return {k: v for k, v in os.environ.items() if k not in ROS_ENV}
 
 
 def assert_alive(peers: list[NativePeer]) -> None:

@@ -29,10 +29,8 @@ from typing import Any
 import pytest
 
 from tests.conftest import REPO, require_tool
-from tests.ros2_fixtures import NativePeer, bridge_args, domain_id
-from tests.ros_fixtures import WsnavChild, slow_heartbeat_school, wait_until
-from tests.test_ros2_dds_peers import clean_env, require_header
-from tests.test_ros_bridge_move_base import Operator, send_goal, zone_state
+from tests.ros2_fixtures import NativePeer, bridge_args, clean_env, domain_id, require_header
+from tests.ros_fixtures import Operator, WsnavChild, send_goal, slow_heartbeat_school, wait_until, zone_state
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
 from wsnav.schemas import topics
