@@ -10,6 +10,7 @@ waiting to match the client's reply reader by it (its "backwards-compatibility" 
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass
@@ -42,6 +43,10 @@ from wsnav.ros2_bridge.nav2_messages import (
     status_qos,
 )
 from wsnav.ros2_bridge.writer import ros_time
+from wsnav.runtime.drop_log import DropLog
+from wsnav.schemas.messages import MAX_COORDINATE_M
+
+log = logging.getLogger(__name__)
 
 RobotPose = tuple[float, float, float]
 
@@ -78,6 +83,32 @@ class SeenGoal:
 
 def yaw_of(q: Quaternion) -> float:
     return math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+
+
+def pose_of(p: Pose) -> RobotPose | None:
+    """A ROS pose as (x, y, yaw), None if it is no place (NaN, infinite or beyond any map): such a message is
+    dropped, as the status it would become could not be published."""
+    pose = (p.position.x, p.position.y, yaw_of(p.orientation))
+    if not all(math.isfinite(v) for v in pose) or max(abs(pose[0]), abs(pose[1])) > MAX_COORDINATE_M:
+        DROPS.drop("no place", time.monotonic(), "a pose", repr(pose))
+        return None
+    return pose
+
+
+DROPS = DropLog(log, "Nav2", "DDS samples")
+"""Samples dropped (unreadable CDR, a pose that is no place), logged by the one rule every reader uses."""
+
+
+def take(reader: DataReader[Any], n: int) -> list[Any]:
+    """Up to `n` samples; a batch that cannot be read (a peer's malformed CDR) is dropped and logged, never the
+    end of the bridge."""
+    now = time.monotonic()
+    DROPS.flush(now)
+    try:
+        return list(reader.take(n))
+    except Exception as exc:  # cyclonedds raises whatever its deserializer met
+        DROPS.drop("unreadable", now, reader.topic.name, str(exc)[:200])
+        return []
 
 
 class Nav2Client:
@@ -159,18 +190,18 @@ class Nav2Client:
     def seen_goals(self) -> list[SeenGoal]:
         """Other clients' goal requests since the last call."""
         seen: list[SeenGoal] = []
-        for s in self._requests.take(64):
+        for s in take(self._requests, 64):
             if not isinstance(s, SendGoalRequest) or s.client == self.client_id:
                 continue
-            p = s.goal.pose
-            pose = (p.pose.position.x, p.pose.position.y, yaw_of(p.pose.orientation))
-            seen.append(SeenGoal(bytes(s.goal_id.uuid), pose, p.header.frame_id))
+            pose = pose_of(s.goal.pose.pose)
+            if pose is not None:
+                seen.append(SeenGoal(bytes(s.goal_id.uuid), pose, s.goal.pose.header.frame_id))
         return seen
 
     def replies(self) -> list[tuple[bytes, bool]]:
         """(our goal's UUID, accepted) for the send_goal replies to us since the last call."""
         out: list[tuple[bytes, bool]] = []
-        for s in self._replies.take(64):
+        for s in take(self._replies, 64):
             if isinstance(s, SendGoalReply) and s.client == self.client_id and s.seq in self._pending:
                 out.append((self._pending.pop(s.seq), bool(s.accepted)))
         return out
@@ -179,25 +210,23 @@ class Nav2Client:
         """Each status array since the last call: (goal UUID, action_msgs status) each."""
         return [
             [(bytes(g.goal_info.goal_id.uuid), int(g.status)) for g in s.status_list]
-            for s in self._status.take(16)
+            for s in take(self._status, 16)
             if isinstance(s, GoalStatusArray)
         ]
 
     def pose(self) -> RobotPose | None:
         """The latest pose published since the last call (None: none)."""
         latest = None
-        for s in self._pose.take(16):
+        for s in take(self._pose, 16):
             if isinstance(s, PoseWithCovarianceStamped):
-                p = s.pose.pose
-                latest = (p.position.x, p.position.y, yaw_of(p.orientation))
+                latest = pose_of(s.pose.pose) or latest
         return latest
 
     def plan(self) -> NDArray[np.float64] | None:
         """The latest global plan since the last call, (N, 2) metres (None: none)."""
         latest = None
-        for s in self._plan.take(4):
+        for s in take(self._plan, 4):
             if isinstance(s, Path):
-                latest = np.array(
-                    [(p.pose.position.x, p.pose.position.y) for p in s.poses], dtype=np.float64
-                ).reshape(-1, 2)
+                xy = np.array([(p.pose.position.x, p.pose.position.y) for p in s.poses], dtype=np.float64)
+                latest = xy.reshape(-1, 2)[np.isfinite(xy.reshape(-1, 2)).all(axis=1)]
         return latest

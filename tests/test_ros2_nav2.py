@@ -134,6 +134,10 @@ def rig(tmp_path: Path, nav2_server: Path) -> Iterator[Rig]:
 
 
 def test_nav2_gets_mqtt_goals_cancels_in_blocked_zones_escapes_and_is_not_flooded(rig: Rig) -> None:
+    # A pose that is no place is dropped (its status could not be published), the last good one kept.
+    rig.server.command("pose nan nan 0.0")
+    rig.bridge.wait_for("dropped a pose", 15)
+
     # An MQTT goal goes to Nav2 as a NavigateToPose goal; its SUCCEEDED comes back as "arrived".
     send_goal(rig.operator, "B")
     goal = rig.new_goal(0, "the MQTT goal at the action server")
@@ -187,3 +191,4 @@ def test_nav2_gets_mqtt_goals_cancels_in_blocked_zones_escapes_and_is_not_floode
     assert 1 <= len(resent) <= 6, resent
     assert all((g["x"], g["y"]) == B for g in resent), resent
     assert rig.operator.latest().state == "navigating"  # type: ignore[union-attr]
+    assert rig.bridge.proc.poll() is None, "the bridge still runs"
