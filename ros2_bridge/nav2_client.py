@@ -95,6 +95,18 @@ def pose_of(p: Pose) -> RobotPose | None:
     return pose
 
 
+CYCLONE_VENDOR = b"\x01\x10"
+"""The first bytes of a Cyclone DDS participant's GUID (its RTPS vendor id, 1.16; Fast DDS's is 1.15)."""
+
+
+def matched(lookup: Any, handle: int) -> Any:
+    """A matched endpoint's discovery data, None when it has gone meanwhile."""
+    try:
+        return lookup(handle)
+    except Exception:  # cyclonedds raises when the handle is no longer matched
+        return None
+
+
 DROPS = DropLog(log, "Nav2", "DDS samples")
 """Samples dropped (unreadable CDR, a pose that is no place), logged by the one rule every reader uses."""
 
@@ -127,6 +139,7 @@ class Nav2Client:
         send_request = topic(request_topic(names.send_goal), SendGoalRequest)
         self._send = DataWriter(participant, send_request, qos=services)
         self.client_id = int(self._send.instance_handle) & 0xFFFF_FFFF_FFFF_FFFF
+        self._participant_key = participant.guid
         """rmw_cyclonedds's client id: its request writer's instance handle, as the header's first 8 bytes."""
         self._requests = DataReader(participant, send_request, qos=services)
         self._replies = DataReader(
@@ -150,10 +163,25 @@ class Nav2Client:
 
     # -- what goes to Nav2 ---------------------------------------------------------------------------------
 
-    def server_listening(self) -> bool:
-        """A server reads the send_goal requests (beside the bridge's own watcher of them): a request written
-        before it is matched is lost, as rclcpp's clients wait for the server for the same reason."""
-        return self._send.get_publication_matched_status().current_count > 1
+    def server_refused(self) -> str | None:
+        """Why goals cannot go out now (None: they can). A request written before a server reads it is lost (as
+        rclcpp's clients wait for the server for the same reason); and a server on another DDS than Cyclone
+        (rmw_fastrtps: vendor 01.0f) would read rmw_cyclonedds's request header as the goal's UUID and the rest
+        as a garbled pose, so nothing is sent while one listens."""
+        servers = []
+        for handle in self._send.get_matched_subscriptions():
+            endpoint = matched(self._send.get_matched_subscription_data, handle)
+            if endpoint is not None and endpoint.participant_key != self._participant_key:
+                servers.append(endpoint.participant_key)
+        if not servers:
+            return "no navigate_to_pose server listens"
+        foreign = [k for k in servers if k.bytes[:2] != CYCLONE_VENDOR]
+        if foreign:
+            return (
+                f"a navigate_to_pose server on another DDS (vendor {foreign[0].bytes[0]}.{foreign[0].bytes[1]:02x}: "
+                "rmw_fastrtps?) listens; the bridge speaks rmw_cyclonedds's request layout only"
+            )
+        return None
 
     def send_goal(self, goal_uuid: bytes, pose: RobotPose) -> None:
         x, y, yaw = pose
@@ -192,6 +220,14 @@ class Nav2Client:
         seen: list[SeenGoal] = []
         for s in take(self._requests, 64):
             if not isinstance(s, SendGoalRequest) or s.client == self.client_id:
+                continue
+            info: Any = getattr(s, "sample_info", None)  # cyclonedds attaches it to each sample it takes
+            handle = info.publication_handle if info is not None else 0
+            writer = matched(self._requests.get_matched_publication_data, handle)
+            if writer is None or writer.participant_key.bytes[:2] != CYCLONE_VENDOR:
+                DROPS.drop(
+                    "not rmw_cyclonedds", time.monotonic(), "a goal request", "its layout is another rmw's"
+                )
                 continue
             pose = pose_of(s.goal.pose.pose)
             if pose is not None:

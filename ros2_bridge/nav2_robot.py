@@ -54,6 +54,7 @@ class Nav2Robot:
     _next_status: float = 0.0
     _told_frames: set[str] = field(default_factory=set)
     _held_since: float | None = None
+    _held_why: str | None = None
 
     @property
     def goal_topic(self) -> str:
@@ -96,19 +97,22 @@ class Nav2Robot:
         if not self._outbox:
             self._held_since = None
             return
-        if not self.client.server_listening():
+        refused = self.client.server_refused()
+        if refused is not None:
+            if refused != self._held_why:
+                self._held_why = refused
+                say(f"{refused}: holding goals for Nav2", True)
             if self._held_since is None:
                 self._held_since = now
-                say("Nav2's navigate_to_pose server is not listening: holding goals until it is", True)
             elif now - self._held_since > HOLD_GOALS_S:
                 self._outbox.clear()
                 self._held_since = None
                 sup = self.supervisor.sup
                 if sup.state == "navigating":
-                    sup.state, sup.reason = "cancelled", f"Nav2 did not listen within {HOLD_GOALS_S:g} s"
+                    sup.state, sup.reason = "cancelled", f"not sent within {HOLD_GOALS_S:g} s: {refused}"
                 say(f"goals held for Nav2 dropped after {HOLD_GOALS_S:g} s", True)
             return
-        self._held_since = None
+        self._held_since, self._held_why = None, None
         for action in self._outbox:
             try:
                 if isinstance(action, CancelGoal):

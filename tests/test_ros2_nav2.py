@@ -16,11 +16,6 @@ does not write), rclcpp, Nav2 itself.
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
-import shutil
-import subprocess
-import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -28,8 +23,7 @@ from typing import Any
 
 import pytest
 
-from tests.conftest import REPO, require_tool
-from tests.ros2_fixtures import NativePeer, bridge_args, clean_env, domain_id, require_header
+from tests.ros2_fixtures import NativePeer, bridge_args, clean_env, domain_id
 from tests.ros_fixtures import Operator, WsnavChild, send_goal, slow_heartbeat_school, wait_until, zone_state
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
@@ -38,8 +32,8 @@ from wsnav.schemas.site import load_site
 
 pytestmark = pytest.mark.slow
 
-SOURCES = [REPO / "tests" / "dds_peers" / n for n in ("nav2_action.idl", "nav2_action_server.c")]
 B = (29.0, 22.8)
+REQUESTS = "rq/navigate_to_pose/_action/send_goalRequest"
 Z1 = [(17.0, 5.9), (19.0, 5.9), (19.0, 8.5), (17.0, 8.5)]
 """School's z1 (south corridor by the science rooms), watched by n1."""
 
@@ -48,29 +42,6 @@ def in_box(x: float, y: float, polygon: list[tuple[float, float]]) -> bool:
     """Inside an axis-aligned zone (z1 and z4 are rectangles)."""
     xs, ys = [p[0] for p in polygon], [p[1] for p in polygon]
     return min(xs) <= x <= max(xs) and min(ys) <= y <= max(ys)
-
-
-@pytest.fixture(scope="session")
-def nav2_server() -> Path:
-    """The stand-in, built once per source version (idlc -t: no type information, as rmw_cyclonedds)."""
-    require_header("cyclonedds-dev")
-    idlc, gcc = require_tool("idlc"), require_tool("gcc")
-    digest = hashlib.sha256(b"".join(p.read_bytes() for p in SOURCES)).hexdigest()[:16]
-    out = Path(tempfile.gettempdir()) / f"wsnav-nav2-server-{digest}"
-    if not (out / "nav2_action_server").exists():
-        work = Path(tempfile.mkdtemp(prefix="wsnav-nav2-server-build-"))
-        try:
-            subprocess.run([idlc, "-t", "-o", str(work), str(SOURCES[0])], check=True)
-            subprocess.run(
-                [gcc, "-O1", "-o", str(work / "nav2_action_server"), f"-I{work}", str(SOURCES[1]),
-                 str(work / "nav2_action.c"), "-lddsc", "-lm"],
-                check=True,
-            )  # fmt: skip
-            with contextlib.suppress(OSError):  # another run built it meanwhile
-                work.rename(out)
-        finally:
-            shutil.rmtree(work, ignore_errors=True)
-    return out / "nav2_action_server"
 
 
 class Rig:
@@ -192,3 +163,39 @@ def test_nav2_gets_mqtt_goals_cancels_in_blocked_zones_escapes_and_is_not_floode
     assert all((g["x"], g["y"]) == B for g in resent), resent
     assert rig.operator.latest().state == "navigating"  # type: ignore[union-attr]
     assert rig.bridge.proc.poll() is None, "the bridge still runs"
+
+
+def test_a_navigate_to_pose_server_on_fast_dds_gets_no_goal_in_cyclone_s_layout(
+    tmp_path: Path, peer_binaries: Path
+) -> None:
+    """rmw_fastrtps reads a request's id from RTPS inline QoS, not from the CDR: a Fast DDS server would take the
+    bridge's request header for the goal's UUID and the rest for a garbled pose. With a Fast DDS 2.9.1 reader of
+    the send_goal requests matched (tests/dds_peers/fastdds_peer.cpp with the request's type name, volatile, as
+    rmw_fastrtps's service readers), the bridge holds the MQTT goal and says why."""
+    site_dir = slow_heartbeat_school(tmp_path)
+    site = load_site(site_dir)
+    domain = domain_id() + 6
+    request_type = "nav2_msgs::action::dds_::NavigateToPose_SendGoal_Request_"
+    with BrokerThread(site_dir) as broker:
+        fast = NativePeer(
+            "Fast DDS 2.9 send_goal request reader",
+            [str(peer_binaries / "fastdds_peer"), str(domain), REQUESTS, "10", request_type],
+            clean_env(),
+        )
+        bus = connect_with_credentials(broker.host, broker.port, broker.credentials("operator"))
+        args = bridge_args(
+            site, f"{broker.host}:{broker.port}", broker.credentials_dir / "robot1.json", domain
+        )
+        bridge = WsnavChild([*args, "--robot", "robot1"], clean_env())
+        try:
+            bridge.wait_for("MQTT broker connected", 60)
+            send_goal(Operator(bus, "school"), "B")
+            line = bridge.wait_for("on another DDS", 20)
+            assert "vendor 1.0f" in line, line
+            assert not any("goal " in s and "-> (29.0, 22.8" in s for s in bridge.lines), bridge.lines
+        finally:
+            code = fast.stop()
+            bridge.stop()
+            print("bridge output:", *bridge.lines, sep="\n")
+            bus.close()
+    assert code == 0
