@@ -154,12 +154,14 @@ def test_nav2_gets_mqtt_goals_cancels_in_blocked_zones_escapes_and_is_not_floode
     rig.server.command(f"plan {out['x']} {out['y']} 28.0 7.2")  # east along the south corridor, through z1
     time.sleep(0.5)
     before = len(rig.goals())
+    start = time.monotonic()
     for i in range(20):
         rig.set_z1("clear" if i % 2 == 0 else "blocked")
         time.sleep(0.1)
+    span = time.monotonic() - start  # 2 s, longer on a loaded machine
     time.sleep(1.5)
     resent = rig.goals()[before:]
-    assert 1 <= len(resent) <= 6, resent
+    assert 1 <= len(resent) <= span / 0.5 + 2, (span, resent)
     assert all((g["x"], g["y"]) == B for g in resent), resent
     assert rig.operator.latest().state == "navigating"  # type: ignore[union-attr]
     assert rig.bridge.proc.poll() is None, "the bridge still runs"
