@@ -1,5 +1,6 @@
 """The paper's Algorithm 3, improved, as one rule for every navigator that reacts to zone changes: wsnav's own
-(navigation/navigator.py) and move_base's supervisor (ros_bridge/move_base_supervisor.py).
+(navigation/navigator.py) and move_base's supervisor (ros_bridge/move_base_supervisor.py), which Nav2's
+(ros2_bridge/nav2_supervisor.py) drives by goal UUID.
 
 What a zone change means for a goal being navigated, in this order:
 - the goal now lies in a blocked zone: cancel, at once;

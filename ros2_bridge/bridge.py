@@ -27,6 +27,7 @@ from wsnav.schemas.site import Site
 from wsnav.zones.geometry import GridFrame
 
 if TYPE_CHECKING:
+    from wsnav.ros2_bridge.nav2_robot import Nav2Robot
     from wsnav.ros2_bridge.writer import ZoneGridWriter
 
 log = logging.getLogger(__name__)
@@ -89,6 +90,16 @@ def ros2_options(args: argparse.Namespace) -> Ros2Options:
     return Ros2Options(namespace, frame, domain, discovery_from_env(), distro)
 
 
+def check_robot_arguments(args: argparse.Namespace, username: str) -> None:
+    """`--robot` and the Nav2 names, each problem one line."""
+    if args.robot != username:
+        raise CliError(f"--robot {args.robot}: the credentials are robot {username!r}'s")
+    for name, value in (("--nav2-action", args.nav2_action), ("--pose-topic", args.pose_topic),
+                        ("--plan-topic", args.plan_topic)):  # fmt: skip
+        if not (value.startswith("/") and all(_TOKEN.fullmatch(t) for t in value[1:].split("/"))):
+            raise CliError(f"{name} {value!r}: not an absolute ROS 2 name (e.g. /navigate_to_pose)")
+
+
 def require_cyclonedds() -> None:
     """Fail with one line (not an ImportError traceback) when the ros2 extra is not installed."""
     try:
@@ -103,6 +114,8 @@ def require_cyclonedds() -> None:
 def bridge_command(args: argparse.Namespace) -> int:
     options = ros2_options(args)
     loaded = load_bridge_site(args.site, args.credentials)
+    if args.robot is not None:
+        check_robot_arguments(args, loaded.creds.username)
     require_cyclonedds()
     from wsnav.ros2_bridge.writer import Ros2Names, ZoneGridWriter
 
@@ -141,21 +154,60 @@ def bridge_command(args: argparse.Namespace) -> int:
     bus = start_broker_link(args.broker, loaded.creds, args.tls_ca)
     for topic_filter in feed.subscriptions():
         bus.subscribe(topic_filter, qos=1)
+    robot = None
+    if args.robot is not None:
+        robot = nav2_robot(args, site, feed, bus, writer, options.frame_id)
+        bus.subscribe(robot.goal_topic, qos=1)
     stop = threading.Event()
     previous = signal.signal(signal.SIGTERM, lambda _n, _f: stop.set())
     try:
         refuse_bad_login(bus, args.connect_timeout)
-        serve(site, feed, writer, bus, clock, stop)
+        serve(site, feed, writer, bus, clock, stop, robot)
     finally:
         signal.signal(signal.SIGTERM, previous)
         bus.close()
     return 0
 
 
+def nav2_robot(
+    args: argparse.Namespace, site: Site, feed: ZoneFeed, bus: Bus, writer: ZoneGridWriter, frame_id: str
+) -> Nav2Robot:
+    """`--robot`: the Nav2 supervisor on the bridge's participant (its code, and the exit finder's numba, load
+    only here, once the grid is out)."""
+    import importlib
+
+    from wsnav.ros2_bridge.nav2_client import Nav2Client, Nav2Names
+    from wsnav.ros2_bridge.nav2_robot import Nav2Robot
+    from wsnav.ros2_bridge.nav2_supervisor import Nav2Supervisor
+
+    client = Nav2Client(
+        writer.participant, Nav2Names(args.nav2_action, args.pose_topic, args.plan_topic), frame_id
+    )
+    supervisor = Nav2Supervisor(args.robot, feed, replans_itself=not args.nav2_resend)
+    importlib.import_module("wsnav.navigation.behaviors.escape")
+    log.info(
+        "supervising %s's Nav2 (%s, pose from %s): zone changes %s",
+        args.robot,
+        args.nav2_action,
+        args.pose_topic,
+        "re-send the goal"
+        if args.nav2_resend
+        else "re-send no goal (Nav2's behaviour tree replans by itself)",
+    )
+    return Nav2Robot(site, feed, bus, args.robot, client, supervisor)
+
+
 def serve(
-    site: Site, feed: ZoneFeed, writer: ZoneGridWriter, bus: Bus, clock: WallClock, stop: threading.Event
+    site: Site,
+    feed: ZoneFeed,
+    writer: ZoneGridWriter,
+    bus: Bus,
+    clock: WallClock,
+    stop: threading.Event,
+    robot: Nav2Robot | None = None,
 ) -> None:
-    """Until SIGTERM: MQTT messages into the feed, the whole grid out on each change (again after a failed write)."""
+    """Until SIGTERM: MQTT messages into the feed, the whole grid out on each change (again after a failed write);
+    with a robot, its Nav2 supervised, the grid written before the goals it decided go out."""
     from cyclonedds.core import DDSException
 
     link = OutageWatch(site.spec.policy.stale, time.monotonic())
@@ -167,7 +219,13 @@ def serve(
         if said is not None:
             (log.info if said.endswith("zone states are live") else log.warning)(said)
         bus.wait(0.05)
-        pending |= bool(feed.take(bus.poll(), clock.now()))
+        messages = bus.poll()
+        goal_topic = robot.goal_topic if robot is not None else None
+        now = clock.now()
+        changes = feed.take([m for m in messages if m.topic != goal_topic], now)
+        pending |= bool(changes)
+        if robot is not None:
+            pending |= robot.step([m for m in messages if m.topic == goal_topic], changes, now)
         if pending and time.monotonic() >= next_try:
             try:
                 writer.write_grid(feed)
@@ -178,9 +236,11 @@ def serve(
                 next_try = time.monotonic() + RETRY_WRITE_S
                 if failed_writes == 1:
                     log.warning("zone grid not written (%s): trying again every %g s", exc, RETRY_WRITE_S)
-                continue
-            pending = False
-            if failed_writes:
-                log.warning("zone grid written again after %d failed tries", failed_writes)
-                failed_writes = 0
-            log.debug("zone grid written")
+            else:
+                pending = False
+                if failed_writes:
+                    log.warning("zone grid written again after %d failed tries", failed_writes)
+                    failed_writes = 0
+                log.debug("zone grid written")
+        if robot is not None:
+            robot.flush(now)

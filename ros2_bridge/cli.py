@@ -45,6 +45,29 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         help="whose rmw_dds_common layout ros_discovery_info is written in (jazzy: Iron and later; "
         "default: $ROS_DISTRO, else humble)",
     )
+    bridge.add_argument(
+        "--robot",
+        metavar="ID",
+        help="supervise this robot's Nav2 (navigate_to_pose on rmw_cyclonedds): cancel goals in blocked zones, "
+        "drive out of a zone blocked around it, MQTT goals and status (the credentials must be its own)",
+    )
+    bridge.add_argument(
+        "--nav2-action", default="/navigate_to_pose", help="Nav2's NavigateToPose action (with --robot)"
+    )
+    bridge.add_argument(
+        "--pose-topic",
+        default="/amcl_pose",
+        help="the robot's PoseWithCovarianceStamped in the map frame (with --robot; default /amcl_pose)",
+    )
+    bridge.add_argument(
+        "--plan-topic", default="/plan", help="Nav2's global plan (with --robot; default /plan)"
+    )
+    bridge.add_argument(
+        "--nav2-resend",
+        action="store_true",
+        help="re-send the goal when a zone on the plan changes (for a behaviour tree that does not replan by "
+        "itself; Nav2's default trees replan at 1 Hz, and a re-send aborts the sender's goal)",
+    )
     bridge.add_argument("--connect-timeout", type=float, default=10.0, metavar="S", help="MQTT, default 10")
     bridge.set_defaults(func=bridge_command)
 

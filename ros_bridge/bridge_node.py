@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from wsnav.ros_bridge.costmap_params import check_global_costmap
 from wsnav.ros_bridge.move_base_supervisor import Action, Cancel, Goal, MoveBaseSupervisor, Resend
+from wsnav.ros_bridge.robot_link import publish_robot_status, take_mqtt_goal
 from wsnav.ros_bridge.ros_env import master_alive, master_param, master_uri, require_rospy, wait_for_master
 from wsnav.ros_bridge.zone_feed import ESCAPE_COST, ZoneFeed
 from wsnav.ros_bridge.zone_grid import UpdateWindow, ZoneGridCodec
@@ -35,8 +36,6 @@ from wsnav.runtime.cli_support import CliError
 from wsnav.runtime.clock import WallClock
 from wsnav.schemas import topics
 from wsnav.schemas.credentials import Credentials
-from wsnav.schemas.goal_check import GoalRefused, read_goal
-from wsnav.schemas.messages import OPERATOR_CANCEL_REASON
 from wsnav.schemas.ros_map import FREE
 from wsnav.schemas.site import Site
 from wsnav.zones.cost_values import LETHAL_OBSTACLE
@@ -407,23 +406,16 @@ class ZoneBridgeNode:
     def _mqtt_goal(self, payload: bytes) -> None:
         """A goal or cancel from `robots/<id>/goal`, turned into a move_base goal (or cancel)."""
         assert self.supervisor is not None
-        try:
-            target = read_goal(self.site, payload)
-        except GoalRefused as refused:
-            say(f"goal dropped: {refused}", warn=True)
-            return
-        say(f"MQTT goal: {payload.decode(errors='replace')[:200]}")
-        if target == "cancel":
-            self._act(self.supervisor.cancel(OPERATOR_CANCEL_REASON))
-            return
-        pose, label = target
+        actions, goal = take_mqtt_goal(
+            self.site, self.supervisor, payload, self._mqtt_goal_id, lambda text, warn: say(text, warn=warn)
+        )
+        self._act(actions)
+        if goal is not None:
+            self._send_goal(goal)
+
+    def _mqtt_goal_id(self) -> str:
         self._mqtt_goals += 1
-        goal = Goal(f"wsnav-mqtt-{self._mqtt_goals}-{time.time():.3f}", pose, label)
-        cancel = self.supervisor.sending(goal)
-        if cancel:  # the goal lies in a blocked zone: move_base never sees it
-            say(f"goal {goal.goal_id} not sent: {cancel[0].reason}", warn=True)
-            return
-        self._send_goal(goal)
+        return f"wsnav-mqtt-{self._mqtt_goals}-{time.time():.3f}"
 
     def _act(self, actions: list[Action]) -> None:
         for action in actions:
@@ -581,10 +573,9 @@ class ZoneBridgeNode:
             self._pose = (tr.x, tr.y, 2 * math.atan2(q.z, q.w))
         assert self._pose is not None
         with self._lock:
-            status = self.supervisor.status(self._pose, time.time())
-        self.bus.publish(
-            topics.robot_status(self.site.name, self.options.robot), status.to_payload(), qos=1, retain=True
-        )
+            publish_robot_status(
+                self.bus, self.site, self.options.robot, self.supervisor, self._pose, time.time()
+            )
 
 
 def say(text: str, *, warn: bool = False) -> None:

@@ -125,6 +125,8 @@ class MoveBaseSupervisor:
     _due_why: str = ""
     _due_window: Bounds | None = None
     """The cells of zone changes held back by the policy's interval, planned for at its end."""
+    navigator: str = "move_base"
+    """What the robot's status calls the navigator in its reasons (Nav2's supervisor says bt_navigator)."""
 
     # -- what move_base shows ------------------------------------------------------------------------------
 
@@ -163,7 +165,7 @@ class MoveBaseSupervisor:
             elif self._listed_current and self.state == "navigating":
                 # actionlib lists a goal until some seconds after it ends: an active goal that vanishes went with
                 # a move_base that restarted. Its target is not re-sent on the next zone change.
-                self.state, self.reason = "cancelled", "move_base lost the goal (restarted?)"
+                self.state, self.reason = "cancelled", f"{self.navigator} lost the goal (restarted?)"
         for goal_id, code in statuses:
             self.on_status(goal_id, code)
         return actions
@@ -179,7 +181,8 @@ class MoveBaseSupervisor:
         elif code == SUCCEEDED:
             self.state, self.reason = "arrived", None
         elif code in (ABORTED, REJECTED, LOST):
-            self.state, self.reason = "cancelled", "move_base gave up on the goal (no valid plan or control)"
+            self.state = "cancelled"
+            self.reason = f"{self.navigator} gave up on the goal (no valid plan or control)"
         elif code in (PREEMPTED, RECALLED):
             self.state = "cancelled"
             self.reason = self.reason or "cancelled on the ROS side"

@@ -34,7 +34,7 @@ def unavailable(what: str) -> NoReturn:
     pytest.skip(what)
 
 
-pytest_plugins = ["tests.ros_fixtures"]
+pytest_plugins = ["tests.ros_fixtures", "tests.ros2_fixtures"]
 
 
 @pytest.fixture(scope="module")

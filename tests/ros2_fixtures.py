@@ -4,8 +4,11 @@ native Cyclone 0.10 / Fast DDS 2.9 programs), the topics and QoS they expect, an
 from __future__ import annotations
 
 import base64
+import contextlib
+import hashlib
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -17,7 +20,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from tests.conftest import REPO
+from tests.conftest import REPO, require_tool
 from wsnav.ros_bridge.zone_feed import ZoneFeed
 from wsnav.ros_bridge.zone_grid import ZoneGridCodec
 from wsnav.schemas.site import Site
@@ -58,13 +61,17 @@ class NativePeer:
     """A peer program as a child process printing JSON lines: `{"ready": true}`, then one line per sample, kept
     in `samples` as they arrive; its stderr goes to a file (a crash's last words, without a pipe to fill)."""
 
-    def __init__(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> None:
+    def __init__(
+        self, name: str, argv: list[str], env: dict[str, str] | None = None, *, commands: bool = False
+    ) -> None:
+        """`commands`: its stdin is a pipe the test writes to (`command`)."""
         self.name = name
         self.samples: list[dict[str, Any]] = []
         self._err = tempfile.TemporaryFile("w+")  # noqa: SIM115  # lives as long as the peer; closed by the GC
         self.proc = subprocess.Popen(
             argv,
             cwd=REPO,
+            stdin=subprocess.PIPE if commands else None,
             stdout=subprocess.PIPE,
             stderr=self._err,
             text=True,
@@ -86,6 +93,11 @@ class NativePeer:
                 self._ready.set()
             else:
                 self.samples.append(item)
+
+    def command(self, line: str) -> None:
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
 
     def stderr(self) -> str:
         self._err.seek(0)
@@ -137,3 +149,88 @@ def bridge_args(site: Site, broker: str, credentials: Path, domain: int) -> list
         "ros2", "bridge", "--site", str(site.path), "--broker", broker, "--credentials", str(credentials),
         "--domain", str(domain), "--log-level", "info",
     ]  # fmt: skip
+
+
+HEADERS = {
+    "cyclonedds-dev": Path("/usr/include/dds/dds.h"),
+    "libfastrtps-dev": Path("/usr/include/fastdds/dds/domain/DomainParticipant.hpp"),
+}
+ROS_ENV = ("ROS_LOCALHOST_ONLY", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_STATIC_PEERS", "CYCLONEDDS_URI")
+
+
+def require_header(package: str) -> None:
+    """A Debian -dev package's header: skip without it, fail under WSNAV_REQUIRE_TOOLS=1 (CI)."""
+    if not HEADERS[package].exists():
+        if os.environ.get("WSNAV_REQUIRE_TOOLS") == "1":
+            pytest.fail(f"{HEADERS[package]} missing: apt-get install {package} (WSNAV_REQUIRE_TOOLS=1)")
+        pytest.skip(f"{package} not installed")
+
+
+def clean_env() -> dict[str, str]:
+    """This process's environment without ROS 2's discovery variables or a Cyclone config of the caller's."""
+    return {k: v for k, v in os.environ.items() if k not in ROS_ENV}
+
+
+SOURCES = REPO / "tests" / "dds_peers"
+
+
+def build(out: Path) -> None:
+    """The peers from tests/dds_peers: idlc's C for the grid type with and without type information, gcc, g++."""
+    idlc, gcc, gxx = require_tool("idlc"), require_tool("gcc"), require_tool("g++")
+    for variant, flags in (("typeinfo", []), ("no_typeinfo", ["-t"])):
+        gen = out / variant
+        gen.mkdir()
+        subprocess.run([idlc, *flags, "-o", str(gen), str(SOURCES / "ros2_grid.idl")], check=True)
+        subprocess.run(
+            [gcc, "-O1", "-o", str(out / f"cyclone_peer_{variant}"), f"-I{gen}",
+             str(SOURCES / "cyclone_peer.c"), str(gen / "ros2_grid.c"), "-lddsc"],
+            check=True,
+        )  # fmt: skip
+    subprocess.run(
+        [gxx, "-O0", "-o", str(out / "fastdds_peer"), str(SOURCES / "fastdds_peer.cpp"), "-lfastrtps", "-lfastcdr"],
+        check=True,
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="session")
+def peer_binaries() -> Path:
+    """The compiled peers, cached in the temp dir by the sources' hash (the Fast DDS one takes seconds of g++)."""
+    require_header("cyclonedds-dev")
+    require_header("libfastrtps-dev")
+    digest = hashlib.sha256(b"".join(p.read_bytes() for p in sorted(SOURCES.iterdir()))).hexdigest()[:16]
+    out = Path(tempfile.gettempdir()) / f"wsnav-dds-peers-{digest}"
+    if not (out / "fastdds_peer").exists():
+        work = Path(tempfile.mkdtemp(prefix="wsnav-dds-peers-build-"))
+        try:
+            build(work)
+            with contextlib.suppress(OSError):  # another run built it meanwhile
+                work.rename(out)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    return out
+
+
+NAV2_SOURCES = [SOURCES / "nav2_action.idl", SOURCES / "nav2_action_server.c"]
+
+
+@pytest.fixture(scope="session")
+def nav2_server() -> Path:
+    """The stand-in, built once per source version (idlc -t: no type information, as rmw_cyclonedds)."""
+    require_header("cyclonedds-dev")
+    idlc, gcc = require_tool("idlc"), require_tool("gcc")
+    digest = hashlib.sha256(b"".join(p.read_bytes() for p in NAV2_SOURCES)).hexdigest()[:16]
+    out = Path(tempfile.gettempdir()) / f"wsnav-nav2-server-{digest}"
+    if not (out / "nav2_action_server").exists():
+        work = Path(tempfile.mkdtemp(prefix="wsnav-nav2-server-build-"))
+        try:
+            subprocess.run([idlc, "-t", "-o", str(work), str(NAV2_SOURCES[0])], check=True)
+            subprocess.run(
+                [gcc, "-O1", "-o", str(work / "nav2_action_server"), f"-I{work}", str(NAV2_SOURCES[1]),
+                 str(work / "nav2_action.c"), "-lddsc", "-lm"],
+                check=True,
+            )  # fmt: skip
+            with contextlib.suppress(OSError):  # another run built it meanwhile
+                work.rename(out)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    return out / "nav2_action_server"

@@ -7,6 +7,7 @@ environment). Without Debian's ROS packages these fixtures skip, and fail under 
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -14,8 +15,9 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -23,6 +25,9 @@ import yaml
 from tests.conftest import SITES, require_tool
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.ros_bridge.ros_env import LocalRosCore, stop_process_group
+from wsnav.runtime.mqtt_bus import MqttBus
+from wsnav.schemas import topics
+from wsnav.schemas.messages import RobotStatus, ZoneState
 
 
 def require_ros() -> None:
@@ -145,3 +150,34 @@ def bridge_args(site_dir: Path, broker: BrokerThread, *extra: str) -> list[str]:
         "0",
         *extra,
     ]
+
+
+@dataclass
+class Operator:
+    bus: MqttBus
+    site: str
+    statuses: list[RobotStatus] = field(default_factory=list)
+
+    def poll(self) -> None:
+        for m in self.bus.poll():
+            if m.payload:
+                self.statuses.append(RobotStatus.model_validate_json(m.payload))
+
+    def latest(self) -> RobotStatus | None:
+        self.poll()
+        return self.statuses[-1] if self.statuses else None
+
+    def wait_status(self, what: str, check: Any, timeout_s: float = 15.0) -> RobotStatus:
+        wait_until(lambda: (s := self.latest()) is not None and bool(check(s)), timeout_s, what)
+        status = self.latest()
+        assert status is not None
+        return status
+
+
+def zone_state(bus: MqttBus, zone: str, node: str, state: str, seq: int) -> None:
+    msg = ZoneState(zone=zone, node=node, state=state, seq=seq)  # type: ignore[arg-type]
+    bus.publish(topics.zone_state("school", zone, node), msg.to_payload(), qos=1, retain=True)
+
+
+def send_goal(operator: Operator, goal: object) -> None:
+    operator.bus.publish(topics.robot_goal("school", "robot1"), json.dumps({"goal": goal}).encode(), qos=1)

@@ -21,7 +21,7 @@ ALLOWED: dict[str, set[str]] = {
     "zone_sim": {"schemas", "runtime", "broker", "firmware"},  # runs the firmware's own logic
     "experiments": {"schemas", "runtime", "broker", "zones", "navigation", "robot_agent", "zone_sim"},
     "ros_bridge": {"schemas", "runtime", "zones", "navigation", "robot_agent"},
-    "ros2_bridge": {"schemas", "runtime", "zones", "ros_bridge"},  # ros_bridge's zone feed and grid
+    "ros2_bridge": {"schemas", "runtime", "zones", "navigation", "ros_bridge"},  # feed; --robot: exit finder
     "console": {"schemas", "runtime", "broker", "zones"},  # the MQTT contract and the one zone rule
 }
 """What each component may import, as docs/architecture.md's table says; the wsnav CLI may import all of them."""

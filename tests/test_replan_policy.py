@@ -1,6 +1,7 @@
 """Algorithm 3 is one rule (wsnav.navigation.replan_policy) for every navigator that reacts to zone changes; each
 user of it is driven through the same flapping zone here: the agent's navigator (in lock-step with the simulated
-TurtleBot3, zone messages over a real amqtt broker) and move_base's supervisor (fed what the bridge feeds it)."""
+TurtleBot3, zone messages over a real amqtt broker), move_base's supervisor (fed what the bridge feeds it) and
+Nav2's (fed what the ROS 2 bridge feeds it, by goal UUID; on the wire in tests/test_ros2_nav2.py)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,8 @@ import pytest
 from tests.conftest import SCHOOL
 from tests.robot_agent_rig import Rig
 from wsnav.navigation.behaviors.escape import exit_beside
+from wsnav.ros2_bridge import nav2_messages
+from wsnav.ros2_bridge.nav2_supervisor import Nav2Supervisor, SendGoal
 from wsnav.ros_bridge.move_base_supervisor import ACTIVE, PREEMPTED, Action, Goal, MoveBaseSupervisor, Resend
 from wsnav.ros_bridge.zone_feed import ZoneChange, ZoneFeed
 from wsnav.runtime.bus import Message
@@ -129,11 +132,48 @@ class SupervisorUser:
         )
 
 
-@pytest.fixture(params=["agent navigator", "move_base supervisor"])
+class Nav2SupervisorUser(SupervisorUser):
+    """Nav2's supervisor as `wsnav ros2 bridge --robot --nav2-resend` drives it (a behaviour tree that does not
+    replan by itself): goals and statuses by UUID, a re-sent goal aborting the one it preempts, as Nav2 does."""
+
+    def __init__(self) -> None:
+        site = load_site(SCHOOL)
+        self.feed = ZoneFeed(site.spec, GridFrame.of_grid(site.grid))
+        self.nav2 = Nav2Supervisor("robot1", self.feed, replans_itself=False)
+        self.sup = self.nav2.sup
+        self.t = 2.0
+        self.seq = 100
+        self.sent = []
+        self.current = bytes(range(16))
+        self.nav2.on_goal_request(self.current, (29.0, 22.8, 0.0))
+        self.nav2.on_statuses([(self.current, nav2_messages.EXECUTING)])
+        self.sup.on_plan(PLAN_THROUGH_Z1)
+
+    def _take(self, actions: list[Action]) -> None:
+        for action in self.nav2.carry(actions):
+            assert isinstance(action, SendGoal), action
+            self.sent.append((self.t, Resend(action.goal, action.reason)))
+            self.nav2.on_statuses(
+                [(self.current, nav2_messages.ABORTED), (action.uuid, nav2_messages.EXECUTING)]
+            )
+            self.current = action.uuid
+
+    def goes_round_z1(self) -> bool:
+        return (
+            self.feed.layer.blocked_zones() == ["z1"]
+            and self.sup.state == "navigating"
+            and self.sup.goal is not None
+            and self.sup.goal.pose == (29.0, 22.8, 0.0)
+        )
+
+
+@pytest.fixture(params=["agent navigator", "move_base supervisor", "Nav2 supervisor"])
 def user(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[User]:
     if request.param == "agent navigator":
         with Rig(tmp_path / "flap", config="full") as rig:
             yield AgentUser(rig)
+    elif request.param == "Nav2 supervisor":
+        yield Nav2SupervisorUser()
     else:
         yield SupervisorUser()
 

@@ -205,3 +205,24 @@ def test_the_ros_discovery_info_layout_follows_ros_distro_or_the_option(
     assert "ROS_DISTRO='foxy'" in error_line(capsys, argv())
     monkeypatch.delenv("ROS_DISTRO")
     assert "--ros-distro" in error_line(capsys, argv("--ros-distro", "foxy"))
+
+
+@pytest.mark.parametrize(
+    ("extra", "named"),
+    [
+        (["--robot", "robot2"], "--robot robot2: the credentials are robot 'robot1'"),
+        (["--robot", "robot1", "--pose-topic", "amcl_pose"], "--pose-topic 'amcl_pose'"),
+        (["--robot", "robot1", "--nav2-action", "/nav 2"], "--nav2-action '/nav 2'"),
+        (["--robot", "robot1", "--plan-topic", "/plan/"], "--plan-topic '/plan/'"),
+    ],
+)
+def test_bad_nav2_arguments_are_one_line(extra: list[str], named: str) -> None:
+    """Checked before DDS starts: a typo in a Nav2 name would otherwise wait for a server that never comes."""
+    from wsnav.cli import build_parser
+    from wsnav.ros2_bridge.bridge import check_robot_arguments
+    from wsnav.runtime.cli_support import CliError
+
+    args = build_parser().parse_args(argv(*extra))
+    with pytest.raises(CliError) as refused:
+        check_robot_arguments(args, "robot1")
+    assert named in str(refused.value) and "\n" not in str(refused.value)

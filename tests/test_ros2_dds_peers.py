@@ -15,12 +15,6 @@ frame and an FNV-1a hash of its cells. Not here: no rclcpp/rclpy, no ros2 CLI an
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
-import os
-import shutil
-import subprocess
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -29,8 +23,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from tests.conftest import REPO, require_tool
-from tests.ros2_fixtures import NativePeer, bridge_args, domain_id, expected_grid
+from tests.ros2_fixtures import NativePeer, bridge_args, clean_env, domain_id, expected_grid
 from tests.ros_fixtures import WsnavChild, slow_heartbeat_school, wait_until
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.ros_bridge.zone_feed import ZoneFeed
@@ -44,57 +37,7 @@ from wsnav.zones.geometry import GridFrame
 
 pytestmark = pytest.mark.slow
 
-SOURCES = REPO / "tests" / "dds_peers"
 GRID = "rt/wsn/zone_grid"
-HEADERS = {
-    "cyclonedds-dev": Path("/usr/include/dds/dds.h"),
-    "libfastrtps-dev": Path("/usr/include/fastdds/dds/domain/DomainParticipant.hpp"),
-}
-ROS_ENV = ("ROS_LOCALHOST_ONLY", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_STATIC_PEERS", "CYCLONEDDS_URI")
-
-
-def require_header(package: str) -> None:
-    """A Debian -dev package's header: skip without it, fail under WSNAV_REQUIRE_TOOLS=1 (CI)."""
-    if not HEADERS[package].exists():
-        if os.environ.get("WSNAV_REQUIRE_TOOLS") == "1":
-            pytest.fail(f"{HEADERS[package]} missing: apt-get install {package} (WSNAV_REQUIRE_TOOLS=1)")
-        pytest.skip(f"{package} not installed")
-
-
-def build(out: Path) -> None:
-    """The peers from tests/dds_peers: idlc's C for the grid type with and without type information, gcc, g++."""
-    idlc, gcc, gxx = require_tool("idlc"), require_tool("gcc"), require_tool("g++")
-    for variant, flags in (("typeinfo", []), ("no_typeinfo", ["-t"])):
-        gen = out / variant
-        gen.mkdir()
-        subprocess.run([idlc, *flags, "-o", str(gen), str(SOURCES / "ros2_grid.idl")], check=True)
-        subprocess.run(
-            [gcc, "-O1", "-o", str(out / f"cyclone_peer_{variant}"), f"-I{gen}",
-             str(SOURCES / "cyclone_peer.c"), str(gen / "ros2_grid.c"), "-lddsc"],
-            check=True,
-        )  # fmt: skip
-    subprocess.run(
-        [gxx, "-O0", "-o", str(out / "fastdds_peer"), str(SOURCES / "fastdds_peer.cpp"), "-lfastrtps", "-lfastcdr"],
-        check=True,
-    )  # fmt: skip
-
-
-@pytest.fixture(scope="session")
-def peer_binaries() -> Path:
-    """The compiled peers, cached in the temp dir by the sources' hash (the Fast DDS one takes seconds of g++)."""
-    require_header("cyclonedds-dev")
-    require_header("libfastrtps-dev")
-    digest = hashlib.sha256(b"".join(p.read_bytes() for p in sorted(SOURCES.iterdir()))).hexdigest()[:16]
-    out = Path(tempfile.gettempdir()) / f"wsnav-dds-peers-{digest}"
-    if not (out / "fastdds_peer").exists():
-        work = Path(tempfile.mkdtemp(prefix="wsnav-dds-peers-build-"))
-        try:
-            build(work)
-            with contextlib.suppress(OSError):  # another run built it meanwhile
-                work.rename(out)
-        finally:
-            shutil.rmtree(work, ignore_errors=True)
-    return out
 
 
 def fnv1a(data: NDArray[np.int8]) -> int:
@@ -130,11 +73,6 @@ def start_peers(
 
 def readers(peers: list[NativePeer]) -> list[NativePeer]:
     return [p for p in peers if "bare" not in p.name]
-
-
-def clean_env() -> dict[str, str]:
-    """This process's environment without ROS 2's discovery variables or a Cyclone config of the caller's."""
-    return {k: v for k, v in os.environ.items() if k not in ROS_ENV}
 
 
 def assert_alive(peers: list[NativePeer]) -> None:

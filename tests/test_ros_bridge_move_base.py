@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import contextlib
 import itertools
-import json
 import subprocess
 import time
 from collections.abc import Iterator
@@ -25,11 +24,19 @@ from typing import Any
 import numpy as np
 import pytest
 
-from tests.ros_fixtures import RosMaster, WsnavChild, bridge_args, slow_heartbeat_school, wait_until
+from tests.ros_fixtures import (
+    Operator,
+    RosMaster,
+    WsnavChild,
+    bridge_args,
+    send_goal,
+    slow_heartbeat_school,
+    wait_until,
+    zone_state,
+)
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
 from wsnav.schemas import topics
-from wsnav.schemas.messages import RobotStatus, ZoneState
 
 PLAN = [(12.0, 7.2), (25.0, 7.2), (25.0, 22.8), (29.0, 22.8)]
 MASTER_DELAY_S = 0.3
@@ -165,28 +172,6 @@ def move_base(ros_node: RosMaster) -> FakeMoveBase:
     return fake
 
 
-@dataclass
-class Operator:
-    bus: MqttBus
-    site: str
-    statuses: list[RobotStatus] = field(default_factory=list)
-
-    def poll(self) -> None:
-        for m in self.bus.poll():
-            if m.payload:
-                self.statuses.append(RobotStatus.model_validate_json(m.payload))
-
-    def latest(self) -> RobotStatus | None:
-        self.poll()
-        return self.statuses[-1] if self.statuses else None
-
-    def wait_status(self, what: str, check: Any, timeout_s: float = 15.0) -> RobotStatus:
-        wait_until(lambda: (s := self.latest()) is not None and bool(check(s)), timeout_s, what)
-        status = self.latest()
-        assert status is not None
-        return status
-
-
 @pytest.fixture
 def rig(
     tmp_path: Path, ros_node: RosMaster, move_base: FakeMoveBase
@@ -227,15 +212,6 @@ def bridge_rig(
             bus.close()
             for node in nodes.values():
                 node.close()
-
-
-def zone_state(bus: MqttBus, zone: str, node: str, state: str, seq: int) -> None:
-    msg = ZoneState(zone=zone, node=node, state=state, seq=seq)  # type: ignore[arg-type]
-    bus.publish(topics.zone_state("school", zone, node), msg.to_payload(), qos=1, retain=True)
-
-
-def send_goal(operator: Operator, goal: object) -> None:
-    operator.bus.publish(topics.robot_goal("school", "robot1"), json.dumps({"goal": goal}).encode(), qos=1)
 
 
 def test_a_zone_on_the_plan_makes_move_base_replan_at_once(
