@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from wsnav.broker.acl import AclRules, site_rules
-from wsnav.broker.credentials import load_folder, secure_dir, write_private
+from wsnav.broker.credentials import load_folder, secure_dir, with_tool_logins, write_private
 from wsnav.broker.identity_limits import MAX_PACKET_BYTES, SESSION_EXPIRY_S
 from wsnav.schemas.credentials import Credentials, CredentialsError
 from wsnav.schemas.site_file import SiteFile
@@ -123,7 +123,9 @@ def conf_text(out: Path, options: MosquittoOptions) -> str:
 
 
 def passwords_text(creds: dict[str, Credentials]) -> str:
-    return "".join(f"{ident}:{mosquitto_hash(c.password)}\n" for ident, c in creds.items())
+    """One line per login: every id, and the operator's tools under the operator's password."""
+    logins = with_tool_logins({ident: c.password for ident, c in creds.items()})
+    return "".join(f"{user}:{mosquitto_hash(password)}\n" for user, password in logins.items())
 
 
 def rewrite_passwords(spec: SiteFile, credentials_dir: Path, out: Path) -> Path:
