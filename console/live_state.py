@@ -11,11 +11,13 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import sqlite3
 import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
+from wsnav.console.block_store import BlockStore
 from wsnav.console.event_log import EventLog
 from wsnav.console.site_view import Key, SiteView
 from wsnav.runtime.bus import Bus
@@ -60,7 +62,14 @@ class PageFeed:
 
 
 class LiveState:
-    def __init__(self, view: SiteView, bus: Bus, clock: Clock, events: EventLog | None = None) -> None:
+    def __init__(
+        self,
+        view: SiteView,
+        bus: Bus,
+        clock: Clock,
+        events: EventLog | None = None,
+        blocks: BlockStore | None = None,
+    ) -> None:
         self.view = view
         self.bus = bus
         self.clock = clock
@@ -76,8 +85,21 @@ class LiveState:
         self.failed: str | None = None
         """Why the bus thread stopped, if it did: the page then says the console is blind."""
         self.messages = 0
+        self.blocks = blocks
+        if blocks is not None:  # the blocks in force when the console last ran: shown at once, checked below
+            now = clock.now()
+            for block_id, payload in self._stored_blocks(blocks, now).items():
+                view.apply(topics.operator_block(view.site.name, block_id), payload, now, retained=True)
         for flt in subscriptions(view.site.name):
             bus.subscribe(flt)
+
+    @staticmethod
+    def _stored_blocks(blocks: BlockStore, now: float) -> dict[str, bytes]:
+        try:
+            return blocks.in_force(now)
+        except sqlite3.Error as exc:
+            log.warning("operator blocks not read from the store: %s", exc)
+            return {}
 
     def start(self) -> None:
         self._thread.start()
@@ -142,15 +164,19 @@ class LiveState:
         next_tick = 0.0
         flush_at: float | None = None
         replayed: set[str] = set()
-        reconcile_at: float | None = None
+        # at start too: a block kept from the last run that the broker does not replay was lost by it
+        reconcile_at: float | None = time.monotonic() + REPLAY_S
         while not self._stop.is_set():
             self.bus.wait(BATCH_S)
             messages = self.bus.poll()
+            changed: set[Key] = set()
             with self.lock:
                 for msg in messages:
-                    dirty |= self.view.apply(msg.topic, msg.payload, msg.received_at, msg.retain)
+                    changed |= self.view.apply(msg.topic, msg.payload, msg.received_at, msg.retain)
                     if msg.retain and msg.payload and (t := topics.parse(msg.topic)) and t.block_id:
                         replayed.add(t.block_id)
+            dirty |= changed
+            self._keep_blocks(changed)
             self.messages += len(messages)
             mono = time.monotonic()
             if messages and flush_at is None:
@@ -170,6 +196,7 @@ class LiveState:
                     expired = self.view.expire(now)
                 dirty |= expired
                 self._forget_expired(expired)
+                self._keep_blocks(expired)
                 with self.lock:
                     states = self.view.zone_looks(now)
                     now_fresh = {n: self.view.node_fresh(v, now) for n, v in self.view.nodes.items()}
@@ -185,9 +212,10 @@ class LiveState:
                 flush_at = None
 
     def _republish_lost(self, replayed: set[str]) -> None:
-        """The operator's blocks are operator intent: one the broker did not replay after a reconnect was lost by
-        it (restarted without its store, a full disk) and is published again, retained, as it was. A block lifted
-        while this console was cut off cannot be told from a lost one: it comes back, on the safe side."""
+        """The operator's blocks are operator intent: one the broker did not replay after a reconnect, or after
+        this console started with it in its store, was lost by the broker (restarted without its store, a full
+        disk) and is published again, retained, as it was. A block lifted while this console was cut off or
+        down cannot be told from a lost one: it comes back, on the safe side."""
         with self.lock:
             now = self.clock.now()
             lost = [
@@ -200,6 +228,23 @@ class LiveState:
             self.bus.publish(
                 topics.operator_block(self.view.site.name, block_id), block.to_payload(), qos=1, retain=True
             )
+
+    def _keep_blocks(self, keys: set[Key]) -> None:
+        """The store follows the view's blocks: set or changed ones are kept, lifted or expired ones forgotten."""
+        ids = [ident for kind, ident in keys if kind == "block"]
+        if self.blocks is None or not ids:
+            return
+        with self.lock:
+            now = {i: self.view.blocks[i].block for i in ids if i in self.view.blocks}
+        try:
+            for block_id in ids:
+                block = now.get(block_id)
+                if block is None:
+                    self.blocks.forget(block_id)
+                else:
+                    self.blocks.keep(block_id, block.to_payload(), block.expires_at)
+        except sqlite3.Error as exc:  # a full disk must not stop the console's intake
+            log.warning("operator blocks not kept on disk: %s", exc)
 
     def _forget_expired(self, expired: set[Key]) -> None:
         """An expired block is cleared from the broker's retained store too, so it is not replayed forever."""

@@ -10,6 +10,7 @@ from pathlib import Path
 import uvicorn
 
 from wsnav.console.auth import Authenticator, open_store
+from wsnav.console.block_store import BlockStore, blocks_path
 from wsnav.console.event_log import EventLog, log_path
 from wsnav.console.live_state import LiveState
 from wsnav.console.operator_link import connect
@@ -26,11 +27,27 @@ def open_event_log(state_dir: Path, site: str) -> EventLog | None:
         return None
 
 
+def open_block_store(state_dir: Path, site: str) -> BlockStore | None:
+    try:
+        return BlockStore(blocks_path(state_dir, site))
+    except (OSError, sqlite3.Error) as exc:
+        print(
+            f"console: no block store ({exc}): operator blocks are kept only while this console runs",
+            file=sys.stderr,
+            flush=True,
+        )
+        return None
+
+
 def console_command(args: argparse.Namespace) -> int:
     host, port = args.bind
     link = connect(args, "console")
     live = LiveState(
-        SiteView(link.site), link.bus, link.clock, open_event_log(args.state_dir, link.site.name)
+        SiteView(link.site),
+        link.bus,
+        link.clock,
+        open_event_log(args.state_dir, link.site.name),
+        open_block_store(args.state_dir, link.site.name),
     )
     app = ConsoleApp(
         link.site,
