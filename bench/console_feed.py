@@ -139,6 +139,19 @@ def change_probe(host: str, port: int, creds: Path, stop: threading.Event) -> li
     return sent
 
 
+def js_self_time(profile: dict[str, Any], top: int = 25) -> str:
+    """The page's CPU profile (Chrome's Profiler, WSNAV_BENCH_JSPROFILE=FILE) as self time per function."""
+    nodes = {n["id"]: n for n in profile["nodes"]}
+    step = (profile["endTime"] - profile["startTime"]) / 1000 / max(1, len(profile.get("samples", [])))
+    spent: dict[str, float] = {}
+    for sample in profile.get("samples", []):
+        frame = nodes[sample]["callFrame"]
+        name = f"{frame['functionName'] or '(anonymous)'} {frame['url'].rsplit('/', 1)[-1]}:{frame['lineNumber'] + 1}"
+        spent[name] = spent.get(name, 0.0) + step
+    rows = sorted(spent.items(), key=lambda kv: -kv[1])[:top]
+    return "\n".join(f"{ms:9.0f} ms  {name}" for name, ms in rows) + "\n"
+
+
 def commit() -> str:
     """The commit measured (with `+dirty` when the tree has changes), for BENCHMARKS.md."""
     here = Path(__file__).resolve().parent
@@ -210,8 +223,15 @@ def measure(nodes: int, robots: int, seconds: float, quick: bool = False) -> dic
                 )
                 c1, t1 = cpu_s(console_ps), time.monotonic()
                 open_from = t1 + wall_minus_mono
+                js_profile = os.environ.get("WSNAV_BENCH_JSPROFILE")
+                cdp = page.context.new_cdp_session(page) if js_profile else None
+                if cdp is not None:
+                    cdp.send("Profiler.enable")
+                    cdp.send("Profiler.start")
                 time.sleep(seconds)
                 c2, t2 = cpu_s(console_ps), time.monotonic()
+                if cdp is not None and js_profile:
+                    Path(js_profile).write_text(js_self_time(cdp.send("Profiler.stop")["profile"]))
                 arrivals = page.evaluate("window.__arrivals")
                 seen_changes = page.evaluate("window.__changes")
                 frames = page.evaluate("window.__frames")
@@ -266,7 +286,15 @@ def measure(nodes: int, robots: int, seconds: float, quick: bool = False) -> dic
     }
     due = [(q, st) for q, st, t in changes if open_from + 1 <= t <= open_to - 3]
     got_changes = {(q, st) for q, st, _at in seen_changes}
-    change_delay = {q: at / 1000 - t for q, _st, t in changes for sq, _s, at in seen_changes if sq == q}
+    first_seen: dict[int, float] = {}
+    for sq, _st, at in seen_changes:  # the first time each change reached the page
+        first_seen.setdefault(sq, at / 1000)
+    change_delay = {q: first_seen[q] - t for q, _st, t in changes if q in first_seen}
+    if os.environ.get("WSNAV_BENCH_DEBUG"):
+        print("changes", [(q, st, round(t - open_from, 2)) for q, st, t in changes], file=sys.stderr)
+        print(
+            "seen", [(q, st, round(at / 1000 - open_from, 2)) for q, st, at in seen_changes], file=sys.stderr
+        )
     intervals = np.diff(np.array(frames, dtype=np.float64)) if len(frames) > 1 else np.array([0.0])
     per_second: dict[int, list[float]] = {}
     for _i, _q, heard, at in arrivals:

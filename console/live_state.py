@@ -167,14 +167,23 @@ class LiveState:
         # at start too: a block kept from the last run that the broker does not replay was lost by it
         reconcile_at: float | None = time.monotonic() + REPLAY_S
         while not self._stop.is_set():
-            self.bus.wait(BATCH_S)
+            if flush_at is None:
+                self.bus.wait(BATCH_S)  # idle: wake on the first message
+            else:  # a batch is open: let it fill, then take it whole (one wake-up per batch, not per message)
+                self._stop.wait(max(0.0, flush_at - time.monotonic()))
             messages = self.bus.poll()
             changed: set[Key] = set()
-            with self.lock:
-                for msg in messages:
+            for msg in messages:
+                parsed = topics.parse(msg.topic)
+                if parsed is not None and parsed.kind == "zone_state" and self._unsent_change(parsed.node):
+                    # this node's last change has not reached the pages yet and this message may undo it within
+                    # the batch: send it first (heartbeats are coalesced, state changes never)
+                    self._flush(dirty | changed)
+                    dirty, changed, flush_at = set(), set(), None
+                with self.lock:
                     changed |= self.view.apply(msg.topic, msg.payload, msg.received_at, msg.retain)
-                    if msg.retain and msg.payload and (t := topics.parse(msg.topic)) and t.block_id:
-                        replayed.add(t.block_id)
+                if msg.retain and msg.payload and parsed is not None and parsed.block_id:
+                    replayed.add(parsed.block_id)
             dirty |= changed
             self._keep_blocks(changed)
             self.messages += len(messages)
@@ -228,6 +237,12 @@ class LiveState:
             self.bus.publish(
                 topics.operator_block(self.view.site.name, block_id), block.to_payload(), qos=1, retain=True
             )
+
+    def _unsent_change(self, node_id: str | None) -> bool:
+        """The node's state differs from what the pages were last sent of it (a change waiting for the flush)."""
+        node = self.view.nodes.get(node_id) if node_id is not None else None
+        sent = self._sent.get(("node", node_id)) if node_id is not None else None
+        return node is not None and isinstance(sent, tuple) and sent[0] != node.state
 
     def _keep_blocks(self, keys: set[Key]) -> None:
         """The store follows the view's blocks: set or changed ones are kept, lifted or expired ones forgotten."""

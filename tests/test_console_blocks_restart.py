@@ -22,7 +22,8 @@ from wsnav.schemas.site import load_site
 
 pytestmark = pytest.mark.timeout(180)
 
-BRIEF_S = 4
+BRIEF_S = 6
+"""Long enough for the console to show it on a loaded machine (a command takes 1-2 s there)."""
 
 
 def start_broker(kind: str, stack: Stack, data: Path) -> Proc:
@@ -92,11 +93,11 @@ def test_a_block_comes_back_after_the_console_and_the_broker_are_killed_and_rest
     with stack_on(make_site(tmp_path / "site"), tmp_path) as stack:
         broker = start_broker(kind, stack, tmp_path / "data-1")
         console, url = start_console(stack)
-        operator(stack, "block", "upper", "--id", "op-kept", "--reason", "spill")
-        operator(stack, "block", "lower", "--id", "op-brief", "--for", f"{BRIEF_S}s")
-        brief_set = time.monotonic()
         operator(stack, "block", "lower", "--id", "op-lifted")
         operator(stack, "unblock", "op-lifted")
+        operator(stack, "block", "upper", "--id", "op-kept", "--reason", "spill")
+        brief_set = time.monotonic()
+        operator(stack, "block", "lower", "--id", "op-brief", "--for", f"{BRIEF_S}s")
         until("the console holds both blocks", lambda: page_blocks(stack, url) == {"op-kept", "op-brief"})
         time.sleep(0.5)
         console.kill9()
