@@ -2,7 +2,8 @@
 
 A thread owns the bus and the view (the view is only touched under `lock`). Changes are gathered for
 `BATCH_S` and sent to every open page as one event of the changed entries, so a thousand nodes reporting at
-once cost one event, not a thousand; once a second the clock alone is checked (a silent node goes stale, a
+once cost one event, not a thousand (heartbeats coalesce; a node's state change is sent before a later message
+of the same batch could undo it); once a second the clock alone is checked (a silent node goes stale, a
 block expires).
 """
 
