@@ -3,8 +3,8 @@
 The password file uses Mosquitto's own `$7$` format (PBKDF2-SHA512, as `mosquitto_passwd` writes it), computed
 here with hashlib so no tool is needed; the ACL file has one `user` block per id, written from the same
 `AclRules` the amqtt broker enforces. Hardening: `use_username_as_clientid` binds every connection's client id
-to its identity (no identity can resume or kick another's session; one connection per identity, a second one
-of the same identity takes over), `max_packet_size` caps packets like the amqtt gate, `max_connections` caps
+to its identity (no identity can resume or kick another's session; one connection per login, a second one
+of the same login takes over; the operator's tools each log in under a name of their own, `operator.watch`...), `max_packet_size` caps packets like the amqtt gate, `max_connections` caps
 sockets. Mosquitto differences: no CONNECT timeout (an idle socket holds a descriptor until it closes, so give
 it a high `LimitNOFILE`), and its persistence is a snapshot written at shutdown and every `autosave_interval` (here every 2 s).
 """
