@@ -13,12 +13,13 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from tests.broker_fixtures import Endpoint, client, wait_listening
 from tests.conftest import require_tool
-from tests.console_fixtures import start_console, until
+from tests.console_fixtures import chromium, start_console, until
 from tests.stack_fixtures import SITE, WSNAV, Stack, make_site, stack_on
 from wsnav.broker.mosquitto.config import CONF, MosquittoOptions, write_mosquitto_config
 from wsnav.schemas import topics
@@ -89,6 +90,8 @@ def test_console_watch_status_zone_sim_and_health_check_run_together_without_tak
         until(
             "the console connected and both nodes online", lambda: link_up() and nodes_online(url, password)
         )
+        browser = contextlib.ExitStack()
+        page = browser.enter_context(page_with_banner_watch(url, password))
         banner: list[float] = []
         statuses: list[subprocess.CompletedProcess[str]] = []
         checks: list[subprocess.CompletedProcess[str]] = []
@@ -100,6 +103,9 @@ def test_console_watch_status_zone_sim_and_health_check_run_together_without_tak
                 if not link_up():
                     banner.append(time.monotonic())
                 time.sleep(0.05)
+        shown_banner = page.evaluate("window.__bannerShown")
+        browser.close()
+        assert not shown_banner, f"the page's banner said: {shown_banner}"
         assert console.alive() and watch.alive(), stack.dump()
         if kind == "mosquitto":
             takeovers = [line for line in broker_log.read_text().splitlines() if TAKEOVER in line]
@@ -128,6 +134,28 @@ def test_an_identity_cannot_take_over_an_operator_tools_client_id_on_mosquitto(t
         assert state(url, password)["broker_connected"]
         assert TAKEOVER not in broker_log.read_text()
         assert console.alive()
+
+
+@contextlib.contextmanager
+def page_with_banner_watch(url: str, password: str) -> Iterator[Any]:
+    """The console's page in Chromium, logged in, recording every text its banner shows from then on."""
+    with chromium() as browser:
+        page = browser.new_context(bypass_csp=True).new_page()
+        page.goto(url + "/")
+        page.fill("input[name=password]", password)
+        page.click("button[type=submit]")
+        page.wait_for_url(url + "/")
+        page.wait_for_function("document.querySelector('#zone-upper')?.dataset.state === 'clear'")
+        page.evaluate(
+            """() => {
+              window.__bannerShown = [];
+              const banner = document.getElementById("banner");
+              new MutationObserver(() => {
+                if (!banner.hidden) window.__bannerShown.push(banner.textContent);
+              }).observe(banner, { attributes: true, childList: true, characterData: true, subtree: true });
+            }"""
+        )
+        yield page
 
 
 def run(args: list[str]) -> subprocess.CompletedProcess[str]:
