@@ -8,7 +8,8 @@
   only its status (one topic: it can hold one retained message, never fill the store);
 - the operator publishes `operator/...`, node commands (`nodes/+/command`) and update chunks (`nodes/+/ota/chunk`), robot goals, robot statuses (to clear a retained one) and the simulated world (`sim/...`, used by the zone
   simulator), and reads everything of the site; it also publishes and reads Home Assistant's discovery configs
-  (`homeassistant/#`, `wsnav broker ha-discovery`);
+  (`homeassistant/#`, `wsnav broker ha-discovery`); its tools log in as `operator.<tool>` with the same rights
+  (schemas.credentials.OPERATOR_TOOLS), so several run at once on Mosquitto;
 - the dashboard (Home Assistant) reads everything of the site and the discovery configs, and publishes only
   Home Assistant's own `homeassistant/status`: a dashboard's stolen password moves nothing.
 Nothing else outside `wsn/<site>/` is allowed to anyone. The same `AclRules` feed the amqtt plugin below and the
@@ -25,6 +26,7 @@ from amqtt.session import Session
 
 from wsnav.broker.credentials import DASHBOARD, OPERATOR
 from wsnav.schemas import topics
+from wsnav.schemas.credentials import operator_logins
 from wsnav.schemas.site_file import SiteFile
 
 HA_DISCOVERY = "homeassistant/#"
@@ -77,6 +79,8 @@ def site_rules(spec: SiteFile) -> AclRules:
         HA_DISCOVERY,
     ]
     subscribe[OPERATOR] = [f"{root}/#", HA_DISCOVERY]
+    for login in operator_logins(OPERATOR)[1:]:  # its tools: the same rights under names of their own
+        publish[login], subscribe[login] = publish[OPERATOR], subscribe[OPERATOR]
     publish[DASHBOARD] = [HA_STATUS]
     subscribe[DASHBOARD] = [f"{root}/#", HA_DISCOVERY]
     return AclRules(publish=publish, subscribe=subscribe)

@@ -431,12 +431,12 @@ def ha_discovery_command(args: argparse.Namespace) -> int:
     import time
 
     from wsnav.runtime.mqtt_bus import BusError, connect_with_credentials
-    from wsnav.schemas.credentials import CredentialsError, load_credentials
+    from wsnav.schemas.credentials import CredentialsError, load_credentials, tool_login
 
     host, port = args.broker
     try:
         creds = load_credentials(args.credentials)
-        bus = connect_with_credentials(host, port, creds, client_id=f"{creds.username}-ha-discovery")
+        bus = connect_with_credentials(host, port, tool_login(creds, "ha-discovery"))
     except (CredentialsError, BusError) as exc:
         raise CliError(str(exc)) from None
     # Read them back: a broker drops a publish its ACL refuses without telling the publisher.

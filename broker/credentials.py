@@ -29,6 +29,7 @@ from wsnav.schemas.credentials import (
     WifiConfig,
     load_credentials,
     node_update_key,
+    operator_logins,
     read_json_object,
 )
 from wsnav.schemas.site_file import SiteFile
@@ -125,7 +126,7 @@ def write_credentials(
         passwords[ident] = password
         (report.renewed if ident in renew else report.kept if old else report.created).append(ident)
     report.stale = sorted(name for name in existing if name not in passwords)
-    write_password_file(out / PASSWORD_FILE, passwords)
+    write_password_file(out / PASSWORD_FILE, with_tool_logins(passwords))
     return report
 
 
@@ -143,6 +144,14 @@ def _site_update_key(path: Path) -> str:
     key = secrets.token_hex(32)
     write_private(path, key + "\n")
     return key
+
+
+def with_tool_logins(passwords: dict[str, str]) -> dict[str, str]:
+    """username -> password for the broker: the operator's password also under each of its tools' names."""
+    out = dict(passwords)
+    if OPERATOR in passwords:
+        out.update(dict.fromkeys(operator_logins(OPERATOR), passwords[OPERATOR]))
+    return out
 
 
 def write_password_file(path: Path, passwords: dict[str, str]) -> None:

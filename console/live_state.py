@@ -2,7 +2,8 @@
 
 A thread owns the bus and the view (the view is only touched under `lock`). Changes are gathered for
 `BATCH_S` and sent to every open page as one event of the changed entries, so a thousand nodes reporting at
-once cost one event, not a thousand; once a second the clock alone is checked (a silent node goes stale, a
+once cost one event, not a thousand (heartbeats coalesce; a node's state change is sent before a later message
+of the same batch could undo it); once a second the clock alone is checked (a silent node goes stale, a
 block expires).
 """
 
@@ -11,12 +12,14 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import sqlite3
 import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
 from wsnav.console.alerts import AlertBoard
+from wsnav.console.block_store import BlockStore
 from wsnav.console.event_log import EventLog
 from wsnav.console.site_view import Key, SiteView
 from wsnav.runtime.bus import Bus
@@ -68,6 +71,7 @@ class LiveState:
         clock: Clock,
         events: EventLog | None = None,
         alerts: AlertBoard | None = None,
+        blocks: BlockStore | None = None,
     ) -> None:
         self.view = view
         self.bus = bus
@@ -86,8 +90,21 @@ class LiveState:
         self.failed: str | None = None
         """Why the bus thread stopped, if it did: the page then says the console is blind."""
         self.messages = 0
+        self.blocks = blocks
+        if blocks is not None:  # the blocks in force when the console last ran: shown at once, checked below
+            now = clock.now()
+            for block_id, payload in self._stored_blocks(blocks, now).items():
+                view.apply(topics.operator_block(view.site.name, block_id), payload, now, retained=True)
         for flt in subscriptions(view.site.name):
             bus.subscribe(flt)
+
+    @staticmethod
+    def _stored_blocks(blocks: BlockStore, now: float) -> dict[str, bytes]:
+        try:
+            return blocks.in_force(now)
+        except sqlite3.Error as exc:
+            log.warning("operator blocks not read from the store: %s", exc)
+            return {}
 
     def start(self) -> None:
         self._thread.start()
@@ -153,15 +170,28 @@ class LiveState:
         next_tick = 0.0
         flush_at: float | None = None
         replayed: set[str] = set()
-        reconcile_at: float | None = None
+        # at start too: a block kept from the last run that the broker does not replay was lost by it
+        reconcile_at: float | None = time.monotonic() + REPLAY_S
         while not self._stop.is_set():
-            self.bus.wait(BATCH_S)
+            if flush_at is None:
+                self.bus.wait(BATCH_S)  # idle: wake on the first message
+            else:  # a batch is open: let it fill, then take it whole (one wake-up per batch, not per message)
+                self._stop.wait(max(0.0, flush_at - time.monotonic()))
             messages = self.bus.poll()
-            with self.lock:
-                for msg in messages:
-                    dirty |= self.view.apply(msg.topic, msg.payload, msg.received_at, msg.retain)
-                    if msg.retain and msg.payload and (t := topics.parse(msg.topic)) and t.block_id:
-                        replayed.add(t.block_id)
+            changed: set[Key] = set()
+            for msg in messages:
+                parsed = topics.parse(msg.topic)
+                if parsed is not None and parsed.kind == "zone_state" and self._unsent_change(parsed.node):
+                    # this node's last change has not reached the pages yet and this message may undo it within
+                    # the batch: send it first (heartbeats are coalesced, state changes never)
+                    self._flush(dirty | changed)
+                    dirty, changed, flush_at = set(), set(), None
+                with self.lock:
+                    changed |= self.view.apply(msg.topic, msg.payload, msg.received_at, msg.retain)
+                if msg.retain and msg.payload and parsed is not None and parsed.block_id:
+                    replayed.add(parsed.block_id)
+            dirty |= changed
+            self._keep_blocks(changed)
             self.messages += len(messages)
             mono = time.monotonic()
             if messages and flush_at is None:
@@ -182,6 +212,7 @@ class LiveState:
                     self.alerts.on_clock(self.view, now)
                 dirty |= expired
                 self._forget_expired(expired)
+                self._keep_blocks(expired)
                 with self.lock:
                     states = self.view.zone_looks(now)
                     now_fresh = {n: self.view.node_fresh(v, now) for n, v in self.view.nodes.items()}
@@ -201,9 +232,10 @@ class LiveState:
                 flush_at = None
 
     def _republish_lost(self, replayed: set[str]) -> None:
-        """The operator's blocks are operator intent: one the broker did not replay after a reconnect was lost by
-        it (restarted without its store, a full disk) and is published again, retained, as it was. A block lifted
-        while this console was cut off cannot be told from a lost one: it comes back, on the safe side."""
+        """The operator's blocks are operator intent: one the broker did not replay after a reconnect, or after
+        this console started with it in its store, was lost by the broker (restarted without its store, a full
+        disk) and is published again, retained, as it was. A block lifted while this console was cut off or
+        down cannot be told from a lost one: it comes back, on the safe side."""
         with self.lock:
             now = self.clock.now()
             lost = [
@@ -216,6 +248,29 @@ class LiveState:
             self.bus.publish(
                 topics.operator_block(self.view.site.name, block_id), block.to_payload(), qos=1, retain=True
             )
+
+    def _unsent_change(self, node_id: str | None) -> bool:
+        """The node's state differs from what the pages were last sent of it (a change waiting for the flush)."""
+        node = self.view.nodes.get(node_id) if node_id is not None else None
+        sent = self._sent.get(("node", node_id)) if node_id is not None else None
+        return node is not None and isinstance(sent, tuple) and sent[0] != node.state
+
+    def _keep_blocks(self, keys: set[Key]) -> None:
+        """The store follows the view's blocks: set or changed ones are kept, lifted or expired ones forgotten."""
+        ids = [ident for kind, ident in keys if kind == "block"]
+        if self.blocks is None or not ids:
+            return
+        with self.lock:
+            now = {i: self.view.blocks[i].block for i in ids if i in self.view.blocks}
+        try:
+            for block_id in ids:
+                block = now.get(block_id)
+                if block is None:
+                    self.blocks.forget(block_id)
+                else:
+                    self.blocks.keep(block_id, block.to_payload(), block.expires_at)
+        except sqlite3.Error as exc:  # a full disk must not stop the console's intake
+            log.warning("operator blocks not kept on disk: %s", exc)
 
     def _forget_expired(self, expired: set[Key]) -> None:
         """An expired block is cleared from the broker's retained store too, so it is not replayed forever."""

@@ -11,7 +11,13 @@ from dataclasses import dataclass
 from wsnav.runtime.cli_support import CliError
 from wsnav.runtime.clock import WallClock
 from wsnav.runtime.mqtt_bus import BusError, MqttBus
-from wsnav.schemas.credentials import Credentials, CredentialsError, credentials_for
+from wsnav.schemas.credentials import (
+    OPERATOR_TOOLS,
+    Credentials,
+    CredentialsError,
+    credentials_for,
+    tool_login,
+)
 from wsnav.schemas.site import Site, SiteError, load_site
 
 
@@ -36,8 +42,11 @@ def load_operator(args: argparse.Namespace) -> tuple[Site, Credentials]:
 
 
 def connect(args: argparse.Namespace, purpose: str) -> OperatorLink:
-    """Connected, with a client id of its own (`operator-<purpose>-<random>`): several consoles may run."""
+    """Connected as the tool's own login (`operator.watch`; every verb is `operator.command`) with a client id of
+    its own: on Mosquitto, where a client id is its login, the console, watch and status no longer take each
+    other over; on amqtt several consoles may run."""
     site, creds = load_operator(args)
+    login = tool_login(creds, purpose if purpose in OPERATOR_TOOLS else "command")
     if not (math.isfinite(args.connect_timeout) and args.connect_timeout > 0):
         raise CliError(f"--connect-timeout {args.connect_timeout:g}: expected a positive number of seconds")
     clock = WallClock()
@@ -46,9 +55,9 @@ def connect(args: argparse.Namespace, purpose: str) -> OperatorLink:
         bus = MqttBus(
             host,
             port,
-            client_id=f"{creds.username}-{purpose}-{os.getpid()}-{secrets.token_hex(3)}",
-            username=creds.username,
-            password=creds.password,
+            client_id=f"{login.username}-{purpose}-{os.getpid()}-{secrets.token_hex(3)}",
+            username=login.username,
+            password=login.password,
             clock=clock,
             tls_ca=args.tls_ca,
         ).connect(timeout_s=args.connect_timeout)

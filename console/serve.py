@@ -11,6 +11,7 @@ import uvicorn
 
 from wsnav.console.alerts import AckStore, AlertBoard
 from wsnav.console.auth import Authenticator, open_store
+from wsnav.console.block_store import BlockStore, blocks_path
 from wsnav.console.event_log import EventLog, log_path
 from wsnav.console.live_state import LiveState
 from wsnav.console.operator_link import connect
@@ -36,6 +37,18 @@ def open_alerts(state_dir: Path, site: str, now: float) -> AlertBoard:
         return AlertBoard()
 
 
+def open_block_store(state_dir: Path, site: str) -> BlockStore | None:
+    try:
+        return BlockStore(blocks_path(state_dir, site))
+    except (OSError, sqlite3.Error) as exc:
+        print(
+            f"console: no block store ({exc}): operator blocks are kept only while this console runs",
+            file=sys.stderr,
+            flush=True,
+        )
+        return None
+
+
 def console_command(args: argparse.Namespace) -> int:
     host, port = args.bind
     link = connect(args, "console")
@@ -45,6 +58,7 @@ def console_command(args: argparse.Namespace) -> int:
         link.clock,
         open_event_log(args.state_dir, link.site.name),
         open_alerts(args.state_dir, link.site.name, link.clock.now()),
+        open_block_store(args.state_dir, link.site.name),
     )
     app = ConsoleApp(
         link.site,

@@ -92,6 +92,31 @@ def sign_manifest(node_key: str, manifest: bytes) -> str:
     return hmac.new(node_key.encode(), manifest, hashlib.sha256).hexdigest()
 
 
+OPERATOR_TOOLS = ("console", "watch", "status", "command", "zone-sim", "health", "ota", "ha-discovery")
+"""The operator's tools that may run at once. Each logs in under a name of its own (`operator.watch`), with the
+operator's password and rights: Mosquitto binds a client id to its username (`use_username_as_clientid`), so
+one shared username let them knock each other off. `command` is every short-lived verb (block, goal, ...)."""
+
+
+def tool_login_name(username: str, tool: str) -> str:
+    """The login of one operator tool: site ids hold no '.', so it can never be another identity's name."""
+    if tool not in OPERATOR_TOOLS:
+        raise ValueError(f"not an operator tool: {tool!r}")
+    return f"{username}.{tool}"
+
+
+def operator_logins(username: str) -> list[str]:
+    """Every name the operator's password logs in under: its own and one per tool (password file, ACL)."""
+    return [username, *(tool_login_name(username, t) for t in OPERATOR_TOOLS)]
+
+
+def tool_login(creds: Credentials, tool: str) -> Credentials:
+    """The operator's credentials as `tool` logs in with them; any other role's are returned as they are."""
+    if creds.role != "operator":
+        return creds
+    return creds.model_copy(update={"username": tool_login_name(creds.username, tool)})
+
+
 class CredentialsError(ValueError):
     """A credentials folder or file that cannot be used; str() is one line naming the file."""
 

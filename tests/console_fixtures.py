@@ -122,9 +122,24 @@ class ConsoleStack:
         return next(r for r in self.state()["robots"] if r["id"] == "robot1")
 
 
+STARTUP_FAILURE = 3
+"""uvicorn's exit when it cannot listen: a free port found was taken by another process before the console bound
+it (this machine runs several test sessions at once); another free port is tried."""
+
+
 def start_console(stack: Stack, port: int | None = None) -> tuple[Proc, str]:
     """`wsnav console` on `port` (a free one by default), its sessions under the stack's work directory."""
-    port = port if port is not None else free_port()
+    for attempt in range(3):
+        proc, url = _start_console(stack, port if port is not None else free_port())
+        code = proc.popen.poll()
+        if code is None:
+            return proc, url
+        if code != STARTUP_FAILURE or port is not None or attempt == 2:
+            raise RuntimeError(f"the console exited with {code}: {proc.output()[-2000:]}")
+    raise AssertionError("unreachable")
+
+
+def _start_console(stack: Stack, port: int) -> tuple[Proc, str]:
     proc = stack.start(
         "console",
         [
@@ -142,7 +157,8 @@ def start_console(stack: Stack, port: int | None = None) -> tuple[Proc, str]:
             str(stack.work / "console-state"),
         ],
     )
-    wait_listening("127.0.0.1", port, proc.popen)
+    with contextlib.suppress(RuntimeError):  # it exited: start_console looks at why
+        wait_listening("127.0.0.1", port, proc.popen)
     return proc, f"http://127.0.0.1:{port}"
 
 

@@ -34,11 +34,13 @@ from wsnav.broker.mosquitto.config import (
 )
 from wsnav.broker.mosquitto.process import free_port
 from wsnav.schemas.credentials import (
+    OPERATOR_TOOLS,
     UPDATE_KEY_FILE,
     Credentials,
     NodeConfig,
     load_credentials,
     node_update_key,
+    operator_logins,
 )
 from wsnav.schemas.site import load_site
 
@@ -88,7 +90,9 @@ def test_files_for_every_id_owner_only(tmp_path: Path) -> None:
     assert robot.role == "robot"
     assert Credentials.model_validate_json((out / "operator.json").read_text()).role == "operator"
     hashes = read_password_file(out / PASSWORD_FILE)
-    assert set(hashes) == {"n1", "n2", "robot1", "operator", "dashboard"}
+    assert set(hashes) == {"n1", "n2", "robot1", "dashboard", *operator_logins("operator")}
+    operator = Credentials.model_validate_json((out / "operator.json").read_text())
+    assert all(verify_password(hashes[f"operator.{tool}"], operator.password) for tool in OPERATOR_TOOLS)
     assert Credentials.model_validate_json((out / "dashboard.json").read_text()).role == "dashboard"
     assert verify_password(hashes["n2"], node.password)
     assert not verify_password(hashes["n1"], node.password)
@@ -203,7 +207,7 @@ def test_mosquitto_config_files(tmp_path: Path) -> None:
     acl = (out / ACL).read_text()
     assert "user n1\ntopic write wsn/tiny/zones/z1/state/n1\ntopic write wsn/tiny/nodes/n1/status\n" in acl
     users = [line.split(":")[0] for line in (out / PASSWORDS).read_text().splitlines()]
-    assert sorted(users) == ["dashboard", "n1", "n2", "operator", "robot1"]
+    assert sorted(users) == sorted(["dashboard", "n1", "n2", "robot1", *operator_logins("operator")])
     assert all(mode(p) == 0o600 for p in out.iterdir())
 
 

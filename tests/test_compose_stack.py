@@ -329,3 +329,23 @@ def test_robot_avoids_the_blocked_lane_and_arrives(stack: Stack, progress: Progr
         assert not entered, f"the robot drove into the blocked zone at {entered[:3]}"
         assert any(s.pose[1] < -0.2 for s in moving), "the robot did not take the lane below the pillars"
         progress(f"arrived after {len(moving)} statuses, {moving[-1].replans} replans")
+
+
+def test_the_console_keeps_its_state_on_a_writable_named_volume() -> None:
+    """Without a writable `--state-dir` the console's sessions, event log and operator blocks lived in the
+    container and were gone at every restart or upgrade (one warning line). Read from the files, no engine."""
+    import yaml
+
+    compose = yaml.safe_load((REPO / "docker-compose.yml").read_text())
+    console = compose["services"]["console"]
+    words = console["command"].split()
+    assert "--state-dir" in words, "the console is given no --state-dir"
+    state_dir = words[words.index("--state-dir") + 1]
+    mounts = {v.split(":")[1]: v.split(":") for v in console["volumes"]}
+    assert state_dir in mounts, f"{state_dir} is not a volume"
+    volume = mounts[state_dir]
+    assert volume[0] in compose["volumes"] and "ro" not in volume[2:], "a named, writable volume"
+    dockerfile = (REPO / "docker" / "Dockerfile").read_text()
+    assert f"chown 10001:10001 /home/wsnav /creds /data {state_dir}" in dockerfile, (
+        "owned by the image's user"
+    )

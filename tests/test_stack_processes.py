@@ -300,7 +300,8 @@ def test_robot_link_held_for_ten_seconds_by_a_proxy(tmp_path: Path) -> None:
 
 
 def test_same_drive_against_mosquitto(tmp_path: Path) -> None:
-    """Mosquitto from `wsnav broker mosquitto-config`: nodes and robot log in, the robot avoids the zone."""
+    """Mosquitto from `wsnav broker mosquitto-config` (client ids bound to logins): nodes and robot log in, the
+    robot avoids the zone; the zone simulator (`operator.zone-sim`) and the watcher (`operator`) run together."""
     mosquitto = require_tool("mosquitto")
     with stack_on(make_site(tmp_path / "site"), tmp_path) as stack:
         conf = tmp_path / "mosquitto"
@@ -320,7 +321,6 @@ def test_same_drive_against_mosquitto(tmp_path: Path) -> None:
             stack.broker_addr,
             "--data",
             str(data),
-            "--shared-client-ids",  # the zone simulator and the watcher both log in as the operator
         ]
         if os.geteuid() == 0:
             args += ["--user", "root"]

@@ -23,7 +23,7 @@ from wsnav.broker.mosquitto.store import GOOD, STORE, check_store, keep_good
 from wsnav.runtime.cli_support import Parser, host_port
 from wsnav.runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
 from wsnav.schemas import topics
-from wsnav.schemas.credentials import CredentialsError, load_credentials
+from wsnav.schemas.credentials import CredentialsError, load_credentials, tool_login
 from wsnav.schemas.messages import NodeStatus, PayloadError, RobotStatus, parse_payload
 from wsnav.schemas.site import Site, SiteError, load_site
 
@@ -40,8 +40,9 @@ def _bus(args: argparse.Namespace) -> MqttBus:
         raise Unhealthy(str(exc)) from None
     host, port = args.broker
     try:
+        login = tool_login(creds, "health")  # the operator's: beside its console and watch on Mosquitto
         return connect_with_credentials(
-            host, port, creds, client_id=f"health-{creds.username}-{os.getpid()}", timeout_s=args.timeout
+            host, port, login, client_id=f"health-{login.username}-{os.getpid()}", timeout_s=args.timeout
         )
     except BusError as exc:
         raise Unhealthy(str(exc)) from None

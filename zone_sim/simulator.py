@@ -27,7 +27,7 @@ from wsnav.runtime.bus import Bus
 from wsnav.runtime.clock import Clock
 from wsnav.runtime.mqtt_bus import BusError, MqttBus, connect_with_credentials
 from wsnav.schemas import topics
-from wsnav.schemas.credentials import CredentialsError, load_credentials
+from wsnav.schemas.credentials import CredentialsError, load_credentials, tool_login
 from wsnav.schemas.site import Site
 from wsnav.zone_sim.emulated_node import EmulatedNode, Power, Sent
 from wsnav.zone_sim.firmware_modules import ConfigError, parse_node_config
@@ -160,8 +160,7 @@ class ZoneSimulator:
             return connect_with_credentials(
                 self._broker[0],
                 self._broker[1],
-                creds,
-                client_id=f"{OPERATOR}-zone-sim",
+                tool_login(creds, "zone-sim"),  # beside the console and `wsnav watch` on Mosquitto
                 clock=self.clock,
                 timeout_s=OPERATOR_CONNECT_TIMEOUT_S,
             )

@@ -3,8 +3,8 @@
 The password file uses Mosquitto's own `$7$` format (PBKDF2-SHA512, as `mosquitto_passwd` writes it), computed
 here with hashlib so no tool is needed; the ACL file has one `user` block per id, written from the same
 `AclRules` the amqtt broker enforces. Hardening: `use_username_as_clientid` binds every connection's client id
-to its identity (no identity can resume or kick another's session; one connection per identity, a second one
-of the same identity takes over), `max_packet_size` caps packets like the amqtt gate, `max_connections` caps
+to its identity (no identity can resume or kick another's session; one connection per login, a second one
+of the same login takes over; the operator's tools each log in under a name of their own, `operator.watch`...), `max_packet_size` caps packets like the amqtt gate, `max_connections` caps
 sockets. Mosquitto differences: no CONNECT timeout (an idle socket holds a descriptor until it closes, so give
 it a high `LimitNOFILE`), and its persistence is a snapshot written at shutdown and every `autosave_interval` (here every 2 s).
 """
@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from wsnav.broker.acl import AclRules, site_rules
-from wsnav.broker.credentials import load_folder, secure_dir, write_private
+from wsnav.broker.credentials import load_folder, secure_dir, with_tool_logins, write_private
 from wsnav.broker.identity_limits import MAX_PACKET_BYTES, SESSION_EXPIRY_S
 from wsnav.schemas.credentials import Credentials, CredentialsError
 from wsnav.schemas.site_file import SiteFile
@@ -123,7 +123,9 @@ def conf_text(out: Path, options: MosquittoOptions) -> str:
 
 
 def passwords_text(creds: dict[str, Credentials]) -> str:
-    return "".join(f"{ident}:{mosquitto_hash(c.password)}\n" for ident, c in creds.items())
+    """One line per login: every id, and the operator's tools under the operator's password."""
+    logins = with_tool_logins({ident: c.password for ident, c in creds.items()})
+    return "".join(f"{user}:{mosquitto_hash(password)}\n" for user, password in logins.items())
 
 
 def rewrite_passwords(spec: SiteFile, credentials_dir: Path, out: Path) -> Path:
