@@ -9,7 +9,9 @@ enough to catch a 5x regression. A quick run prints its figures as usual and nev
 from __future__ import annotations
 
 import argparse
+import statistics
 import sys
+import time
 from dataclasses import dataclass
 from typing import NoReturn
 
@@ -52,11 +54,30 @@ def parse_quick_args(parser: argparse.ArgumentParser, argv: list[str] | None = N
     return args
 
 
+def reference_work_s(repeats: int = 5) -> float:
+    """Median seconds of a fixed workload (a Python loop and a NumPy sort): the machine's speed at this moment,
+    the baseline of a benchmark of pure computation that has no natural one of its own."""
+    import numpy as np
+
+    data = np.random.default_rng(0).random(200_000)
+    samples: list[float] = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        total = 0
+        for i in range(100_000):
+            total += i * i % 7
+        np.sort(data)
+        samples.append(time.perf_counter() - t0)
+    return statistics.median(samples)
+
+
 def check_ratio(name: str, value: float, bound: float) -> bool:
     """Print a ratio with its bound and record it; True when within (value <= bound)."""
     check = RatioCheck(name, float(value), float(bound))
     _checks.append(check)
-    print(f"quick: {name} = {check.value:.3g} (bound {check.bound:.3g}){'' if check.within else '  <-- beyond'}")
+    print(
+        f"quick: {name} = {check.value:.3g} (bound {check.bound:.3g}){'' if check.within else '  <-- beyond'}"
+    )
     return check.within
 
 
