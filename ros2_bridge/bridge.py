@@ -25,6 +25,7 @@ from wsnav.runtime.cli_support import CliError
 from wsnav.runtime.clock import WallClock
 from wsnav.schemas.site import Site
 from wsnav.zones.geometry import GridFrame
+from wsnav.zones.last_known import LastKnownZones
 
 if TYPE_CHECKING:
     from wsnav.ros2_bridge.writer import ZoneGridWriter
@@ -120,8 +121,9 @@ def bridge_command(args: argparse.Namespace) -> int:
         config,
         options.distro,
     )
-    feed = ZoneFeed(site.spec, frame)
     clock = WallClock()
+    memory = LastKnownZones.in_dir(args.state_dir, site.spec) if args.state_dir is not None else None
+    feed = ZoneFeed(site.spec, frame, memory, clock.now())
     feed.take([], clock.now())
     writer.write_filter_info()
     writer.write_grid(feed)
@@ -149,6 +151,8 @@ def bridge_command(args: argparse.Namespace) -> int:
     finally:
         signal.signal(signal.SIGTERM, previous)
         bus.close()
+        if memory is not None:
+            memory.flush()
     return 0
 
 

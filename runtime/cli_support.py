@@ -43,6 +43,17 @@ def add_broker_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_state_dir_argument(parser: argparse.ArgumentParser) -> None:
+    """`--state-dir DIR`, the same on every reader of zone states that can keep them across restarts."""
+    parser.add_argument(
+        "--state-dir",
+        type=Path,
+        metavar="DIR",
+        help="keep the last known zone states in DIR (zones-<site>.json) and start from them, aged by the "
+        "site's stale policy, when restarted (also with the broker down)",
+    )
+
+
 def fail(message: str) -> NoReturn:
     print(f"wsnav: error: {message}", file=sys.stderr)
     raise SystemExit(2)
