@@ -142,7 +142,8 @@ class RobotAgent:
         inflation = config.inflation.params(radius)
         self.zone_layer: ZoneLayer | None = None
         self.intake: ZoneIntake | None = None
-        if config.zone_layer:
+        plugins = config.layer_plugins()
+        if "zone_layer" in plugins:
             self.zone_layer = ZoneLayer(site.spec, GridFrame.of_grid(site.grid), site.spec.policy)
             self.intake = ZoneIntake(site.spec, self.zone_layer, memory=zone_memory)
             self.intake.restore(clock.now())
@@ -152,6 +153,7 @@ class RobotAgent:
             zone_layer=self.zone_layer,
             obstacle_layer=config.obstacle_layer,
             robots_layer=self.robots_layer,
+            plugins=plugins,
         )
         controller = PathFollower(
             ControllerParams(
