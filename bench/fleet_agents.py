@@ -10,7 +10,7 @@ every 0.5 s. The broker (`wsnav broker run`, amqtt, or Mosquitto) runs as its ow
 point across the building and following the other robots' statuses (the robots layer). Every change of z4
 makes every driving robot replan; each is timed from just before `publish()` to the agent's navigator having
 decided (CLOCK_MONOTONIC is one clock for every process of the host). Phase 1: robot1 alone; phase 2: all ten.
-`--quick`: 100 nodes, 3 agents, 10 changes per phase; the fleet's p50 over robot1 alone's at most 10, and an
+`--quick`: 20 nodes, 2 agents, 10 changes per phase; the fleet's p50 over robot1 alone's at most 10, and an
 agent's CPU in the fleet over robot1's alone at most 3.
 """
 
@@ -257,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     ctx = mp.get_context("spawn")
     robots = list(GOALS)
     if args.quick:
-        args.nodes, args.changes, robots = min(args.nodes, 100), min(args.changes, 10), robots[:3]
+        args.nodes, args.changes, robots = min(args.nodes, 20), min(args.changes, 10), robots[:2]
     with tempfile.TemporaryDirectory(prefix="wsnav-bench-") as tmp:
         site_dir = fleet_site(Path(tmp) / "site", args.nodes)
         with broker_at(args.broker, site_dir, Path(tmp)) as broker:

@@ -9,7 +9,7 @@ each alike; `default` is the baseline of every ratio, measured in the same run. 
 its peak resident memory (VmHWM) at the end. The process holds the agent and the simulated robot and lidar (as
 `wsnav robot --sim` does): an upper bound of the navigation's own share. The broker (amqtt, in this process)
 and the zone nodes (`wsnav zones`, a process of their own) are not counted. Writes its section of BENCHMARKS.md.
-`--quick`: `default` then `full`, 6 s each; `full`'s CPU over `default`'s at most 3 (measured 0.78-1.2), and
+`--quick`: `default` then `full`, 4 s each; `full`'s CPU over `default`'s at most 3 (measured 0.78-1.2), and
 `default`'s CPU s/s over a fixed reference workload timed in the same run (`bench.quick.reference_work_s`, in s) at
 most 30 (measured 8.5 at load 5).
 """
@@ -81,7 +81,7 @@ def main() -> None:
     args = parse_quick_args(parser)
     configs = ("default", "full") if args.quick else CONFIGS
     if args.quick:
-        args.seconds, args.rounds = min(args.seconds, 6.0), 1
+        args.seconds, args.rounds = min(args.seconds, 4.0), 1
     load = machine_note()
     got: dict[str, list[tuple[float, float]]] = {c: [] for c in configs}
     with BrokerThread(SCHOOL) as broker:

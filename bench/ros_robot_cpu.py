@@ -6,7 +6,7 @@ same agent and simulator in one process, no ROS) as the baseline measured in the
 Each setup drives the school's route A -> B in real time (a real roscore on a free port, the broker in this
 process); once the robot reports `navigating`, each wsnav process's CPU time (user + system, /proc) is read over
 `--seconds` of driving. Needs Debian's ROS 1 packages (see .ci/run). Writes its section of BENCHMARKS.md.
-`--quick`: 5 s per setup; the two ROS processes' CPU over the baseline's at most 5 (measured 1.56).
+`--quick`: 3 s per setup; the two ROS processes' CPU over the baseline's at most 5 (measured 1.56).
 """
 
 from __future__ import annotations
@@ -133,7 +133,7 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=20.0)
     args = parse_quick_args(parser)
     if args.quick:
-        args.seconds = min(args.seconds, 5.0)
+        args.seconds = min(args.seconds, 3.0)
     if shutil.which("roscore") is None:
         if args.quick:
             quick_skipped("ROS 1 is not installed (see .ci/run for the Debian packages)")
