@@ -16,6 +16,7 @@ from tests.conftest import SCHOOL
 from tests.robot_agent_rig import connect
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.runtime.bus import Message
+from wsnav.runtime.cli_support import CliError
 from wsnav.schemas import topics
 from wsnav.schemas.messages import NodeStatus, ZoneState
 from wsnav.schemas.site import Site
@@ -155,6 +156,13 @@ def test_a_bad_or_foreign_file_is_one_warning_and_a_start_without_it(
     intake.handle(state_message(school.spec, "z4", "n5", "blocked", 3, T0, retain=False))
     assert json.loads(path.read_text())["nodes"]["n5"]["state"] == "blocked"
     assert [p.name for p in tmp_path.iterdir()] == ["zones-school.json"], "a temporary file was left behind"
+
+
+def test_a_state_dir_that_cannot_be_written_is_one_line(school: Site, tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(CliError, match=r"--state-dir .*file/state: Not a directory"):
+        LastKnownZones.in_dir(blocker / "state", school.spec)
 
 
 def test_heartbeats_are_written_at_most_once_per_interval_and_changes_at_once(

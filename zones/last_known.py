@@ -18,6 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from wsnav.runtime.cli_support import CliError
 from wsnav.schemas.site_file import SiteFile
 
 log = logging.getLogger(__name__)
@@ -62,8 +63,14 @@ class LastKnownZones:
 
     @classmethod
     def in_dir(cls, state_dir: Path, spec: SiteFile) -> LastKnownZones:
-        """The site's file in a reader's `--state-dir` (made if missing)."""
-        state_dir.mkdir(parents=True, exist_ok=True)
+        """The site's file in a reader's `--state-dir` (made if missing); a folder that cannot be made or written
+        is a one-line CliError."""
+        try:
+            state_dir.mkdir(parents=True, exist_ok=True)
+            probe = tempfile.NamedTemporaryFile(dir=state_dir, prefix=".probe.")  # noqa: SIM115
+            probe.close()
+        except OSError as exc:
+            raise CliError(f"--state-dir {state_dir}: {exc.strerror or exc}") from None
         return cls(state_dir / f"zones-{spec.name}.json", spec)
 
     def age_s(self, node: str) -> float | None:
