@@ -23,7 +23,7 @@ from wsnav.robot_agent.agent import RobotAgent, SimWorldSink
 from wsnav.robot_agent.agent_config import AgentConfig, AgentConfigError, load_agent_config
 from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
 from wsnav.robot_agent.sim.world_grid import SimWorldGrid
-from wsnav.runtime.cli_support import CliError, read_robot_credentials
+from wsnav.runtime.cli_support import CliError, read_robot_credentials, refuse_bad_login
 from wsnav.runtime.clock import WallClock
 from wsnav.runtime.mqtt_bus import BusError, connect_with_credentials
 from wsnav.schemas.credentials import Credentials
@@ -130,12 +130,7 @@ def _drive(
     except BusError as exc:
         raise CliError(str(exc)) from None
     if memory is not None:  # it has the last known states to drive on: it rides out a broker that is down
-        bus.wait_answered(args.connect_timeout)
-        if bus.refusal is not None:
-            bus.abort()
-            raise CliError(
-                f"MQTT broker {bus.address} refused the login: {bus.refusal} (check the credentials)"
-            )
+        refuse_bad_login(bus, args.connect_timeout)
         if not bus.connected:
             print(
                 f"MQTT broker {bus.address} unreachable: starting from the last known zone states in "

@@ -19,9 +19,9 @@ from typing import TYPE_CHECKING
 
 from wsnav.ros2_bridge.discovery import NODE_NAME, Discovery, cyclone_config, discovery_from_env
 from wsnav.ros_bridge.zone_feed import ZoneFeed
-from wsnav.ros_bridge.zone_source import LinkWatch, load_bridge_site, refuse_bad_login, start_broker_link
+from wsnav.ros_bridge.zone_source import LinkWatch, load_bridge_site, start_broker_link
 from wsnav.runtime.bus import Bus
-from wsnav.runtime.cli_support import CliError
+from wsnav.runtime.cli_support import CliError, refuse_bad_login
 from wsnav.runtime.clock import WallClock
 from wsnav.schemas.site import Site
 from wsnav.zones.geometry import GridFrame

@@ -30,9 +30,9 @@ from wsnav.ros_bridge.move_base_supervisor import Action, Cancel, Goal, MoveBase
 from wsnav.ros_bridge.ros_env import master_alive, master_param, master_uri, require_rospy, wait_for_master
 from wsnav.ros_bridge.zone_feed import ESCAPE_COST, ZoneFeed
 from wsnav.ros_bridge.zone_grid import UpdateWindow, ZoneGridCodec
-from wsnav.ros_bridge.zone_source import LinkWatch, load_bridge_site, refuse_bad_login, start_broker_link
+from wsnav.ros_bridge.zone_source import LinkWatch, load_bridge_site, start_broker_link
 from wsnav.runtime.bus import Bus
-from wsnav.runtime.cli_support import CliError
+from wsnav.runtime.cli_support import CliError, refuse_bad_login
 from wsnav.runtime.clock import WallClock
 from wsnav.schemas import topics
 from wsnav.schemas.credentials import Credentials

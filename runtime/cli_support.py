@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
 if TYPE_CHECKING:
+    from wsnav.runtime.mqtt_bus import MqttBus
     from wsnav.schemas.credentials import Credentials
     from wsnav.schemas.site import Site
 
@@ -41,6 +42,15 @@ def add_broker_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="connect over TLS (the broker's TLS port), trusting the CA in FILE (the site's ca.crt)",
     )
+
+
+def refuse_bad_login(bus: MqttBus, timeout_s: float) -> None:
+    """Wait up to `timeout_s` for the broker's first answer; a refused login is a one-line CliError (a wrong
+    password is a set-up to fix, not an outage to ride out), no answer is an outage the reader rides out."""
+    bus.wait_answered(timeout_s)
+    if bus.refusal is not None:
+        bus.abort()
+        raise CliError(f"MQTT broker {bus.address} refused the login: {bus.refusal} (check the credentials)")
 
 
 def add_state_dir_argument(parser: argparse.ArgumentParser) -> None:
