@@ -7,7 +7,7 @@ time ratio Dask / pool, alternated so both see the same load.
 Each side is timed as `wsnav experiment` meets it: the pool's worker processes start inside its time (a new
 pool per experiment), the cluster's workers are already running (a cluster outlives experiments; its start-up
 is left out); connecting, shipping the site and every task are in. The tables must agree (apart from the
-columns that measure the machine). `--quick`: one run of A -> B under `full`, one round; Dask's wall time over the
+columns that measure the machine). `--quick`: one run of A -> B under `full`, one worker each side, one round; Dask's wall time over the
 pool's at most 3 (measured 0.42 at load 8: the pool's time holds its workers' start).
 """
 
@@ -46,19 +46,20 @@ def main() -> None:
     configs: list[str] = str(args.configs).split(",")
     site = load_site(REPO / "sites" / "school")
     specs = plan_runs(site.spec, configs, args.runs, 1)
+    workers = WORKERS
     if args.quick:
-        specs = specs[:1]
+        specs, workers = specs[:1], 1
     lines: list[str] = []
     loads = [os.getloadavg()[0]]
     with tempfile.TemporaryDirectory(prefix="wsnav-dask-bench-") as tmp:
         cluster = DaskCluster(Path(tmp))
         try:
-            cluster.start(workers=WORKERS)
+            cluster.start(workers=workers)
             ratios: list[float] = []
             for i in range(args.rounds):
-                pool = run_experiment(site.path, specs, workers=WORKERS)
+                pool = run_experiment(site.path, specs, workers=workers)
                 loads.append(os.getloadavg()[0])
-                dask = run_experiment(site.path, specs, workers=WORKERS, scheduler=cluster.address)
+                dask = run_experiment(site.path, specs, workers=workers, scheduler=cluster.address)
                 loads.append(os.getloadavg()[0])
                 if _rows(pool) != _rows(dask):
                     raise SystemExit("the Dask table differs from the pool's: not a fair comparison")
@@ -71,8 +72,8 @@ def main() -> None:
         finally:
             cluster.stop()
     head = (
-        f"school site, {len(specs)} runs ({args.runs} per route, {args.configs}), {WORKERS} pool workers vs "
-        f"{WORKERS} single-threaded Dask workers on 127.0.0.1 (already running); same tables; "
+        f"school site, {len(specs)} runs ({args.runs} per route, {args.configs}), {workers} pool workers vs "
+        f"{workers} single-threaded Dask workers on 127.0.0.1 (already running); same tables; "
         f"load {min(loads):.1f}-{max(loads):.1f}"
     )
     summary = f"Dask / pool wall time: {min(ratios):.2f}x-{max(ratios):.2f}x over {args.rounds} rounds"
