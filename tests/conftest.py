@@ -153,15 +153,16 @@ def _starts_a_process(fixture: object) -> bool:
 
 
 def _calls_a_starter(function: object) -> bool:
-    """The test calls, by name, a function of its own module that starts a process (`wsnav(...)`-style helpers
-    running the command line: a test that starts processes through them is no faster than one doing it itself)."""
+    """The test calls, by name, a function of the test suite (its module's or a shared fixture module's) that
+    starts a process (`wsnav(...)`-style helpers running the command line: a test that starts processes through
+    them is no faster than one doing it itself)."""
     code = getattr(function, "__code__", None)
     module = inspect.getmodule(function)  # type: ignore[arg-type]
     if code is None or module is None:
         return False
     helpers = (getattr(module, name, None) for name in code.co_names)
     return any(
-        inspect.isfunction(h) and h.__module__ == module.__name__ and _starts_a_process(h) for h in helpers
+        inspect.isfunction(h) and h.__module__.startswith("tests.") and _starts_a_process(h) for h in helpers
     )
 
 
@@ -177,7 +178,7 @@ def _slow_fixtures(item: pytest.Item) -> list[str]:
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """`make test-fast` (`-m "not slow"`) runs the rest: the logic. Slow: a test that starts a process itself,
-    through a helper of its module or through its fixtures (derived from their code, `STARTS_A_PROCESS`), and the hand-kept SLOW_MODULES and
+    through a helper of the suite or through its fixtures (derived from their code, `STARTS_A_PROCESS`), and the hand-kept SLOW_MODULES and
     SLOW_TESTS (processes started through helpers, or long without one)."""
     for item in items:
         module = item.path.name
