@@ -8,12 +8,14 @@ With a smaller `--runs` the full experiment's wall time is extrapolated (runs sc
 With `--out` it also writes the experiment's table, report and figures there (what `wsnav experiment` writes),
 so one run of the whole experiment gives both its results and its speed. Each run starts its own broker:
 Mosquitto by default here (the rows are the same as with amqtt, the wall time lower), `--run-broker amqtt` for
-the embedded amqtt broker that `wsnav experiment` uses by default.
+the embedded amqtt broker that `wsnav experiment` uses by default. `--quick`: one run of A -> B per configuration;
+`full`'s agent CPU per simulated second over `default`'s at most 1 (measured 0.24-0.28), and `default`'s over a
+fixed reference workload timed in the same run (`bench.quick.reference_work_s`, in s) at most 4 (measured 1.4 at
+load 5).
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import time
 from pathlib import Path
@@ -21,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.benchmarks_md import write_section
+from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser, reference_work_s
 from wsnav.experiments.run_plan import plan_runs
 from wsnav.experiments.runner import progress_line, report_header, run_experiment, write_outputs
 from wsnav.experiments.worker import RUN_BROKERS
@@ -30,25 +33,31 @@ REPO = Path(__file__).resolve().parent.parent
 SECTION = "## Experiment wall time (bench/experiment_wall.py)"
 FULL_RUNS = 50
 CONFIGS = ["default", "full"]
+DEFAULT_CPU_BOUND = 4.0
+"""Quick mode's bound on `default`'s agent CPU per simulated second over the reference workload."""
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description="wall time and real-time factor of `wsnav experiment`")
+    parser = quick_parser(__doc__)
     parser.add_argument("--runs", type=int, default=FULL_RUNS, help="runs per route and configuration")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--run-broker", choices=RUN_BROKERS, default="mosquitto")
-    parser.add_argument("--no-write", action="store_true")
     parser.add_argument("--out", type=Path, default=None, help="also write the experiment's report here")
-    args = parser.parse_args()
+    args = parse_quick_args(parser)
+    if args.quick:
+        args.runs = 1
     site = load_site(REPO / "sites" / "school")
     specs = plan_runs(site.spec, CONFIGS, args.runs, args.seed)
+    if args.quick:
+        specs = [s for s in specs if s.route == specs[0].route]
     load = os.getloadavg()[0]
     outcome = run_experiment(
         site.path, specs, workers=args.workers, progress=progress_line(), run_broker=args.run_broker
     )
     t = outcome.table
     sim_s = outcome.simulated_s
+    cpu_per_sim: dict[str, float] = {}
     lines = [
         f"school site, {len(specs)} runs ({args.runs} per route and configuration), {args.workers} workers, "
         f"{os.cpu_count()} CPUs, one {args.run_broker} broker per run, load {load:.1f} at the start",
@@ -60,6 +69,7 @@ def main() -> None:
         part = t.loc[t["config"] == config]
         cpu = float(part["agent_cpu_s"].to_numpy(dtype=np.float64).sum())
         sim = float(part["time_s"].to_numpy(dtype=np.float64).sum())
+        cpu_per_sim[config] = cpu / sim
         lines.append(f"  {config:8s} agent CPU {cpu:7.0f} s for {sim:6.0f} s simulated ({cpu / sim:.4f} s/s)")
         process = float(part["process_cpu_s"].to_numpy(dtype=np.float64).sum())
         mem = part["peak_mem_mb"].to_numpy(dtype=np.float64)
@@ -87,6 +97,20 @@ def main() -> None:
             f"extrapolated to {FULL_RUNS} runs: ~{outcome.wall_s * scale / 60:.0f} min wall (measured with {args.runs})"
         )
     print("\n".join(lines))
+    if args.quick:
+        ref = reference_work_s(clock=time.thread_time)  # the figure is CPU time
+        print(f"reference workload: {ref * 1000:.1f} ms of CPU")
+        check_ratio(
+            "`full` agent CPU / `default` agent CPU, per simulated second",
+            cpu_per_sim["full"] / cpu_per_sim["default"],
+            1.0,
+        )
+        check_ratio(
+            "`default` agent CPU per simulated second / reference workload",
+            cpu_per_sim["default"] / ref,
+            DEFAULT_CPU_BOUND,
+        )
+        finish_quick()
     if args.no_write:
         return
     write_section(

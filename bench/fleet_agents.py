@@ -10,6 +10,8 @@ every 0.5 s. The broker (`wsnav broker run`, amqtt, or Mosquitto) runs as its ow
 point across the building and following the other robots' statuses (the robots layer). Every change of z4
 makes every driving robot replan; each is timed from just before `publish()` to the agent's navigator having
 decided (CLOCK_MONOTONIC is one clock for every process of the host). Phase 1: robot1 alone; phase 2: all ten.
+`--quick`: 20 nodes, 2 agents, 10 changes per phase; the fleet's p50 over robot1 alone's at most 10, and an
+agent's CPU in the fleet over robot1's alone at most 3.
 """
 
 from __future__ import annotations
@@ -32,7 +34,8 @@ from typing import Any
 import yaml
 
 from bench.bench_broker import fresh_broker, mosquitto_broker
-from bench.benchmarks_md import bench_parser, machine_note, write_section
+from bench.benchmarks_md import machine_note, write_section
+from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser
 
 REPO = Path(__file__).resolve().parent.parent
 SCHOOL = REPO / "sites" / "school"
@@ -246,13 +249,15 @@ def broker_at(kind: str, site_dir: Path, root: Path) -> Iterator[Endpoint]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = bench_parser(__doc__)
+    parser = quick_parser(__doc__)
     parser.add_argument("--nodes", type=int, default=1000)
     parser.add_argument("--changes", type=int, default=100)
     parser.add_argument("--broker", choices=("amqtt", "mosquitto"), default="amqtt")
-    args = parser.parse_args(argv)
+    args = parse_quick_args(parser, argv)
     ctx = mp.get_context("spawn")
     robots = list(GOALS)
+    if args.quick:
+        args.nodes, args.changes, robots = min(args.nodes, 20), min(args.changes, 10), robots[:2]
     with tempfile.TemporaryDirectory(prefix="wsnav-bench-") as tmp:
         site_dir = fleet_site(Path(tmp) / "site", args.nodes)
         with broker_at(args.broker, site_dir, Path(tmp)) as broker:
@@ -306,6 +311,18 @@ def main(argv: list[str] | None = None) -> int:
             f" {args.nodes - 1} node messages per second to each of the {len(fleet)} agents)."
         )
     print(summary)
+    if args.quick:
+        check_ratio(
+            f"zone message -> reacted p50, {len(fleet)} agents / 1 alone",
+            pct(every, 50) / pct(base.latencies_ms, 50),
+            10.0,
+        )
+        check_ratio(
+            f"CPU per agent, {len(fleet)} agents / 1 alone",
+            sum(r.cpu_share for r in fleet) / len(fleet) / base.cpu_share,
+            3.0,
+        )
+        finish_quick()
     where = (
         "`wsnav broker run` (amqtt)"
         if args.broker == "amqtt"

@@ -9,6 +9,9 @@ each alike; `default` is the baseline of every ratio, measured in the same run. 
 its peak resident memory (VmHWM) at the end. The process holds the agent and the simulated robot and lidar (as
 `wsnav robot --sim` does): an upper bound of the navigation's own share. The broker (amqtt, in this process)
 and the zone nodes (`wsnav zones`, a process of their own) are not counted. Writes its section of BENCHMARKS.md.
+`--quick`: `default` then `full`, 4 s each; `full`'s CPU over `default`'s at most 3 (measured 0.78-1.2), and
+`default`'s CPU s/s over a fixed reference workload timed in the same run (`bench.quick.reference_work_s`, in s) at
+most 30 (measured 8.5 at load 5).
 """
 
 from __future__ import annotations
@@ -18,7 +21,8 @@ import subprocess
 import time
 from pathlib import Path
 
-from bench.benchmarks_md import bench_parser, machine_note, write_section
+from bench.benchmarks_md import machine_note, write_section
+from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser, reference_work_s
 from bench.ros_robot_cpu import WSNAV, cpu_s, stop, wait_line
 from wsnav.broker.amqtt.embedded import BrokerThread
 
@@ -71,12 +75,15 @@ def one(broker: BrokerThread, config: str, seconds: float) -> tuple[float, float
 
 
 def main() -> None:
-    parser = bench_parser(__doc__)
+    parser = quick_parser(__doc__)
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--rounds", type=int, default=2)
-    args = parser.parse_args()
+    args = parse_quick_args(parser)
+    configs = ("default", "full") if args.quick else CONFIGS
+    if args.quick:
+        args.seconds, args.rounds = min(args.seconds, 4.0), 1
     load = machine_note()
-    got: dict[str, list[tuple[float, float]]] = {c: [] for c in CONFIGS}
+    got: dict[str, list[tuple[float, float]]] = {c: [] for c in configs}
     with BrokerThread(SCHOOL) as broker:
         nodes = subprocess.Popen(
             [
@@ -100,12 +107,22 @@ def main() -> None:
         try:
             time.sleep(5)  # the nodes online and z4 reported before the first robot plans
             for _ in range(args.rounds):
-                for config in CONFIGS:
+                for config in configs:
                     got[config].append(one(broker, config, args.seconds))
                     print(config, got[config][-1], flush=True)
         finally:
             stop(nodes)
     base = statistics.mean(c for c, _ in got["default"])
+    if args.quick:
+        check_ratio(
+            "`full` process CPU / `default` process CPU",
+            statistics.mean(c for c, _ in got["full"]) / base,
+            3.0,
+        )
+        ref = reference_work_s(clock=time.thread_time)  # the figure is CPU time
+        print(f"reference workload: {ref * 1000:.1f} ms of CPU")
+        check_ratio("`default` process CPU s/s / reference workload s", base / ref, 30.0)
+        finish_quick()
     rows = []
     for config in CONFIGS:
         cpus = [c for c, _ in got[config]]

@@ -8,6 +8,8 @@ The broker runs as its own process (`wsnav broker run`, full security model); th
 and `clear`, QoS 1, one change at a time; each is timed from just before `publish()` to the moment the
 agent's navigator had its new plan (all three read the agent's WallClock in this one process). Printed per planner
 grid: p50/p99/max of the whole, of its delivery part, and of the A* time. Writes its BENCHMARKS.md section.
+`--quick`: 20 changes on the `full` configuration's grid alone; the whole p50 over its delivery part's p50 (the
+same messages reaching the agent's bus: the baseline of the same run) at most 15 (measured 4.7).
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.bench_broker import fresh_broker
-from bench.benchmarks_md import bench_parser, write_section
+from bench.benchmarks_md import write_section
+from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser
 from wsnav.robot_agent.agent import RobotAgent
 from wsnav.robot_agent.agent_config import load_agent_config
 from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
@@ -52,7 +55,9 @@ def pct(values: list[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, round(q / 100 * (len(ordered) - 1)))]
 
 
-def measure(host: str, port: int, creds_dir: Path, downsample: int, changes: int, seq0: int) -> Result:
+def measure(
+    host: str, port: int, creds_dir: Path, downsample: int, changes: int, seq0: int, warmup: int = WARMUP
+) -> Result:
     """One agent on a fresh connection; `seq0` lies above every seq the node published before."""
     from wsnav.schemas.credentials import load_credentials
 
@@ -84,7 +89,7 @@ def measure(host: str, port: int, creds_dir: Path, downsample: int, changes: int
     plan: list[float] = []
     replanned = 0
     try:
-        for i in range(changes + WARMUP):
+        for i in range(changes + warmup):
             seen = len(agent.zone_reactions)
             plans = agent.navigator.plans
             state = "blocked" if i % 2 == 0 else "clear"
@@ -97,7 +102,7 @@ def measure(host: str, port: int, creds_dir: Path, downsample: int, changes: int
                     raise SystemExit(f"bench: change {i} ({state}) got no reaction within 5 s")
                 time.sleep(0.002)  # coarse: the agent stamps done_at itself; this only spares the GIL
             reaction = agent.zone_reactions[seen]
-            if i >= WARMUP:
+            if i >= warmup:
                 total.append((reaction.done_at - t_pub) * 1000.0)
                 delivery.append((reaction.received_at - t_pub) * 1000.0)
                 last_plan = agent.navigator.last_plan
@@ -118,15 +123,19 @@ def measure(host: str, port: int, creds_dir: Path, downsample: int, changes: int
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = bench_parser(__doc__)
+    parser = quick_parser(__doc__)
     parser.add_argument("--changes", type=int, default=200)
-    args = parser.parse_args(argv)
+    args = parse_quick_args(parser, argv)
+    warmup = 4 if args.quick else WARMUP
+    if args.quick:
+        args.changes = min(args.changes, 20)
+    grids = (load_agent_config("full").planner.downsample,) + (() if args.quick else (1,))
     results: list[Result] = []
     with tempfile.TemporaryDirectory(prefix="wsnav-bench-") as tmp, fresh_broker(SCHOOL, Path(tmp)) as proc:
-        for k, downsample in enumerate((load_agent_config("full").planner.downsample, 1)):
+        for k, downsample in enumerate(grids):
             seq0 = 1000 + k * (args.changes + WARMUP)
             results.append(
-                measure(proc.host, proc.port, proc.credentials_dir, downsample, args.changes, seq0)
+                measure(proc.host, proc.port, proc.credentials_dir, downsample, args.changes, seq0, warmup)
             )
     rows = [
         "| planner grid | changes | replanned | p50 | p99 | max | delivery p50 / p99 | A* p50 / p99 |",
@@ -146,6 +155,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(table)
     full = results[0]
+    if args.quick:
+        check_ratio(
+            "zone message -> replanned p50 / its delivery p50 (`full`)",
+            pct(full.total_ms, 50) / pct(full.delivery_ms, 50),
+            15.0,
+        )
+        finish_quick()
     text = f"""```
 ./.venv/bin/python -m bench.replan_latency
 ```

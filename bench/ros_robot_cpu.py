@@ -6,6 +6,7 @@ same agent and simulator in one process, no ROS) as the baseline measured in the
 Each setup drives the school's route A -> B in real time (a real roscore on a free port, the broker in this
 process); once the robot reports `navigating`, each wsnav process's CPU time (user + system, /proc) is read over
 `--seconds` of driving. Needs Debian's ROS 1 packages (see .ci/run). Writes its section of BENCHMARKS.md.
+`--quick`: 3 s per setup; the two ROS processes' CPU over the baseline's at most 5 (measured 1.56).
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench.benchmarks_md import bench_parser, machine_note, write_section
+from bench.benchmarks_md import machine_note, write_section
+from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser, quick_skipped
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.ros_bridge.ros_env import LocalRosCore
 
@@ -127,10 +129,14 @@ def run_ros(broker: BrokerThread, seconds: float, log_dir: Path) -> Measured:
 
 
 def main() -> None:
-    parser = bench_parser(__doc__)
+    parser = quick_parser(__doc__)
     parser.add_argument("--seconds", type=float, default=20.0)
-    args = parser.parse_args()
+    args = parse_quick_args(parser)
+    if args.quick:
+        args.seconds = min(args.seconds, 3.0)
     if shutil.which("roscore") is None:
+        if args.quick:
+            quick_skipped("ROS 1 is not installed (see .ci/run for the Debian packages)")
         print("bench.ros_robot_cpu skipped: ROS 1 is not installed (see .ci/run for the Debian packages)")
         return
     with BrokerThread(SCHOOL) as broker, tempfile.TemporaryDirectory() as tmp:
@@ -143,6 +149,10 @@ def main() -> None:
     ]
     rows += [f"| `{k[6:]}` | {v:.3f} | {v / baseline:.2f}x |" for k, v in ros.cpu.items()]
     rows.append(f"| `robot --ros` + `sim --ros` | {total:.3f} | {total / baseline:.2f}x |")
+    if args.quick:
+        print("\n".join(rows))
+        check_ratio("CPU of `robot --ros` + `sim --ros` / `robot --sim`", total / baseline, 5.0)
+        finish_quick()
     text = "\n".join(
         [
             "```",

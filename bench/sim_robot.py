@@ -7,12 +7,13 @@ Scans: 360-beam, 3.5 m sweeps from random free poses of the school map (1040 x 6
 world grid, after one untimed scan that compiles the numba kernel (its time is reported on its own). Controller: `PathFollower.compute` on a 3 x 3 m local costmap window, timed inside the A -> B drive.
 Real-time factor: simulated seconds / wall seconds of the whole loop (controller 20 Hz, physics 0.05 s, lidar
 at 5 Hz, local window cut each step) from A until `arrived`; the costmap is the static map's, prepared once.
-Writes its section of BENCHMARKS.md unless --no-write.
+Writes its section of BENCHMARKS.md unless --no-write. `--quick`: 300 scans and one drive, each cost (a scan, a
+controller step, a simulated second of the drive) over a fixed reference workload timed in the same run
+(`bench.quick.reference_work_s`), against bounds 3x the ratios measured at load 5 (0.008, 0.0067, 0.23).
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import statistics
@@ -23,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.benchmarks_md import write_section
+from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser, reference_work_s
 from wsnav.navigation.control.controller import PathFollower
 from wsnav.navigation.costmap.inflation import InflationParams
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
@@ -37,6 +39,8 @@ SECTION = "## Simulated robot: lidar, controller, real-time factor"
 COMMAND = "./.venv/bin/python -m bench.sim_robot"
 CONTROL_DT = 0.05
 LOCAL_M = 3.0
+SCAN_BOUND, STEP_BOUND, DRIVE_BOUND = 0.025, 0.02, 0.7
+"""Quick mode's bounds on each cost over the reference workload."""
 
 
 def bench_scans(world: SimWorldGrid, count: int) -> float:
@@ -100,11 +104,12 @@ def bench_follow(costmap: LayeredCostmap, site_dir: Path) -> Drive:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description="simulated robot benchmark on the school map")
+    parser = quick_parser(__doc__)
     parser.add_argument("--scans", type=int, default=3000)
     parser.add_argument("--runs", type=int, default=3)
-    parser.add_argument("--no-write", action="store_true")
-    args = parser.parse_args()
+    args = parse_quick_args(parser)
+    if args.quick:
+        args.scans, args.runs = min(args.scans, 300), 1
     site_dir = REPO / "sites" / "school"
     site = load_site(site_dir)
     world = SimWorldGrid(site.grid)
@@ -137,6 +142,15 @@ def main() -> None:
         f"({min(rtf):.0f}-{max(rtf):.0f}); {distance:.2f} m driven (plan {plan.length_m:.2f} m), {collisions} collisions",
     ]
     print("\n".join(lines))
+    if args.quick:
+        ref = reference_work_s()
+        print(f"reference workload: {ref * 1000:.1f} ms")
+        check_ratio("one lidar scan / reference workload", 1.0 / statistics.median(scans) / ref, SCAN_BOUND)
+        check_ratio(
+            "one controller step / reference workload", 1.0 / statistics.median(steps) / ref, STEP_BOUND
+        )
+        check_ratio("one simulated second of A -> B / reference workload", wall_s / sim_s / ref, DRIVE_BOUND)
+        finish_quick()
     if args.no_write:
         return
     when = time.strftime("%Y-%m-%d")

@@ -1,4 +1,5 @@
-"""The zone-node firmware (device/, MicroPython) and its host-side tooling (build, deploy, flash, testing).
+"""The zone-node firmware (device/, MicroPython) and its host-side tooling (build, deploy, flash; and, in the
+checkout only, not in the wheel, the tests' drivers of the MicroPython unix port: testing.py, unix_board.py).
 
 The pure logic modules of device/ run unchanged under CPython (the zone simulator runs them for up to 1000
 emulated nodes). On the board they import each other by top-level name (`from debounce import Debouncer`);
@@ -12,7 +13,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the submodules load when imported, not with the package
-    from wsnav.firmware import board, build, cli, deploy, testing, unix_board
+    from wsnav.firmware import board, build, cli, deploy
 
 import sys
 from collections.abc import Sequence
@@ -76,6 +77,4 @@ __all__ = [
     "cli",
     "deploy",
     "load_device_modules",
-    "testing",
-    "unix_board",
 ]

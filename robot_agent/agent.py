@@ -52,6 +52,7 @@ from wsnav.schemas.messages import (
 from wsnav.schemas.site import Site
 from wsnav.zones.geometry import GridFrame
 from wsnav.zones.intake import ZoneIntake
+from wsnav.zones.last_known import LastKnownZones
 from wsnav.zones.zone_layer import ZoneLayer
 
 log = logging.getLogger(__name__)
@@ -113,9 +114,11 @@ class RobotAgent:
         *,
         sim_world: SimWorldSink | None = None,
         on_status: Callable[[RobotStatus, bool], None] | None = None,
+        zone_memory: LastKnownZones | None = None,
     ) -> None:
         """`sim_world`: where `sim/world` messages go when the backend is the simulator (subscribed only then).
-        `on_status(status, changed)` sees every status published (for a console line, a test, a log)."""
+        `on_status(status, changed)` sees every status published (for a console line, a test, a log).
+        `zone_memory`: the last known zone states on disk (`--state-dir`): the agent starts from them."""
         self.site = site
         self.config = config
         self.backend = backend
@@ -140,15 +143,18 @@ class RobotAgent:
         inflation = config.inflation.params(radius)
         self.zone_layer: ZoneLayer | None = None
         self.intake: ZoneIntake | None = None
-        if config.zone_layer:
+        plugins = config.layer_plugins()
+        if "zone_layer" in plugins:
             self.zone_layer = ZoneLayer(site.spec, GridFrame.of_grid(site.grid), site.spec.policy)
-            self.intake = ZoneIntake(site.spec, self.zone_layer)
+            self.intake = ZoneIntake(site.spec, self.zone_layer, memory=zone_memory)
+            self.intake.restore(clock.now())
         self.costmap = LayeredCostmap(
             site.grid,
             inflation,
             zone_layer=self.zone_layer,
             obstacle_layer=config.obstacle_layer,
             robots_layer=self.robots_layer,
+            plugins=plugins,
         )
         controller = PathFollower(
             ControllerParams(

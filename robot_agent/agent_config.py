@@ -11,10 +11,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from wsnav.navigation.behaviors.recovery import RecoveryParams
 from wsnav.navigation.costmap.inflation import InflationParams
+from wsnav.navigation.costmap.layered_costmap import LAYER_PLUGINS, check_plugins
 from wsnav.navigation.planning.global_planner import PlannerParams
 from wsnav.schemas.yaml_file import read_yaml_mapping
 
@@ -99,6 +100,10 @@ class RecoverySection(_Strict):
 
 class AgentConfig(_Strict):
     name: str = "custom"
+    plugins: list[str] | None = None
+    """The costmap's layers by name, in the order they are called (Nav2's costmap `plugins`; the names:
+    navigation.costmap.layered_costmap.LAYER_PLUGINS). Unset: the layers `zone_layer`, `obstacle_layer` and
+    `fleet_layer` ask for; set, it decides `zone_layer` and `obstacle_layer`."""
     zone_layer: bool = True
     """Subscribe to the sensor network and keep a zone layer in the costmap (the paper's contribution)."""
     obstacle_layer: bool = True
@@ -137,6 +142,34 @@ class AgentConfig(_Strict):
     inflation: InflationSection = InflationSection()
     planner: PlannerSection = PlannerSection()
     recovery: RecoverySection = RecoverySection()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _layers_from_plugins(cls, data: object) -> object:
+        """A `plugins` list decides `zone_layer` and `obstacle_layer`; either given too must agree with it."""
+        if not isinstance(data, dict) or not isinstance(data.get("plugins"), list):
+            return data
+        data = dict(data)
+        for key in ("zone_layer", "obstacle_layer"):
+            named = key in data["plugins"]
+            if key in data and data[key] is not named:
+                raise ValueError(f"{key}: {data[key]} but plugins {'name' if named else 'leave out'} {key}")
+            data[key] = named
+        return data
+
+    @field_validator("plugins")
+    @classmethod
+    def _known_plugins(cls, plugins: list[str] | None) -> list[str] | None:
+        if plugins is not None:
+            check_plugins(plugins)
+        return plugins
+
+    def layer_plugins(self) -> list[str]:
+        """The costmap's layers by name, in order: `plugins`, or what the layer switches ask for."""
+        if self.plugins is not None:
+            return list(self.plugins)
+        wanted = (True, self.obstacle_layer, self.zone_layer, self.fleet_layer, True)
+        return [name for name, on in zip(LAYER_PLUGINS, wanted, strict=True) if on]
 
 
 def load_agent_config(location: str | Path) -> AgentConfig:

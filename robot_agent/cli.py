@@ -13,7 +13,7 @@ import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from wsnav.runtime.cli_support import add_broker_arguments
+from wsnav.runtime.cli_support import add_broker_arguments, add_state_dir_argument
 
 if TYPE_CHECKING:
     from wsnav.runtime.cli_support import Parser
@@ -45,6 +45,7 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         "--exit-on-arrival", action="store_true", help="exit when the goal is reached (0) or cancelled (1)"
     )
     robot.add_argument("--connect-timeout", type=float, default=10.0, metavar="S", help="default 10")
+    add_state_dir_argument(robot)
     robot.set_defaults(func=robot_command)
     robot._negative_number_matcher = re.compile(r"^-\.?\d")
 

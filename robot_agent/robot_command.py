@@ -23,12 +23,13 @@ from wsnav.robot_agent.agent import RobotAgent, SimWorldSink
 from wsnav.robot_agent.agent_config import AgentConfig, AgentConfigError, load_agent_config
 from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
 from wsnav.robot_agent.sim.world_grid import SimWorldGrid
-from wsnav.runtime.cli_support import CliError, read_robot_credentials
+from wsnav.runtime.cli_support import CliError, read_robot_credentials, refuse_bad_login
 from wsnav.runtime.clock import WallClock
 from wsnav.runtime.mqtt_bus import BusError, connect_with_credentials
 from wsnav.schemas.credentials import Credentials
 from wsnav.schemas.messages import RobotStatus
 from wsnav.schemas.site import Site, SiteError, load_site
+from wsnav.zones.last_known import LastKnownZones
 
 SIM_DT_S = 0.02
 """The simulated robot is advanced at 50 Hz of real time."""
@@ -115,16 +116,39 @@ def _drive(
     """Connect to the broker and run the agent on `session`'s robot until stopped (or arrived)."""
     clock = WallClock()
     host, port = args.broker
+    memory = LastKnownZones.in_dir(args.state_dir, site.spec) if args.state_dir is not None else None
     try:
         bus = connect_with_credentials(
-            host, port, creds, clock=clock, timeout_s=args.connect_timeout, tls_ca=args.tls_ca
+            host,
+            port,
+            creds,
+            clock=clock,
+            timeout_s=args.connect_timeout,
+            tls_ca=args.tls_ca,
+            wait=memory is None,
         )
     except BusError as exc:
         raise CliError(str(exc)) from None
+    if memory is not None:  # it has the last known states to drive on: it rides out a broker that is down
+        refuse_bad_login(bus, args.connect_timeout)
+        if not bus.connected:
+            print(
+                f"MQTT broker {bus.address} unreachable: starting from the last known zone states in "
+                f"{memory.path} (stale policy {site.spec.policy.stale}); connecting in the background",
+                flush=True,
+            )
     robot = session.robot
     printer = StatusPrinter(origin=clock.now())
     agent = RobotAgent(
-        site, config, robot, bus, clock, creds.username, sim_world=session.sim_world, on_status=printer
+        site,
+        config,
+        robot,
+        bus,
+        clock,
+        creds.username,
+        sim_world=session.sim_world,
+        on_status=printer,
+        zone_memory=memory,
     )
     stop = threading.Event()
 
@@ -156,6 +180,8 @@ def _drive(
         signal.signal(signal.SIGTERM, previous)
         robot.stop()
         bus.close()
+        if memory is not None:
+            memory.flush()
     state = agent.navigator.state
     return 0 if state == "arrived" or not args.exit_on_arrival else 1
 

@@ -19,12 +19,13 @@ from typing import TYPE_CHECKING
 
 from wsnav.ros2_bridge.discovery import NODE_NAME, Discovery, cyclone_config, discovery_from_env
 from wsnav.ros_bridge.zone_feed import ZoneFeed
-from wsnav.ros_bridge.zone_source import LinkWatch, load_bridge_site, refuse_bad_login, start_broker_link
+from wsnav.ros_bridge.zone_source import LinkWatch, load_bridge_site, start_broker_link
 from wsnav.runtime.bus import Bus
-from wsnav.runtime.cli_support import CliError
+from wsnav.runtime.cli_support import CliError, refuse_bad_login
 from wsnav.runtime.clock import WallClock
 from wsnav.schemas.site import Site
 from wsnav.zones.geometry import GridFrame
+from wsnav.zones.last_known import LastKnownZones
 
 if TYPE_CHECKING:
     from wsnav.ros2_bridge.nav2_robot import Nav2Robot
@@ -133,8 +134,9 @@ def bridge_command(args: argparse.Namespace) -> int:
         config,
         options.distro,
     )
-    feed = ZoneFeed(site.spec, frame)
     clock = WallClock()
+    memory = LastKnownZones.in_dir(args.state_dir, site.spec) if args.state_dir is not None else None
+    feed = ZoneFeed(site.spec, frame, memory, clock.now())
     feed.take([], clock.now())
     writer.write_filter_info()
     writer.write_grid(feed)
@@ -166,6 +168,8 @@ def bridge_command(args: argparse.Namespace) -> int:
     finally:
         signal.signal(signal.SIGTERM, previous)
         bus.close()
+        if memory is not None:
+            memory.flush()
     return 0
 
 

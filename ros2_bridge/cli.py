@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from wsnav.runtime.cli_support import add_broker_arguments
+from wsnav.runtime.cli_support import add_broker_arguments, add_state_dir_argument
 
 if TYPE_CHECKING:
     from wsnav.runtime.cli_support import Parser
@@ -69,6 +69,7 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         "itself; Nav2's default trees replan at 1 Hz, and a re-send aborts the sender's goal)",
     )
     bridge.add_argument("--connect-timeout", type=float, default=10.0, metavar="S", help="MQTT, default 10")
+    add_state_dir_argument(bridge)
     bridge.set_defaults(func=bridge_command)
 
 

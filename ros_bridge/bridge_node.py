@@ -19,6 +19,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -30,9 +31,9 @@ from wsnav.ros_bridge.robot_link import publish_robot_status, take_mqtt_goal
 from wsnav.ros_bridge.ros_env import master_alive, master_param, master_uri, require_rospy, wait_for_master
 from wsnav.ros_bridge.zone_feed import ESCAPE_COST, ZoneFeed
 from wsnav.ros_bridge.zone_grid import UpdateWindow, ZoneGridCodec
-from wsnav.ros_bridge.zone_source import LinkWatch, load_bridge_site, refuse_bad_login, start_broker_link
+from wsnav.ros_bridge.zone_source import LinkWatch, load_bridge_site, start_broker_link
 from wsnav.runtime.bus import Bus
-from wsnav.runtime.cli_support import CliError
+from wsnav.runtime.cli_support import CliError, refuse_bad_login
 from wsnav.runtime.clock import WallClock
 from wsnav.schemas import topics
 from wsnav.schemas.credentials import Credentials
@@ -40,6 +41,7 @@ from wsnav.schemas.ros_map import FREE
 from wsnav.schemas.site import Site
 from wsnav.zones.cost_values import LETHAL_OBSTACLE
 from wsnav.zones.geometry import Bounds, GridFrame
+from wsnav.zones.last_known import LastKnownZones
 from wsnav.zones.zone_layer import BlockedArea
 
 log = logging.getLogger(__name__)
@@ -64,6 +66,8 @@ class BridgeOptions:
     master_costmap: str = "/move_base/global_costmap/costmap"
     relay: str | None = None
     """An action name where the bridge serves MoveBaseAction and relays to move_base (`_on_relay_goal`)."""
+    state_dir: Path | None = None
+    """Where the last known zone states are kept across restarts (`--state-dir`), or None."""
 
 
 def bridge_command(args: argparse.Namespace) -> int:
@@ -82,6 +86,7 @@ def bridge_command(args: argparse.Namespace) -> int:
         move_base=args.move_base.rstrip("/"),
         plan_topic=args.plan_topic,
         base_frame=args.base_frame,
+        state_dir=args.state_dir,
         master_costmap=args.master_costmap,
         relay=args.relay.rstrip("/") if args.relay else None,
     )
@@ -93,10 +98,13 @@ def bridge_command(args: argparse.Namespace) -> int:
         check_move_base(uri, options)
     bus = start_broker_link(args.broker, creds, args.tls_ca)
     refuse_bad_login(bus, args.connect_timeout)
+    node = ZoneBridgeNode(site, creds, bus, codec, options)
     try:
-        restart = ZoneBridgeNode(site, creds, bus, codec, options).run(uri)
+        restart = node.run(uri)
     finally:
         bus.close()
+        if node.memory is not None:
+            node.memory.flush()
     if restart:
         print(f"ROS master at {uri} is back: restarting to register again", flush=True)
         os.execv(sys.executable, [sys.executable, *sys.orig_argv[1:]])
@@ -133,7 +141,10 @@ class ZoneBridgeNode:
         self.bus = bus
         self.codec = codec
         self.clock = WallClock()
-        self.feed = ZoneFeed(site.spec, self.frame)
+        self.memory = (
+            LastKnownZones.in_dir(options.state_dir, site.spec) if options.state_dir is not None else None
+        )
+        self.feed = ZoneFeed(site.spec, self.frame, self.memory, self.clock.now())
         self.window = UpdateWindow(options.update_hold_s)
         self.supervisor = MoveBaseSupervisor(options.robot, self.feed) if options.robot else None
         self._lock = threading.Lock()

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from wsnav.runtime.cli_support import add_broker_arguments
+from wsnav.runtime.cli_support import add_broker_arguments, add_state_dir_argument
 
 if TYPE_CHECKING:
     from wsnav.runtime.cli_support import Parser
@@ -65,6 +65,7 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         "so a script's goal survives the bridge's re-sends and ends as the robot's drive ends",
     )
     bridge.add_argument("--connect-timeout", type=float, default=10.0, metavar="S", help="MQTT, default 10")
+    add_state_dir_argument(bridge)
     bridge.set_defaults(func=bridge_command)
 
 

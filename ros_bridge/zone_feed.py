@@ -16,6 +16,7 @@ from wsnav.schemas.site_file import SiteFile
 from wsnav.zones.cost_values import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION
 from wsnav.zones.geometry import Bounds, CellWindow, GridFrame
 from wsnav.zones.intake import ZoneIntake
+from wsnav.zones.last_known import LastKnownZones
 from wsnav.zones.zone_layer import BlockedArea, ZoneLayer
 
 ESCAPE_COST = 200
@@ -31,17 +32,21 @@ class ZoneChange:
 
 
 class ZoneFeed:
-    def __init__(self, spec: SiteFile, frame: GridFrame) -> None:
+    def __init__(
+        self, spec: SiteFile, frame: GridFrame, memory: LastKnownZones | None = None, now: float = 0.0
+    ) -> None:
+        """`memory`: the last known zone states on disk (`--state-dir`), served from the start, read at `now`."""
         self.frame = frame
         self.layer = ZoneLayer(spec, frame, spec.policy)
-        self.intake = ZoneIntake(spec, self.layer)
+        self.intake = ZoneIntake(spec, self.layer, memory=memory)
+        self.intake.restore(now)
         self.costs: NDArray[np.uint8] = self.layer.paint(
             Bounds(0, 0, frame.height, frame.width), outside=NO_INFORMATION
         )
         """The zone layer's cost of every cell of the map, as last sent: NO_INFORMATION (-1 on the grid) outside
         every zone and block, as the agent's own zone layer offers it, so costmap_2d's updateWithMax leaves the
         map there as it is (a 0 would make the map's unknown space free in move_base's master). Painted whole at
-        the start: the layer starts every zone clear, and a zone that stays clear is never a change."""
+        the start: the layer starts every zone clear (or as last known), and a zone that stays so is no change."""
         self.escaping: frozenset[BlockedArea] = frozenset()
         """Blocked areas sent at ESCAPE_COST instead of lethal: the robot stands in them (`set_escape`)."""
 

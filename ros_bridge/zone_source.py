@@ -48,15 +48,6 @@ def start_broker_link(broker: tuple[str, int], creds: Credentials, tls_ca: Path 
         raise CliError(str(exc)) from None
 
 
-def refuse_bad_login(bus: MqttBus, timeout_s: float) -> None:
-    """Wait up to `timeout_s` for the broker's first answer; a refused login is a one-line CliError (a wrong
-    password is a set-up to fix, not an outage to ride out), no answer is an outage the bridge rides out."""
-    bus.wait_answered(timeout_s)
-    if bus.refusal is not None:
-        bus.abort()
-        raise CliError(f"MQTT broker {bus.address} refused the login: {bus.refusal} (check the credentials)")
-
-
 class LinkWatch:
     """Says, loudly and once per change, when the MQTT link is down (the grid still serves its last states, read
     by the site's stale policy) and when it is back: a bridge without its broker must keep the grid up, or a

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
 if TYPE_CHECKING:
+    from wsnav.runtime.mqtt_bus import MqttBus
     from wsnav.schemas.credentials import Credentials
     from wsnav.schemas.site import Site
 
@@ -40,6 +41,26 @@ def add_broker_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         metavar="FILE",
         help="connect over TLS (the broker's TLS port), trusting the CA in FILE (the site's ca.crt)",
+    )
+
+
+def refuse_bad_login(bus: MqttBus, timeout_s: float) -> None:
+    """Wait up to `timeout_s` for the broker's first answer; a refused login is a one-line CliError (a wrong
+    password is a set-up to fix, not an outage to ride out), no answer is an outage the reader rides out."""
+    bus.wait_answered(timeout_s)
+    if bus.refusal is not None:
+        bus.abort()
+        raise CliError(f"MQTT broker {bus.address} refused the login: {bus.refusal} (check the credentials)")
+
+
+def add_state_dir_argument(parser: argparse.ArgumentParser) -> None:
+    """`--state-dir DIR`, the same on every reader of zone states that can keep them across restarts."""
+    parser.add_argument(
+        "--state-dir",
+        type=Path,
+        metavar="DIR",
+        help="keep the last known zone states in DIR (zones-<site>.json) and start from them, aged by the "
+        "site's stale policy, when restarted (also with the broker down)",
     )
 
 

@@ -152,6 +152,20 @@ def _starts_a_process(fixture: object) -> bool:
     return any(call in source for call in STARTS_A_PROCESS)
 
 
+def _calls_a_starter(function: object) -> bool:
+    """The test calls, by name, a function of the test suite (its module's or a shared fixture module's) that
+    starts a process (`wsnav(...)`-style helpers running the command line: a test that starts processes through
+    them is no faster than one doing it itself)."""
+    code = getattr(function, "__code__", None)
+    module = inspect.getmodule(function)  # type: ignore[arg-type]
+    if code is None or module is None:
+        return False
+    helpers = (getattr(module, name, None) for name in code.co_names)
+    return any(
+        inspect.isfunction(h) and h.__module__.startswith("tests.") and _starts_a_process(h) for h in helpers
+    )
+
+
 def _slow_fixtures(item: pytest.Item) -> list[str]:
     """The fixtures of the item's closure that start a process."""
     info = getattr(item, "_fixtureinfo", None)
@@ -163,8 +177,8 @@ def _slow_fixtures(item: pytest.Item) -> list[str]:
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """`make test-fast` (`-m "not slow"`) runs the rest: the logic. Slow: a test that starts a process itself or
-    through its fixtures (derived from their code, `STARTS_A_PROCESS`), and the hand-kept SLOW_MODULES and
+    """`make test-fast` (`-m "not slow"`) runs the rest: the logic. Slow: a test that starts a process itself,
+    through a helper of the suite or through its fixtures (derived from their code, `STARTS_A_PROCESS`), and the hand-kept SLOW_MODULES and
     SLOW_TESTS (processes started through helpers, or long without one)."""
     for item in items:
         module = item.path.name
@@ -173,5 +187,6 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             or f"{module}::{item.originalname}" in SLOW_TESTS  # type: ignore[attr-defined]
             or _slow_fixtures(item)
             or _starts_a_process(getattr(item, "function", None))
+            or _calls_a_starter(getattr(item, "function", None))
         ):
             item.add_marker(pytest.mark.slow)

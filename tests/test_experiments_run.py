@@ -231,7 +231,9 @@ def test_each_step_of_the_ablation_changes_only_what_the_report_attributes_to_it
         return flat
 
     default, zones, full = settings("default"), settings("zones"), settings("full")
-    assert {k for k in default if default[k] != zones[k]} == {"zone_layer", "recovery.on_no_path"}
+    # the zone layer: its switch and its place in the costmap's plugins list
+    assert {k for k in default if default[k] != zones[k]} == {"plugins", "zone_layer", "recovery.on_no_path"}
+    assert [p for p in zones["plugins"] if p not in default["plugins"]] == ["zone_layer"]  # type: ignore[union-attr]
     assert {k for k in zones if zones[k] != full[k]} == {
         "replan_rate_hz",
         "global_costmap_rate_hz",

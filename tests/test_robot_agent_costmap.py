@@ -466,3 +466,38 @@ def test_real_maps_block_each_zone_incrementally_as_the_whole_map_would(name: st
     incremental = costmap.master.copy()
     costmap.rebuild()
     assert np.array_equal(incremental, costmap.master)
+
+
+def test_the_builtin_configs_name_todays_layers_and_a_config_may_name_others(
+    school: Site, tmp_path: Path
+) -> None:
+    """Nav2's `plugins`: the list of layers is the configuration's. The built-in ones give exactly the lists
+    the layer switches gave before; a config naming fewer layers builds only those, in its order."""
+    from wsnav.robot_agent.agent_config import AgentConfig, AgentConfigError, load_agent_config
+
+    fleet = ["static_layer", "obstacle_layer", "zone_layer", "robots_layer", "inflation_layer"]
+    assert load_agent_config("default").layer_plugins() == [p for p in fleet if p != "zone_layer"]
+    assert load_agent_config("zones").layer_plugins() == fleet
+    assert load_agent_config("full").layer_plugins() == fleet
+    for name in ("default", "zones", "full"):  # the switches, unset plugins: the same list as before
+        switches = load_agent_config(name).model_copy(update={"plugins": None})
+        assert switches.layer_plugins() == load_agent_config(name).layer_plugins()
+    layer = ZoneLayer(school.spec, GridFrame.of_grid(school.grid))
+    plugins = AgentConfig(plugins=["static_layer", "zone_layer", "inflation_layer"]).layer_plugins()
+    costmap = LayeredCostmap(school.grid, INFLATION, zone_layer=layer, plugins=plugins)
+    assert [type(x).__name__ for x in costmap.layers] == ["StaticLayer", "ZoneCostLayer", "InflationLayer"]
+    assert costmap.obstacles is None and costmap.robots is None
+    assert AgentConfig(plugins=plugins).obstacle_layer is False
+    for bad, says in [
+        ("plugins: [static_layer, lidar, inflation_layer]\n", "unknown costmap plugin 'lidar'"),
+        ("plugins: [static_layer, inflation_layer, inflation_layer]\n", "'inflation_layer' named twice"),
+        ("plugins: [static_layer, zone_layer]\n", "lack 'inflation_layer'"),
+        (
+            "zone_layer: true\nplugins: [static_layer, inflation_layer]\n",
+            "zone_layer: True but plugins leave out",
+        ),
+    ]:
+        path = tmp_path / "agent.yaml"
+        path.write_text(bad)
+        with pytest.raises(AgentConfigError, match=says):
+            load_agent_config(path)

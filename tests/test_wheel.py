@@ -60,6 +60,10 @@ def test_the_wheel_carries_the_example_sites_a_license_and_py_typed_and_no_test_
         assert shipped in names, shipped
     assert any(n.endswith(".dist-info/licenses/LICENSE") for n in names), sorted(names)[:20]
     assert not [n for n in names if "host_stubs" in n or n.endswith("generate.py")]
+    assert "wsnav/firmware/build.py" in names
+    assert not {"wsnav/firmware/testing.py", "wsnav/firmware/unix_board.py"} & names, (
+        "the unix port's test drivers"
+    )
 
 
 def test_wsnav_demo_runs_from_an_install_outside_the_checkout(wheel: Path, tmp_path: Path) -> None:

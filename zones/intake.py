@@ -17,6 +17,10 @@ where the old rule (any drop of more than 2**29 was a wrap) let two captured sta
 A QoS 1 redelivery (the broker resending a state whose PUBACK it missed) repeats the last accepted state byte
 for byte: it is counted in `duplicates` and ignored, neither dropped nor logged (under load a broker resends
 hundreds a second). The same seq with other content is still an old seq.
+
+With a `LastKnownZones` (zones/last_known.py) the intake remembers every accepted state on disk and starts from
+what it knew (`restore`): a retained copy of a state it already holds is such a duplicate, and a retained birth of
+a node it knows brings no news of when the node last spoke, so neither makes a silent node look fresh.
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ from wsnav.schemas.messages import (
     refuse_duplicate_keys,
 )
 from wsnav.schemas.site_file import SiteFile
+from wsnav.zones.last_known import LastKnownZones
 from wsnav.zones.zone_layer import ZoneLayer
 
 log = logging.getLogger(__name__)
@@ -62,10 +67,16 @@ class ZoneIntake:
     """Validates zone states, node statuses and operator blocks of one site and feeds them to a ZoneLayer."""
 
     def __init__(
-        self, spec: SiteFile, layer: ZoneLayer, drop_log_interval: float = DROP_LOG_INTERVAL
+        self,
+        spec: SiteFile,
+        layer: ZoneLayer,
+        drop_log_interval: float = DROP_LOG_INTERVAL,
+        memory: LastKnownZones | None = None,
     ) -> None:
         self.spec = spec
         self.layer = layer
+        self.memory = memory
+        """The last known states on disk, or None to keep nothing across restarts."""
         self._zones = {z.id for z in spec.zones}
         self._watches = {n.id: n.zone for n in spec.nodes}
         self._last_seq: dict[str, int] = {}
@@ -79,6 +90,19 @@ class ZoneIntake:
         self.cleared = 0
         """Empty retained messages on a node's topics: the broker forgot its word (`wsnav broker revoke`); the
         layer keeps what it knew until the stale policy says otherwise."""
+
+    def restore(self, now: float) -> bool:
+        """Start from the last known states (if kept), each aged by the time since it was heard; True if zone
+        costs changed. Call once, before the first message."""
+        if self.memory is None:
+            return False
+        changed = False
+        for node, known in self.memory.known.items():
+            age = self.memory.age_s(node) or 0.0
+            self._last_seq[node] = known.seq
+            self._last_payload[node] = known.payload
+            changed |= self.layer.restore(node, known.state, now - age, known.online, now)
+        return changed
 
     def subscriptions(self) -> list[str]:
         """Topic filters to subscribe: every zone state, node status and operator block of the site."""
@@ -136,15 +160,17 @@ class ZoneIntake:
         if msg.zone != zone or msg.node != node:
             return self._drop("mismatch", message, f"payload says zone {msg.zone!r} node {msg.node!r}")
         last = self._last_seq.get(node)
+        if last is not None and msg.seq == last and message.payload == self._last_payload.get(node):
+            self.duplicates += 1  # a redelivery, or the retained copy of a state already known: no news
+            return False
         if last is not None and node not in self._reborn and not seq_is_newer(msg.seq, last):
-            if msg.seq == last and message.payload == self._last_payload.get(node):
-                self.duplicates += 1
-                return False
             return self._drop("old_seq", message, f"seq {msg.seq} after {last}")
         self._last_seq[node] = msg.seq
         self._last_payload[node] = bytes(message.payload)
         self._reborn.discard(node)
         self.accepted += 1
+        if self.memory is not None:
+            self.memory.accepted(node, msg.state, msg.seq, message.payload)
         return self.layer.on_zone_state(msg, message.received_at)
 
     def _node_status(self, message: Message, node: str) -> bool:
@@ -161,7 +187,15 @@ class ZoneIntake:
         if msg.status == "online":
             self._reborn.add(node)
         self.accepted += 1
-        return self.layer.on_node_status(msg, message.received_at)
+        received_at = message.received_at
+        age = self.memory.age_s(node) if self.memory is not None else None
+        if message.retain and age is not None and msg.status == "online":
+            received_at -= (
+                age  # a stored birth of a node known here: it says nothing of when the node last spoke
+            )
+        elif self.memory is not None:
+            self.memory.status(node, msg.status == "online")
+        return self.layer.on_node_status(msg, received_at)
 
     def _operator_block(self, message: Message, block_id: str) -> bool:
         if not message.payload:

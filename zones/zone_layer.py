@@ -115,6 +115,20 @@ class ZoneLayer:
             self._due.pop(msg.node, None)  # stale at once; nothing to wait for
         return self._reevaluate(view.zone)
 
+    def restore(self, node: str, state: str, heard_at: float, online: bool, now: float) -> bool:
+        """A node's last known state from before a restart (zones.last_known), heard at `heard_at`: read at `now`
+        under the stale policy as if it had never stopped; True if zone costs changed."""
+        view = self._nodes.get(node)
+        if view is None:
+            return False
+        self._tick(now)
+        view.state = state
+        view.heard_at = min(heard_at, now)
+        view.online = online
+        self._due.pop(node, None)
+        self._arm(node, view)
+        return self._reevaluate(view.zone)
+
     def on_operator_block(self, block_id: str, msg: OperatorBlock | None, received_at: float) -> bool:
         """Set (or with None remove) an operator block; a block on an unknown zone is ignored."""
         self._tick(received_at)

@@ -1,5 +1,5 @@
-"""The robot's layered costmap, with costmap_2d's semantics: a list of layers, static -> obstacle -> zone ->
-robots -> inflation, each called the same way.
+"""The robot's layered costmap, with costmap_2d's semantics: a list of layers named by a `plugins` list as in
+Nav2 (by default static -> obstacle -> zone -> robots -> inflation), each called the same way.
 
 The layers (wsnav.navigation.costmap.layers) are called in their order: `update_bounds` gathers the windows to
 recompute (each layer adds what it changed; the inflation layer keeps the cells whose merged cost really changed
@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Sequence
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,14 +34,22 @@ from wsnav.zones.cost_values import FREE_SPACE, INSCRIBED_INFLATED_OBSTACLE, LET
 from wsnav.zones.geometry import Bounds, GridFrame
 from wsnav.zones.zone_layer import ZoneLayer
 
-__all__ = ["Bounds", "LayeredCostmap"]
+__all__ = ["LAYER_PLUGINS", "Bounds", "LayeredCostmap", "check_plugins"]
+
+L = TypeVar("L", bound=Layer)
 
 CHANGE_LOG = 64
 """Updates remembered for `changes_since`; a reader further behind recomputes from master whole."""
 
 
+LAYER_PLUGINS = ("static_layer", "obstacle_layer", "zone_layer", "robots_layer", "inflation_layer")
+"""The layers a configuration may name in its `plugins` list (Nav2's costmap `plugins` parameter), each at most
+once, in the order they are called; `static_layer` and `inflation_layer` are required."""
+
+
 class LayeredCostmap:
-    """Static, obstacle (lidar), zone (WSN) and, in a fleet, robots layers, then inflation: one list of layers."""
+    """One list of layers, built from a `plugins` list of names (by default static, obstacle (lidar), zone (WSN)
+    and, in a fleet, robots, then inflation), each called the same way."""
 
     def __init__(
         self,
@@ -52,34 +61,89 @@ class LayeredCostmap:
         obstacle_range_m: float = 3.0,
         raytrace_range_m: float = 3.5,
         robots_layer: RobotsLayer | None = None,
+        plugins: Sequence[str] | None = None,
     ) -> None:
-        """`robots_layer`: the other robots' footprints (a fleet), merged after the zone layer."""
+        """`robots_layer`: the other robots' footprints (a fleet). `plugins`: the layers by name, in order
+        (LAYER_PLUGINS); by default every layer given: static, obstacle (unless `obstacle_layer` is false), zone (if
+        `zone_layer`), robots (if `robots_layer`), inflation. A named `robots_layer` with no robots to follow (a
+        site with one robot) is left out."""
         self.frame = GridFrame.of_grid(grid)
         if zone_layer is not None and zone_layer.frame != self.frame:
             raise ValueError("the zone layer was built for another grid frame")
         if robots_layer is not None and robots_layer.frame != self.frame:
             raise ValueError("the robots layer was built for another grid frame")
-        self.static = StaticLayer(grid)
-        self.obstacles = (
-            ObstacleLayer(self.frame, obstacle_range_m, raytrace_range_m) if obstacle_layer else None
-        )
-        self.zones = ZoneCostLayer(zone_layer) if zone_layer is not None else None
-        self.robots = robots_layer
-        self.inflation = InflationLayer(inflation, self.frame, self)
-        self.layers: list[Layer] = [
-            layer
-            for layer in (self.static, self.obstacles, self.zones, self.robots, self.inflation)
-            if layer is not None
-        ]
-        """The layers, in the order they are called; the named ones above are handles into it."""
+        if plugins is None:
+            plugins = [
+                name
+                for name, present in zip(
+                    LAYER_PLUGINS,
+                    (True, obstacle_layer, zone_layer is not None, robots_layer is not None, True),
+                    strict=True,
+                )
+                if present
+            ]
+        check_plugins(plugins)
+        if "zone_layer" in plugins and zone_layer is None:
+            raise ValueError("plugins name zone_layer, but no zone layer was given")
+        self.plugins: list[str] = list(plugins)
+        """The names of the layers, in order (what built `layers`)."""
+        self.layers: list[Layer] = []
+        """The layers, in the order they are called."""
+        for name in plugins:
+            match name:
+                case "static_layer":
+                    self.layers.append(StaticLayer(grid))
+                case "obstacle_layer":
+                    self.layers.append(ObstacleLayer(self.frame, obstacle_range_m, raytrace_range_m))
+                case "zone_layer":
+                    assert zone_layer is not None
+                    self.layers.append(ZoneCostLayer(zone_layer))
+                case "robots_layer":
+                    if robots_layer is not None:
+                        self.layers.append(robots_layer)
+                case "inflation_layer":
+                    self.layers.append(InflationLayer(inflation, self.frame, self))
         self.master: NDArray[np.uint8] = self.static.costs.copy()
         self.version = 0
         self._log: deque[tuple[int, Bounds]] = deque(maxlen=CHANGE_LOG)
         self.rebuild()
 
+    def _layer(self, kind: type[L]) -> L | None:
+        return next((layer for layer in self.layers if isinstance(layer, kind)), None)
+
+    @property
+    def static(self) -> StaticLayer:
+        """The map's layer (always in the list)."""
+        layer = self._layer(StaticLayer)
+        assert layer is not None
+        return layer
+
+    @property
+    def obstacles(self) -> ObstacleLayer | None:
+        """The lidar's layer, if in the list."""
+        return self._layer(ObstacleLayer)
+
+    @property
+    def zones(self) -> ZoneCostLayer | None:
+        """The WSN zone layer's costs, if in the list."""
+        return self._layer(ZoneCostLayer)
+
+    @property
+    def robots(self) -> RobotsLayer | None:
+        """The other robots' footprints, if in the list."""
+        return self._layer(RobotsLayer)
+
+    @property
+    def inflation(self) -> InflationLayer:
+        """The inflation layer (always in the list)."""
+        layer = self._layer(InflationLayer)
+        assert layer is not None
+        return layer
+
     @property
     def zone_layer(self) -> ZoneLayer | None:
-        return self.zones.zone_layer if self.zones is not None else None
+        zones = self.zones
+        return zones.zone_layer if zones is not None else None
 
     @property
     def whole(self) -> Bounds:
@@ -96,16 +160,18 @@ class LayeredCostmap:
 
     def update_zones(self, now: float) -> Bounds | None:
         """Apply what changed in the zone layer (after ageing it to `now`); None if no cost changed."""
-        if self.zones is None:
+        zone_layer = self.zone_layer
+        if zone_layer is None:
             return None
-        self.zones.zone_layer.refresh(now)
+        zone_layer.refresh(now)
         return self.update()
 
     def update_scan(self, scan: LaserScan) -> Bounds | None:
         """Feed a scan to the obstacle layer and apply it; None if no cost changed. Other robots the robots layer
         knows are left to it (not marked by the lidar)."""
-        known = self.robots.known_discs() if self.robots is not None else []
-        if self.obstacles is None or not self.obstacles.add_scan(scan, known):
+        robots, obstacles = self.robots, self.obstacles
+        known = robots.known_discs() if robots is not None else []
+        if obstacles is None or not obstacles.add_scan(scan, known):
             return None
         return self.update()
 
@@ -214,3 +280,16 @@ class LayeredCostmap:
     def _changed(self, b: Bounds) -> None:
         self.version += 1
         self._log.append((self.version, b))
+
+
+def check_plugins(plugins: Sequence[str]) -> None:
+    """Refuse, in one line, a `plugins` list that names an unknown layer, one twice, or lacks a required one."""
+    unknown = [p for p in plugins if p not in LAYER_PLUGINS]
+    if unknown:
+        raise ValueError(f"unknown costmap plugin {unknown[0]!r} (known: {', '.join(LAYER_PLUGINS)})")
+    twice = [p for p in LAYER_PLUGINS if list(plugins).count(p) > 1]
+    if twice:
+        raise ValueError(f"costmap plugin {twice[0]!r} named twice")
+    for required in ("static_layer", "inflation_layer"):
+        if required not in plugins:
+            raise ValueError(f"costmap plugins lack {required!r}")
