@@ -16,7 +16,6 @@ from tests.conftest import REPO
 BENCH = REPO / "bench"
 
 NOT_YET_QUICK = {
-    "console_feed": "the console helper's branch gives it --quick",
     "zone_fanin": "the broker helper's branch gives it --quick",
     "attack_latency": "the broker helper's branch gives it --quick",
     "broker_latency": "the broker helper's branch gives it --quick",
