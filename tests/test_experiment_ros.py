@@ -50,15 +50,13 @@ def short_route_school(directory: Path) -> Path:
 
 
 def test_without_move_base_the_ros_backend_says_so_in_one_line(tmp_path: Path) -> None:
-    for cmd in ("rosrun no_such_package move_base", "/nonexistent/move_base"):
-        done = wsnav(
-            "experiment", "--backend", "ros", "--move-base-cmd", cmd, "--runs", "1", "--out", tmp_path / "out"
-        )
-        assert done.returncode == 2, done.stderr
-        assert "Traceback" not in done.stderr
-        lines = done.stderr.strip().splitlines()
-        assert len(lines) == 1 and "move_base is not installed" in lines[0], done.stderr
-        assert not (tmp_path / "out" / "runs.csv").exists()
+    """Here, as on CI, nothing provides move_base (Debian does not package it): the default command is missing."""
+    done = wsnav("experiment", "--backend", "ros", "--runs", "1", "--out", tmp_path / "out")
+    assert done.returncode == 2, done.stderr
+    assert "Traceback" not in done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "move_base is not installed" in lines[0], done.stderr
+    assert not (tmp_path / "out" / "runs.csv").exists()
 
 
 def test_each_configuration_drives_the_route_on_the_move_base_it_is_given(tmp_path: Path) -> None:
@@ -86,10 +84,10 @@ def test_each_configuration_drives_the_route_on_the_move_base_it_is_given(tmp_pa
     assert (col["outcome"] == "arrived").all(), shown
     assert (col["blocked"] == "z5").all(), shown
     # Driven by the stand-in over /cmd_vel, measured by the simulated robot: the route's length, in the
-    # simulated time /clock gave (at 0.22 m/s, at least 6.8 s).
+    # simulated time /clock gave, never faster than the Burger's 0.22 m/s.
     distance, time_s = col["distance_m"].astype(float), col["time_s"].astype(float)
     assert ((distance > ROUTE_M - 0.2) & (distance < ROUTE_M + 0.5)).all(), shown
-    assert ((time_s >= ROUTE_M / 0.22) & (time_s < 60)).all(), shown
+    assert ((time_s >= distance / 0.22) & (time_s < 60)).all(), shown
     assert (col["collisions"] == 0).all(), shown
     assert (col["process_cpu_s"].astype(float) > 0).all(), shown
     assert (col["peak_mem_mb"].astype(float) > 10).all(), shown
