@@ -21,9 +21,11 @@ import yaml
 from tests.conftest import REPO, SITES
 from tests.ros_fixtures import require_ros
 from wsnav.experiments.report import read_runs, write_report
+from wsnav.ros_bridge.costmap_params import check_global_costmap
+from wsnav.ros_experiment import move_base_params
 
 STANDIN = f"{sys.executable} -m tests.move_base_standin"
-ROUTE_M = 1.5
+ROUTE_M = 1.0
 
 
 def wsnav(*args: str | Path, timeout: float = 170) -> subprocess.CompletedProcess[str]:
@@ -47,6 +49,23 @@ def short_route_school(directory: Path) -> Path:
     spec["routes"] = [{"from": "A", "to": "S", "raffle": [["z5"]]}]
     (site_dir / "site.yaml").write_text(yaml.safe_dump(spec, sort_keys=False))
     return site_dir
+
+
+def test_each_configuration_gets_robotis_parameters_with_its_own_numbers() -> None:
+    """`default` is ROBOTIS' stock Burger set without the zone layer; `full` the paper's reduced set (no periodic
+    replanning, 5 Hz global costmap, 2 m local costmap) with a zone layer the bridge accepts."""
+    default, zones, full = (move_base_params(c) for c in ("default", "zones", "full"))
+    assert check_global_costmap(default["global_costmap"], "/wsn/zone_grid").zone_layer is None
+    for params in (zones, full):
+        check = check_global_costmap(params["global_costmap"], "/wsn/zone_grid")
+        assert check.errors == [] and check.zone_layer == "wsn_zone_layer"
+    rates = [
+        (p["planner_frequency"], p["global_costmap"]["update_frequency"], p["local_costmap"]["width"])
+        for p in (default, zones, full)
+    ]
+    assert rates == [(5.0, 10.0, 3.0), (5.0, 10.0, 3.0), (0.0, 5.0, 2.0)]
+    assert default["base_local_planner"] == "dwa_local_planner/DWAPlannerROS"
+    assert default["DWAPlannerROS"]["max_vel_x"] == 0.22
 
 
 def test_without_move_base_the_ros_backend_says_so_in_one_line(tmp_path: Path) -> None:
