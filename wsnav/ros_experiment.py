@@ -148,6 +148,12 @@ class RosSide:
             name: actionlib.SimpleActionClient(name, MoveBaseAction) for name in ("/move_base", RELAY)
         }
 
+    def forget_robot(self) -> None:
+        """Before a run's robot starts: the last run's /clock and pose must not pass for this one's (its clock
+        starts again at 1 s; a stale time made a run's time to goal seconds short)."""
+        self.sim_t = None
+        self.pose = None
+
     def set_param(self, key: str, value: bool | dict[str, Any]) -> None:
         self.master.deleteParam("/wsnav_experiment", key)  # no key of the last configuration stays
         self.master.setParam("/wsnav_experiment", key, value)
@@ -300,6 +306,7 @@ def ros_run(
     """One run: the robot, move_base (and the bridge), the zones blocked, the goal, until it ends or the cap."""
     agent = load_agent_config(spec.config)
     ros.set_param("/move_base", move_base_params(spec.config))
+    ros.forget_robot()  # the last run's processes are gone: nothing of theirs arrives after this
     env = core.env()
     with BrokerThread(site) as broker, _children() as children:
         robot_creds = str(broker.credentials_dir / f"{ROBOT}.json")
