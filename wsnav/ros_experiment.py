@@ -397,6 +397,7 @@ def _drive(
         if now >= next_sample:
             trajectory.append(pose)
             next_sample += TRAJECTORY_EVERY_S
+            cpu.cpu_s()  # samples move_base's resident set for its peak
         state = client.get_state()
         if state in ending:
             break
