@@ -426,8 +426,11 @@ def comparisons(configs: Sequence[str]) -> list[tuple[str, str]]:
     return out
 
 
-def rules_and_differences(metrics: Sequence[Metric] = METRICS) -> list[str]:
-    """The report's rules for failed runs and figures, and what still separates `default` from stock."""
+def rules_and_differences(metrics: Sequence[Metric] = METRICS, on_ros: bool = False) -> list[str]:
+    """The report's rules for failed runs and figures, and what still separates `default` from stock (on the
+    ROS backend: stock move_base itself, and what its CPU figure is)."""
+    if on_ros:
+        return [*_rules(), "", *(f"- {c}" for c in ROS_MEASURES)]
     cpu = [
         "Agent-step CPU per simulated second: thread CPU time inside the agent's step (costmap updates, "
         "planning, control), per simulated second of the run: the share of one core the navigation's own work "
@@ -448,14 +451,7 @@ def rules_and_differences(metrics: Sequence[Metric] = METRICS) -> list[str]:
             "shows the agent-step CPU only."
         )
     return [
-        "How to read it: a run arrives, or fails: move_base's rules abort it (its recoveries all failed) or "
-        f"the {TIME_CAP_S:.0f} s simulated-time cap ends it. The success rate counts both failures, with its "
-        "95% Wilson interval. Time to goal, distance, replans and CPU are means over the runs that arrived (an "
-        "aborted run stops long before the cap, so counting it at the cap would make the mean depend on the "
-        "cap); over each bar, how many runs arrived of how many ran. Stalled and recoveries: means over every "
-        "run. Stalled: simulated time in stretches of at least 10 s in which the robot got no 0.2 m further "
-        "(move_base's oscillation rule, measured alike for every configuration). Brackets: 95% Student-t "
-        "intervals of the mean, Wilson for success rates. Three significant figures throughout.",
+        *_rules(),
         "",
         *(f"- {c}" for c in cpu),
         "",
@@ -465,6 +461,33 @@ def rules_and_differences(metrics: Sequence[Metric] = METRICS) -> list[str]:
         "conservative reset (3 m), rotate, aggressive reset, rotate, then abort) except for:",
         "",
         *(f"- {d}" for d in STOCK_DIFFERENCES),
+    ]
+
+
+ROS_MEASURES = (
+    "Backend: the ROS 1 navigation installed here drove every run (move_base with navfn, DWA and "
+    "costmap_2d, ROBOTIS' Burger parameters with each configuration's own rates and sizes; for `zones` and "
+    "`full` the zone layer as a StaticLayer of the global costmap and `wsnav ros bridge --robot`, Algorithm 3), "
+    "the robot `wsnav sim --ros --clock`, simulated time on /clock at the simulator's real-time pace.",
+    "Run-process CPU per simulated second: move_base's process CPU (user + system, psutil, its children "
+    "included) over the run, per second of /clock, which advanced in real time: move_base's share of a core "
+    "in real time, as the paper measured it. Peak memory is move_base's resident set, sampled during the run.",
+    "Not measured on ROS (0 in runs.csv): agent-step CPU (no wsnav agent runs), replans, recoveries and "
+    "planning time (move_base does not report them to the experiment).",
+)
+"""What the runs table's columns mean when the ROS backend wrote it."""
+
+
+def _rules() -> list[str]:
+    return [
+        "How to read it: a run arrives, or fails: move_base's rules abort it (its recoveries all failed) or "
+        f"the {TIME_CAP_S:.0f} s simulated-time cap ends it. The success rate counts both failures, with its "
+        "95% Wilson interval. Time to goal, distance, replans and CPU are means over the runs that arrived (an "
+        "aborted run stops long before the cap, so counting it at the cap would make the mean depend on the "
+        "cap); over each bar, how many runs arrived of how many ran. Stalled and recoveries: means over every "
+        "run. Stalled: simulated time in stretches of at least 10 s in which the robot got no 0.2 m further "
+        "(move_base's oscillation rule, measured alike for every configuration). Brackets: 95% Student-t "
+        "intervals of the mean, Wilson for success rates. Three significant figures throughout.",
     ]
 
 
@@ -491,11 +514,68 @@ DEVIATIONS = (
 """What differs between this experiment and the paper's, for the report's deviations section."""
 
 
-def deviations_section() -> list[str]:
-    return ["## Deviations from the paper's experiment", "", *(f"- {d}" for d in DEVIATIONS), ""]
+ROS_DEVIATIONS = (
+    "Time: simulated on /clock, advanced by `wsnav sim --ros --clock` at its real-time pace (move_base and the "
+    "bridge run with /use_sim_time); the robot is wsnav's simulated TurtleBot3, not Gazebo's or a real one.",
+)
+"""The deviations that differ on the ROS backend (it has move_base's own local costmap and real-time pace)."""
 
 
-def memory_section(table: pd.DataFrame) -> list[str]:
+def deviations_section(on_ros: bool = False) -> list[str]:
+    kept = [d for d in DEVIATIONS if not on_ros or not d.startswith(("Time:", "Local costmap:"))]
+    extra = list(ROS_DEVIATIONS) if on_ros else []
+    return ["## Deviations from the paper's experiment", "", *(f"- {d}" for d in [*kept, *extra]), ""]
+
+
+BACKEND_LINE = "- Backend: "
+"""How the report's header names the backend that produced it (`backend_of` reads it back)."""
+
+
+def backend_of(header: str) -> str:
+    """`ros` or `sim`: which backend wrote a report's header (headers older than the ROS backend: `sim`)."""
+    for line in header.splitlines():
+        if line.startswith(BACKEND_LINE):
+            return "ros" if line[len(BACKEND_LINE) :].startswith("ROS") else "sim"
+    return "sim"
+
+
+def _compared(table: pd.DataFrame, key: list[str]) -> pd.DataFrame:
+    """The columns compared, `outcome` read from `success` in tables older than it."""
+    t = table.copy()
+    if "outcome" not in t.columns:
+        t["outcome"] = np.where(t["success"].to_numpy(dtype=bool), "arrived", "failed")
+    return t.loc[:, [*key, "outcome", "distance_m", "time_s"]]
+
+
+def backend_comparison(table: pd.DataFrame, header: str, other: pd.DataFrame, other_header: str) -> list[str]:
+    """The same plan on both backends, run by run (same configuration, route, run index, seed and blocked
+    zones): outcome, distance and time on each. ReportError when the two tables share no run."""
+    mine, theirs = backend_of(header), backend_of(other_header)
+    key = ["config", "route", "run", "seed", "blocked"]
+    both = _compared(table, key).merge(_compared(other, key), on=key, suffixes=("_a", "_b"))
+    if both.empty:
+        raise ReportError(
+            "--compare: the two runs tables share no run (same plan: configuration, route, run, seed)"
+        )
+    lines = [
+        f"## Backends compared run by run: {mine} (this report) and {theirs}",
+        "",
+        f"{len(both)} runs of the same plan (same configuration, route, run, seed and blocked zones) on both.",
+        "",
+        f"| config | route | run | blocked | outcome {mine} | outcome {theirs} | distance {mine} (m) | "
+        f"distance {theirs} (m) | time {mine} (s) | time {theirs} (s) |",
+        "|" + " --- |" * 10,
+    ]
+    for r in both.sort_values(["route", "run", "config"]).to_dict("records"):
+        lines.append(
+            f"| {r['config']} | {r['route']} | {r['run']} | {r['blocked']} | {r['outcome_a']} | {r['outcome_b']} "
+            f"| {sig3(float(r['distance_m_a']))} | {sig3(float(r['distance_m_b']))} | {sig3(float(r['time_s_a']))} "
+            f"| {sig3(float(r['time_s_b']))} |"
+        )
+    return [*lines, ""]
+
+
+def memory_section(table: pd.DataFrame, on_ros: bool = False) -> list[str]:
     """Each configuration's peak memory per run, from tables whose runs measured it per run (those with the
     run-process CPU column; before it, the figure grew with a worker's run order and is left out)."""
     if "process_cpu_s" not in table.columns or "peak_mem_mb" not in table.columns:
@@ -503,7 +583,9 @@ def memory_section(table: pd.DataFrame) -> list[str]:
     lines = [
         "## Memory",
         "",
-        "The run process's resident-set peak during each run (Linux VmHWM, reset as the run starts, after "
+        "move_base's resident-set peak during each run (sampled with psutil while the run went)."
+        if on_ros
+        else "The run process's resident-set peak during each run (Linux VmHWM, reset as the run starts, after "
         "the previous runs' garbage is collected): the agent, the simulated robot, the emulated nodes and "
         "their MQTT clients, and the broker when it is the embedded amqtt.",
         "",
@@ -562,9 +644,16 @@ HEADER_FILE = "header.md"
 beside runs.csv so that the report can be rendered again from the published files alone."""
 
 
-def write_report(table: pd.DataFrame, out: Path, header: str, path_figures: Sequence[Path] = ()) -> Path:
+def write_report(
+    table: pd.DataFrame,
+    out: Path,
+    header: str,
+    path_figures: Sequence[Path] = (),
+    compare: tuple[pd.DataFrame, str] | None = None,
+) -> Path:
     """report.md plus PNGs in `out` (one per metric by route, the paper's figures, and one per metric by route
-    and blocked zone), and the header in header.md; returns the report's path."""
+    and blocked zone), and the header in header.md; returns the report's path. `compare`: the runs table and
+    header of the same plan run by the other backend, for a run-by-run comparison."""
     out.mkdir(parents=True, exist_ok=True)
     (out / HEADER_FILE).write_text(header.rstrip("\n") + "\n")
     metrics = metrics_of(table)
@@ -574,7 +663,10 @@ def write_report(table: pd.DataFrame, out: Path, header: str, path_figures: Sequ
     by_zone.to_csv(out / "summary_by_zone.csv", index=False)
     configs = [c for c in CONFIG_ORDER if c in set(table["config"])]
     configs += sorted(set(table["config"]) - set(configs))
-    parts = [header, "", *rules_and_differences(metrics), "", *deviations_section()]
+    on_ros = backend_of(header) == "ros"
+    parts = [header, "", *rules_and_differences(metrics, on_ros), "", *deviations_section(on_ros)]
+    if compare is not None:
+        parts += backend_comparison(table, header, *compare)
     parts += ["## By route (the paper's Figures 10-12)", "", markdown_table(summary), ""]
     for before, after in comparisons(configs):
         diff = paired_differences(table, before, after)
@@ -609,7 +701,7 @@ def write_report(table: pd.DataFrame, out: Path, header: str, path_figures: Sequ
         png = out / f"{metric.column}_by_zone.png"
         bar_chart(by_zone, metric, png)
         parts += [f"![{metric.label} by blocked zone]({png.name})", ""]
-    parts += memory_section(table)
+    parts += memory_section(table, on_ros)
     parts += stall_section(table)
     if path_figures:
         parts += ["## Paths (the paper's Figures 8-9)", ""]
@@ -636,9 +728,9 @@ class ReportError(Exception):
     """The folder holds no runs table to render a report from; one line for the user."""
 
 
-def rerender(out: Path) -> Path:
-    """The report again from `out`'s runs.csv and header.md (and the path figures already there), nothing
-    rerun: how a reader checks that a published report is what its table says."""
+def read_runs(out: Path) -> tuple[pd.DataFrame, str]:
+    """`out`'s runs.csv (typed as the runner wrote it) and header.md; ReportError, one line, when either is
+    missing or not what the runner writes."""
     runs_csv = out / "runs.csv"
     try:
         table = pd.read_csv(runs_csv, keep_default_na=False)
@@ -659,4 +751,13 @@ def rerender(out: Path) -> Path:
             table[column] = pd.to_numeric(table[column])
         except ValueError:
             raise ReportError(f"{runs_csv}: column {column} holds a value that is not a number") from None
-    return write_report(table, out, header, sorted(out.glob("paths_*.png")))
+    return table, header
+
+
+def rerender(out: Path, compare: Path | None = None) -> Path:
+    """The report again from `out`'s runs.csv and header.md (and the path figures already there), nothing
+    rerun: how a reader checks that a published report is what its table says. `compare`: another backend's
+    output of the same plan, compared run by run."""
+    table, header = read_runs(out)
+    other = read_runs(compare) if compare is not None else None
+    return write_report(table, out, header, sorted(out.glob("paths_*.png")), other)

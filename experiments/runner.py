@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from wsnav.experiments.report import paths_figure, write_report
+from wsnav.experiments.report import BACKEND_LINE, paths_figure, write_report
 from wsnav.experiments.run_plan import RunSpec
 from wsnav.experiments.run_record import record_name
 from wsnav.experiments.single_run import COLUMNS, DT, BrokerAt, RunResult
@@ -88,11 +88,16 @@ def run_experiment(
                 done.append(future.result())
                 if progress is not None:
                     progress(len(done), len(specs))
-    done.sort(key=lambda d: (d[0].config, d[0].route, d[0].run))
+    return collect(done, time.monotonic() - start)
+
+
+def collect(done: list[tuple[RunSpec, RunResult]], wall_s: float) -> Outcome:
+    """The table and paths of finished runs, whatever ran them (this pool, a cluster, the ROS backend)."""
+    done = sorted(done, key=lambda d: (d[0].config, d[0].route, d[0].run))
     table = pd.DataFrame([r.row for _, r in done], columns=list(COLUMNS))
     paths = {(s.route, s.config): r.trajectory for s, r in done if s.run == 0}
     every = {(s.config, s.route, s.run): r.trajectory for s, r in done}
-    return Outcome(table, paths, time.monotonic() - start, every)
+    return Outcome(table, paths, wall_s, every)
 
 
 def progress_line(started: float | None = None) -> Progress:
@@ -125,18 +130,31 @@ def report_header(
     reproduce: str,
     run_broker: str | None = None,
     code: str | None = None,
+    backend: str | None = None,
 ) -> str:
     """The report's opening: what ran, how, on what machine, how fast, the code (`code`: `provenance()` taken
-    as the runs started; now if not given) and the command that reproduces it."""
+    as the runs started; now if not given) and the command that reproduces it. `backend`: the ROS backend's
+    line (None: wsnav's navigator in lock step, the default backend)."""
     o = outcome
+    how = (
+        [
+            f"{BACKEND_LINE}{backend}.",
+            f"- Messages through {where}; emulated nodes with their own credentials.",
+        ]
+        if backend is not None
+        else [
+            f"{BACKEND_LINE}simulated (wsnav's navigator on the simulated TurtleBot3, in lock step).",
+            f"- Messages through {where}; emulated nodes with their own credentials (zone simulator), the agent "
+            f"on robot1's connection, a simulated TurtleBot3; lock-step simulated time, {DT:g} s steps.",
+        ]
+    )
     return "\n".join(
         [
             f"# Experiment: {', '.join(configs)} on site {site}",
             "",
             f"- {runs} runs per route and configuration, base seed {seed}; run i of a route blocks the "
             "same raffled zones under every configuration (paired).",
-            f"- Messages through {where}; emulated nodes with their own credentials (zone simulator), the agent "
-            f"on robot1's connection, a simulated TurtleBot3; lock-step simulated time, {DT:g} s steps.",
+            *how,
             "- The obstacle is placed when the route starts and cleared when the robot stops.",
             "- Configurations take turns run by run (run i of a route under each, then run i+1), so a change in "
             "the machine's load falls on every configuration alike.",
@@ -210,7 +228,13 @@ def path_png(out: Path, route: str) -> Path:
     return out / f"paths_{route.replace('->', '-')}.png"
 
 
-def write_outputs(site: Site, outcome: Outcome, out: Path, header: str) -> Path:
+def write_outputs(
+    site: Site,
+    outcome: Outcome,
+    out: Path,
+    header: str,
+    compare: tuple[pd.DataFrame, str] | None = None,
+) -> Path:
     """runs.csv, trajectories.npz, one paths_<route>.png per route, and the report (report.md, PNGs)."""
     out.mkdir(parents=True, exist_ok=True)
     outcome.table.to_csv(out / "runs.csv", index=False)
@@ -226,4 +250,4 @@ def write_outputs(site: Site, outcome: Outcome, out: Path, header: str) -> Path:
         png = path_png(out, route)
         paths_figure(site, paths, zones, f"{route}, {blocked} blocked: run 0's paths", png)
         figures.append(png)
-    return write_report(table, out, header, figures)
+    return write_report(table, out, header, figures, compare)

@@ -42,6 +42,11 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     sim.add_argument(
         "--cmd-timeout", type=float, default=0.5, metavar="S", help="stop when /cmd_vel is silent this long"
     )
+    sim.add_argument(
+        "--clock",
+        action="store_true",
+        help="publish simulated time on /clock and stamp with it (for nodes with /use_sim_time true)",
+    )
     sim.add_argument("--connect-timeout", type=float, default=10.0, metavar="S", help="MQTT, default 10")
     sim.set_defaults(func=sim_command)
 

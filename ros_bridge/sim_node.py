@@ -5,6 +5,8 @@ software (wsnav's own `robot --ros`, move_base, a teleop) can drive.
 Out: `/scan` (sensor_msgs/LaserScan, 5 Hz, frame base_scan), `/odom` (nav_msgs/Odometry) and tf
 odom -> base_footprint at `--rate`, static tf map -> odom (identity: the simulated odometry is exact and starts in
 map coordinates) and base_footprint -> base_scan (identity: the simulated lidar sits on the robot's centre).
+With `--clock` it also publishes `/clock` (rosgraph_msgs/Clock, simulated time advanced by each step, at the
+loop's pace) and stamps everything with it, so nodes run with `/use_sim_time` (the experiment's ROS backend).
 In: `/cmd_vel` (geometry_msgs/Twist); no command for `--cmd-timeout` stops the robot, as the real base's
 watchdog does, so a driver that dies does not leave the robot running. The world is the site's map, plus the
 obstacles the zone simulator publishes on MQTT (`sim/world`, retained) when a broker is given. Every collision is
@@ -38,6 +40,8 @@ ODOM_FRAME = "odom"
 MAP_FRAME = "map"
 BASE_FRAME = "base_footprint"
 SCAN_FRAME = "base_scan"
+SIM_TIME_START_S = 1.0
+"""Where simulated time starts on /clock (ROS reads a zero time as "not set yet")."""
 
 
 def sim_command(args: argparse.Namespace) -> int:
@@ -81,7 +85,7 @@ def sim_command(args: argparse.Namespace) -> int:
             raise CliError(str(exc)) from None
         bus.subscribe(topics.sim_world(site.name), qos=1)
     try:
-        node = SimNode(robot, world, bus, site.name, args.rate, args.cmd_timeout)
+        node = SimNode(robot, world, bus, site.name, args.rate, args.cmd_timeout, clock=args.clock)
         print(
             f"simulated TurtleBot3 {robot_id} on {site.name} at {args.start} for ROS master {uri}"
             + (
@@ -109,11 +113,15 @@ class SimNode:
         site: str,
         rate_hz: float,
         cmd_timeout_s: float,
+        *,
+        clock: bool = False,
     ) -> None:
+        """`clock`: publish simulated time on /clock and stamp with it (else the ROS time of this node)."""
         import rospy
         import tf2_ros
         from geometry_msgs.msg import TransformStamped, Twist
         from nav_msgs.msg import Odometry
+        from rosgraph_msgs.msg import Clock
         from sensor_msgs.msg import LaserScan as LaserScanMsg
         from std_msgs.msg import UInt32
 
@@ -138,6 +146,10 @@ class SimNode:
             UInt32,
         )
         rospy.init_node(f"wsnav_sim_{robot.robot_id}", disable_signals=True)  # Ctrl-C and SIGTERM are ours
+        self.sim_t: float | None = SIM_TIME_START_S if clock else None
+        """Simulated time (s) when publishing /clock: what every stamp says."""
+        self.clock_pub = rospy.Publisher("/clock", Clock, queue_size=10) if clock else None
+        self._clock_type = Clock
         self.odom_pub = rospy.Publisher("/odom", Odometry, queue_size=5)
         self.scan_pub = rospy.Publisher("/scan", LaserScanMsg, queue_size=2)
         self.collisions_pub = rospy.Publisher("~collisions", UInt32, queue_size=1, latch=True)
@@ -169,8 +181,10 @@ class SimNode:
                     if now - self._last_cmd > self.cmd_timeout_s and not self._stopped_by_watchdog:
                         self.robot.stop()
                         self._stopped_by_watchdog = True
-                    self.robot.step(min(now - last, 0.2), now)
+                    dt = min(now - last, 0.2)
+                    self.robot.step(dt, now)
                 last = now
+                self._tick(dt)
                 self._publish()
                 if self.robot.collisions > collisions:
                     collisions = self.robot.collisions
@@ -224,9 +238,20 @@ class SimNode:
 
     # -- out ---------------------------------------------------------------------------------------------
 
+    def _stamp(self) -> Any:
+        if self.sim_t is None:
+            return self._rospy.Time.now()
+        return self._rospy.Time.from_sec(self.sim_t)
+
+    def _tick(self, dt: float) -> None:
+        """Advance simulated time by the step just taken and say so on /clock."""
+        if self.sim_t is None or self.clock_pub is None:
+            return
+        self.sim_t += dt
+        self.clock_pub.publish(self._clock_type(clock=self._stamp()))
+
     def _publish(self) -> None:
-        rospy = self._rospy
-        stamp = rospy.Time.now()
+        stamp = self._stamp()
         x, y, yaw = self.robot.pose()
         v = self.robot.velocity()
         self.tf.sendTransform(self._transform(ODOM_FRAME, BASE_FRAME, x, y, yaw, stamp))
@@ -256,7 +281,7 @@ class SimNode:
 
     def _transform(self, parent: str, child: str, x: float, y: float, yaw: float, stamp: Any = None) -> Any:
         t = self._tf_type()
-        t.header.stamp = stamp if stamp is not None else self._rospy.Time.now()
+        t.header.stamp = stamp if stamp is not None else self._stamp()
         t.header.frame_id, t.child_frame_id = parent, child
         t.transform.translation.x, t.transform.translation.y = x, y
         t.transform.rotation.z, t.transform.rotation.w = math.sin(yaw / 2), math.cos(yaw / 2)

@@ -13,17 +13,15 @@ comes from a real tf2 static transform.
 from __future__ import annotations
 
 import contextlib
-import itertools
 import subprocess
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
 
+from tests.move_base_standin import PLAN, FakeMoveBase
 from tests.ros_fixtures import (
     Operator,
     RosMaster,
@@ -37,121 +35,6 @@ from tests.ros_fixtures import (
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
 from wsnav.schemas import topics
-
-PLAN = [(12.0, 7.2), (25.0, 7.2), (25.0, 22.8), (29.0, 22.8)]
-MASTER_DELAY_S = 0.3
-"""A -> B by the south corridor (through z1) and the middle one (through z4)."""
-
-
-@dataclass
-class FakeMoveBase:
-    """The boundary fake: records goals and cancels, publishes a plan for each goal, never arrives."""
-
-    goals: list[tuple[str, float, float]] = field(default_factory=list)
-    preempted: list[str] = field(default_factory=list)
-    errors: list[str] = field(default_factory=list)
-    arrive: bool = False
-    """Set by a test: the goal in progress ends SUCCEEDED."""
-    goal_times: list[float] = field(default_factory=list)
-    """When each goal of `goals` arrived (time.monotonic)."""
-    master_updates: list[float] = field(default_factory=list)
-    """When each update of the (modelled) master costmap went out."""
-
-    def start(self) -> FakeMoveBase:
-        import actionlib
-        import rospy
-        from move_base_msgs.msg import MoveBaseAction
-        from nav_msgs.msg import Path as RosPath
-
-        self._plan_pub = rospy.Publisher("/move_base/NavfnROS/plan", RosPath, queue_size=2, latch=True)
-        self._path_type = RosPath
-        self.server = actionlib.SimpleActionServer(
-            "/move_base", MoveBaseAction, self._execute, auto_start=False
-        )
-        self.server.start()
-        from geometry_msgs.msg import PoseStamped
-        from move_base_msgs.msg import MoveBaseActionGoal
-
-        relay = rospy.Publisher("/move_base/goal", MoveBaseActionGoal, queue_size=5)
-
-        def rviz_goal(msg: Any) -> None:  # move_base.cpp's goalCB: the goal id is left empty
-            action_goal = MoveBaseActionGoal()
-            action_goal.header.stamp = rospy.Time.now()
-            action_goal.goal.target_pose = msg
-            relay.publish(action_goal)
-
-        self._rviz = rospy.Subscriber("/move_base_simple/goal", PoseStamped, rviz_goal, queue_size=5)
-        self._model_master_costmap()
-        return self
-
-    def _model_master_costmap(self) -> None:
-        """move_base's global costmap as far as the bridge reads it: its `costmap` (the zone grid's cells, as a
-        StaticLayer on the site's map gives) and `costmap_updates`, each zone update showing in the master
-        MASTER_DELAY_S later (measured on the real costmap_2d: 6-102 ms, median 57). Costs are the zone grid's
-        own values: the model leaves out the other layers and inflation."""
-        import threading
-
-        import rospy
-        from map_msgs.msg import OccupancyGridUpdate
-        from nav_msgs.msg import OccupancyGrid
-
-        grid_pub = rospy.Publisher(
-            "/move_base/global_costmap/costmap", OccupancyGrid, queue_size=1, latch=True
-        )
-        update_pub = rospy.Publisher(
-            "/move_base/global_costmap/costmap_updates", OccupancyGridUpdate, queue_size=20
-        )
-
-        def show(msg: Any) -> None:
-            update_pub.publish(msg)
-            self.master_updates.append(time.monotonic())
-
-        self._master = [
-            rospy.Subscriber("/wsn/zone_grid", OccupancyGrid, grid_pub.publish, queue_size=1),
-            rospy.Subscriber(
-                "/wsn/zone_grid_updates",
-                OccupancyGridUpdate,
-                lambda msg: threading.Timer(MASTER_DELAY_S, show, (msg,)).start(),
-                queue_size=20,
-            ),
-        ]
-
-    def _execute(self, goal: Any) -> None:
-        try:
-            self._serve(goal)
-        except Exception as exc:
-            self.errors.append(repr(exc))
-            raise
-
-    def _serve(self, goal: Any) -> None:
-        import rospy
-        from geometry_msgs.msg import PoseStamped
-
-        p = goal.target_pose.pose.position
-        goal_id = self.server.current_goal.get_goal_id().id
-        self.goals.append((goal_id, p.x, p.y))
-        self.goal_times.append(time.monotonic())
-        path = self._path_type()
-        path.header.frame_id = "map"
-        pts: list[tuple[float, float]] = []
-        for (x0, y0), (x1, y1) in itertools.pairwise(PLAN):
-            n = int(max(abs(x1 - x0), abs(y1 - y0)) / 0.05)
-            pts.extend((x0 + (x1 - x0) * i / n, y0 + (y1 - y0) * i / n) for i in range(n))
-        for x, y in pts:
-            pose = PoseStamped()
-            pose.pose.position.x, pose.pose.position.y = x, y
-            path.poses.append(pose)
-        self._plan_pub.publish(path)
-        while not rospy.is_shutdown():
-            if self.arrive:
-                self.arrive = False
-                self.server.set_succeeded()
-                return
-            if self.server.is_preempt_requested():
-                self.preempted.append(goal_id)
-                self.server.set_preempted()
-                return
-            time.sleep(0.02)
 
 
 @pytest.fixture(scope="module")

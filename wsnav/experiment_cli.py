@@ -70,6 +70,26 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         help="draw each run's driven path over the map, one PNG per run in DIR",
     )
     exp.add_argument(
+        "--backend",
+        choices=("sim", "ros"),
+        default="sim",
+        help="who navigates: wsnav's navigator on the simulated TurtleBot3 in lock step (sim, the default), or "
+        "the ROS 1 navigation installed here (ros: move_base with navfn, DWA and costmap_2d, driving "
+        "`wsnav sim --ros --clock` on a roscore of its own, one run at a time; docs/ros.md)",
+    )
+    exp.add_argument(
+        "--move-base-cmd",
+        default=None,
+        metavar="CMD",
+        help="with --backend ros: the command that starts move_base (default `rosrun move_base move_base`)",
+    )
+    exp.add_argument(
+        "--compare",
+        type=Path,
+        metavar="DIR",
+        help="the same plan's output from the other backend (its runs.csv): the report compares them run by run",
+    )
+    exp.add_argument(
         "--report-only",
         action="store_true",
         help="render the report again from --out's runs.csv and header.md; nothing runs",

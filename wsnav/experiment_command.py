@@ -4,15 +4,19 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from wsnav.broker.mosquitto.process import MosquittoError
 from wsnav.experiments.cluster import ClusterError
-from wsnav.experiments.report import ReportError, paths_figure, rerender
+from wsnav.experiments.report import ReportError, paths_figure, read_runs, rerender
 from wsnav.experiments.run_plan import RunSpec, plan_runs
 from wsnav.experiments.runner import (
+    Outcome,
+    collect,
     progress_line,
     provenance,
     report_header,
@@ -48,6 +52,18 @@ def _specs(site: Site, configs: list[str], runs: int, seed: int) -> list[RunSpec
     return plan_runs(site.spec, configs, runs, seed)
 
 
+def _configs(args: argparse.Namespace) -> list[str]:
+    configs = [c.strip() for c in args.configs.split(",") if c.strip()]
+    if not configs:
+        raise CliError("--configs names no configuration")
+    for config in configs:
+        try:
+            load_agent_config(config)
+        except AgentConfigError as exc:
+            raise CliError(f"--configs: {exc}") from None
+    return configs
+
+
 def _cluster_size(address: str) -> int:
     """The cluster's worker threads; a scheduler that does not answer, or has no workers, is one line."""
     from wsnav.experiments.cluster import cluster_size
@@ -58,26 +74,34 @@ def _cluster_size(address: str) -> int:
         raise CliError(f"--scheduler {address}: {exc}") from None
 
 
+def _compared(folder: Path | None) -> tuple[pd.DataFrame, str] | None:
+    """The other backend's runs table and header (`--compare`), read before anything runs."""
+    if folder is None:
+        return None
+    try:
+        return read_runs(folder)
+    except ReportError as exc:
+        raise CliError(f"--compare: {exc}") from None
+
+
 def experiment(args: argparse.Namespace) -> int:
     if args.report_only:
         try:
-            report = rerender(args.out)
+            report = rerender(args.out, args.compare)
         except ReportError as exc:
             raise CliError(f"--report-only: {exc}") from None
         print(f"wrote {report} from {args.out / 'runs.csv'} (nothing rerun)")
         return 0
+    compare = _compared(args.compare)
+    if args.backend == "ros":
+        return experiment_on_ros(args, compare)
+    if args.move_base_cmd is not None:
+        raise CliError("--move-base-cmd goes with --backend ros")
     if args.runs < 1:
         raise CliError(f"--runs must be at least 1, got {args.runs}")
     if args.workers < 1:
         raise CliError(f"--workers must be at least 1, got {args.workers}")
-    configs = [c.strip() for c in args.configs.split(",") if c.strip()]
-    if not configs:
-        raise CliError("--configs names no configuration")
-    for config in configs:
-        try:
-            load_agent_config(config)
-        except AgentConfigError as exc:
-            raise CliError(f"--configs: {exc}") from None
+    configs = _configs(args)
     if args.broker is not None and args.run_broker is not None:
         raise CliError("--run-broker is the broker each run starts for itself: it does not go with --broker")
     broker: BrokerAt | None = None
@@ -140,7 +164,7 @@ def experiment(args: argparse.Namespace) -> int:
     header = report_header(
         site.name, configs, args.runs, args.seed, workers, where, outcome, reproduce, run_broker, code
     )
-    report = write_outputs(site, outcome, args.out, header)
+    report = _report(site, outcome, args.out, header, compare)
     t = outcome.table
     print(
         f"{len(t)} runs, {int(t['success'].to_numpy(dtype=bool).sum())} successful, "
@@ -154,6 +178,66 @@ def experiment(args: argparse.Namespace) -> int:
     if args.pictures is not None:
         pictures = write_run_pictures(site, outcome, args.pictures)
         print(f"wrote {pictures} run pictures to {args.pictures}")
+    return 0
+
+
+def _report(
+    site: Site, outcome: Outcome, out: Path, header: str, compare: tuple[pd.DataFrame, str] | None
+) -> Path:
+    try:
+        return write_outputs(site, outcome, out, header, compare)
+    except ReportError as exc:
+        raise CliError(str(exc)) from None
+
+
+def experiment_on_ros(args: argparse.Namespace, compare: tuple[pd.DataFrame, str] | None) -> int:
+    """`--backend ros`: the same plan, one run at a time, on move_base (wsnav.ros_experiment); refused in one
+    line where move_base or ROS is not installed, or with an option only the default backend has."""
+    from wsnav.ros_bridge.ros_env import require_rospy
+    from wsnav.ros_experiment import BACKEND_LINE, MOVE_BASE_CMD, move_base_argv, run_on_ros
+
+    for given, name in (
+        (args.broker, "--broker"),
+        (args.scheduler, "--scheduler"),
+        (args.run_broker, "--run-broker"),
+        (args.record, "--record"),
+    ):
+        if given is not None:
+            raise CliError(f"{name} goes with the simulated backend, not --backend ros")
+    cmd = args.move_base_cmd or MOVE_BASE_CMD
+    move_base = move_base_argv(cmd)
+    require_rospy()
+    configs = _configs(args)
+    site = _site(args.site)
+    _writable(args.out)
+    if args.pictures is not None:
+        _writable(args.pictures)
+    specs = _specs(site, configs, args.runs, args.seed)
+    print(
+        f"{len(specs)} runs ({args.runs} per route and configuration) on move_base (`{cmd}`), one at a time"
+    )
+    code = provenance("amqtt")
+    start = time.monotonic()
+    done = run_on_ros(site, specs, move_base, progress_line())
+    outcome = collect(done, time.monotonic() - start)
+    reproduce = (
+        f"wsnav experiment --backend ros --move-base-cmd '{cmd}' --site {args.site} --runs {args.runs} "
+        f"--seed {args.seed} --configs {','.join(configs)} --out {args.out}"
+    )
+    where = "an embedded amqtt broker of each run's own"
+    backend = BACKEND_LINE.format(cmd=cmd)
+    header = report_header(
+        site.name, configs, args.runs, args.seed, 1, where, outcome, reproduce, "amqtt", code, backend
+    )
+    report = _report(site, outcome, args.out, header, compare)
+    t = outcome.table
+    print(
+        f"{len(t)} runs on move_base, {int(t['success'].to_numpy(dtype=bool).sum())} arrived, "
+        f"{int(t['collisions'].to_numpy(dtype=np.int64).sum())} collisions; {outcome.wall_s:.0f} s wall"
+    )
+    print(f"wrote {report} and the table {args.out / 'runs.csv'}")
+    if args.pictures is not None:
+        print(f"wrote {write_run_pictures(site, outcome, args.pictures)} run pictures to {args.pictures}")
     return 0
 
 
