@@ -56,7 +56,9 @@ def check_ratio(name: str, value: float, bound: float) -> bool:
     """Print a ratio with its bound and record it; True when within (value <= bound)."""
     check = RatioCheck(name, float(value), float(bound))
     _checks.append(check)
-    print(f"quick: {name} = {check.value:.3g} (bound {check.bound:.3g}){'' if check.within else '  <-- beyond'}")
+    print(
+        f"quick: {name} = {check.value:.3g} (bound {check.bound:.3g}){'' if check.within else '  <-- beyond'}"
+    )
     return check.within
 
 
