@@ -160,11 +160,12 @@ class Probe:
     """The baseline: a plain paho publisher (node `probe`, its own network thread) sending a zone state every
     50 ms, QoS 1, retained like a node's; `sent` holds (seq, monotonic time just before publish())."""
 
-    def __init__(self, host: str, port: int, creds: Path) -> None:
+    def __init__(self, host: str, port: int, creds: Path, bind: str = "") -> None:
+        """`bind`: the source address to connect from (a node's own, in bench.attack_latency)."""
         c = load_credentials(creds / f"{PROBE}.json")
         self.client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=PROBE)
         self.client.username_pw_set(c.username, c.password)
-        self.client.connect(host, port, keepalive=60)
+        self.client.connect(host, port, keepalive=60, bind_address=bind)
         self.client.loop_start()
         self.sent: list[tuple[int, float]] = []
         self._stop = threading.Event()
