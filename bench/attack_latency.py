@@ -60,10 +60,12 @@ DESCRIPTION = "\n\n".join((__doc__ or "").split("\n\n")[2:]).strip()
 READING = (
     "How to read it: amqtt holds every attack to its identity's limits (wsnav.broker.identity_limits: 64 "
     "subscriptions a session, subscribe, login and node publish rates by backpressure; retained messages bounded "
-    "by the ACL). Mosquitto 2.0 keeps one session per identity (16 connections of robot2 take each other over, so "
-    "one holds 6,250 filters) and refuses the retained flood by its ACL, but has no publish rate: a node's QoS 0 "
-    "flood reaches every robot subscribed to `zones/#` and delays the legitimate node's states (the robot's "
-    "client is the bottleneck). On Mosquitto, limit each node's packet rate in the firewall (docs/security.md)."
+    "by the ACL). Mosquitto 2.0 keeps one session per identity and refuses the retained flood by its ACL, but has "
+    "no publish rate of its own: its rows run as a site runs it, with the per-source byte rate of `wsnav broker "
+    "firewall` loaded and every attacker on its own address of the nodes' subnet, so the flood reaches the robot "
+    "at 4 kB/s and the subscription attack's SUBSCRIBE packets are held to that rate too. Without the rule a "
+    "node's QoS 0 flood delayed the other nodes by seconds (`bench.mosquitto_flood_firewall`). p99 is the "
+    "slowest of about 160 states, so one stall of the shared machine moves it."
 )
 T = TypeVar("T")
 WARMUP_S = 2.0

@@ -27,12 +27,13 @@ class RunningBroker:
     pid: int
 
 
-def fresh_broker(site: Path, root: Path) -> BrokerProcess:
+def fresh_broker(site: Path, root: Path, extra_args: list[str] | None = None) -> BrokerProcess:
     """Credentials for `site` written to root/creds and a broker on them (data in root/amqtt-data); not started:
-    use it as a context manager. Its `credentials_dir` is where the benchmark's clients load theirs from."""
+    use it as a context manager. Its `credentials_dir` is where the benchmark's clients load theirs from;
+    `extra_args` go to `wsnav broker run`."""
     creds = root / "creds"
     write_credentials(load_site(site).spec, creds)
-    return BrokerProcess(site, creds, data_dir=root / "amqtt-data")
+    return BrokerProcess(site, creds, data_dir=root / "amqtt-data", extra_args=extra_args)
 
 
 def _pinned(

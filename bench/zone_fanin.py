@@ -50,7 +50,6 @@ PROBE = "probe"
 """The baseline publisher's node id: in the site (credentials, ACL) but never emulated."""
 PROBE_PERIOD_S = 0.05
 SECTION = "## Zone simulator fan-in: 100 to 2000 emulated nodes at 1 Hz, amqtt and Mosquitto"
-COMMAND = "./.venv/bin/python -m bench.zone_fanin --repeat 2"
 CURVE_NODES = (100, 250, 500, 1000, 2000)
 COLLAPSED_MS = 30_000.0
 """Where the picture marks a point whose messages mostly never arrived."""
@@ -520,8 +519,15 @@ def main(argv: list[str] | None = None) -> int:
             f"\n\nNot run: {', '.join(skipped)} nodes (that broker was already behind at fewer nodes: "
             "median lag over 1 s or most messages lost)."
         )
+    command = " ".join(["./.venv/bin/python -m bench.zone_fanin", *(sys.argv[1:] if argv is None else argv)])
+    priority = (
+        f"\nEach broker ran in a scheduling group of its own with nice {args.broker_nice} (`--broker-nice`): on this\n"
+        "machine, shared with other jobs, its core was otherwise a third of a core, whatever its nice.\n"
+        if args.broker_nice is not None
+        else ""
+    )
     body = (
-        f"```\n{COMMAND}\n```\n\n"
+        f"```\n{command}\n```\n\n"
         "N emulated nodes (firmware NodeLogic, one paho link each, all on one thread of one process) publish\n"
         "their zone state (QoS 1, retained) once a second; the broker runs as its own process pinned to CPU 0\n"
         "(`taskset -c 0`: one core, the share of the Raspberry Pi it gets); one robot-credential subscriber takes\n"
@@ -532,13 +538,19 @@ def main(argv: list[str] | None = None) -> int:
         "first alone for 5 s (what the broker and this machine give a lone message at that moment) and then\n"
         "during the fan-in (what the broker and subscriber add under the load, without the simulator: a ratio\n"
         "near 1x says the tail is not the simulator's). Load: the 1-minute load average as the point started\n"
-        f"(2 CPUs, shared with other jobs). Measured {time.strftime('%Y-%m-%d')}. Target: lag p99 <= 100 ms, nothing lost.\n\n"
+        f"(2 CPUs, shared with other jobs). Measured {time.strftime('%Y-%m-%d')} at commit {_commit()}. Target: lag p99 <= 100 ms, nothing lost.\n"
+        f"{priority}\n"
         f"![Lag p99 and p50 against node count, amqtt and Mosquitto](docs/img/{PICTURE.name})\n\n"
         f"{HEADER}\n{rows}\n"
     )
     write_section(SECTION, body)
     print(f"wrote {PICTURE} and BENCHMARKS.md ({SECTION[3:]})")
     return 0
+
+
+def _commit() -> str:
+    out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False)
+    return out.stdout.strip() or "unknown"
 
 
 def quick(cpus: str | None, nice: int | None) -> int:
