@@ -15,7 +15,8 @@ First a baseline window with no attack, then one window per attack, each from it
 - `subscriptions`: robot2's credential, 16 connections each asking for 6,250 filters (100,000 in all);
 - `sessions`: node n1's credential parking persistent sessions under new client ids, as fast as it can;
 - `retained`: robot2 publishing 16 KB retained messages under `robots/robot2/...`, as fast as it can;
-- `flood`: node n1 publishing QoS 0 zone states as fast as it can.
+- `flood`: node n1 publishing QoS 0 zone states as fast as it can;
+- `none, again`: no attack, the baseline window measured again last (how far the machine alone moves a ratio).
 Each attack's p50/p99 is given as a ratio to the baseline of the same run (the goal is <= 2x).
 """
 
@@ -55,7 +56,7 @@ from wsnav.schemas.site import load_site
 
 SECTION = "## A legitimate node's latency during an insider's attack on the broker"
 COMMAND = "./.venv/bin/python -m bench.attack_latency"
-ATTACKS = ("subscriptions", "sessions", "retained", "flood")
+ATTACKS = ("subscriptions", "sessions", "retained", "flood", "none, again")
 DESCRIPTION = "\n\n".join((__doc__ or "").split("\n\n")[2:]).strip()
 READING = (
     "How to read it: amqtt holds every attack to its identity's limits (wsnav.broker.identity_limits: 64 "
@@ -146,7 +147,13 @@ def attack_flood(host: str, port: int, creds: Path, stop: threading.Event) -> st
     return f"{sent} QoS 0 messages queued by its client"
 
 
+def attack_none(_host: str, _port: int, _creds: Path, stop: threading.Event) -> str:
+    stop.wait()
+    return "no attack: the baseline measured again, how far this machine moves the ratios by itself"
+
+
 ATTACK: dict[str, Callable[[str, int, Path, threading.Event], str]] = {
+    "none, again": attack_none,
     "subscriptions": attack_subscriptions,
     "sessions": attack_sessions,
     "retained": attack_retained,
