@@ -27,27 +27,39 @@ class RunningBroker:
     pid: int
 
 
-def fresh_broker(site: Path, root: Path) -> BrokerProcess:
+def fresh_broker(site: Path, root: Path, extra_args: list[str] | None = None) -> BrokerProcess:
     """Credentials for `site` written to root/creds and a broker on them (data in root/amqtt-data); not started:
-    use it as a context manager. Its `credentials_dir` is where the benchmark's clients load theirs from."""
+    use it as a context manager. Its `credentials_dir` is where the benchmark's clients load theirs from;
+    `extra_args` go to `wsnav broker run`."""
     creds = root / "creds"
     write_credentials(load_site(site).spec, creds)
-    return BrokerProcess(site, creds, data_dir=root / "amqtt-data")
+    return BrokerProcess(site, creds, data_dir=root / "amqtt-data", extra_args=extra_args)
 
 
-def _pinned(args: list[str], cpus: str | None) -> list[str]:
-    """`taskset -c CPUS` in front: the process and every thread it starts run on those CPUs only."""
-    return args if cpus is None else ["taskset", "-c", cpus, *args]
+def _pinned(
+    args: list[str], cpus: str | None, nice: int | None = None, new_session: bool = True
+) -> list[str]:
+    """`taskset -c CPUS` in front: the process and every thread it starts run on those CPUs only. With `nice`:
+    in a session of its own (`setsid`, unless the caller starts it in one: `new_session=False`), whose
+    scheduling group (Linux autogroup) gets nice N: a negative N (root only) lets the broker take its core back
+    from other jobs on a shared machine, as if the core were its own (the Pi's broker does not share its core
+    with a dozen benchmark jobs). A plain `nice` would not do: each session is its own group, and the groups
+    share the CPU equally whatever their processes' nice. Every step execs, so the broker keeps the pid."""
+    placed = args if cpus is None else ["taskset", "-c", cpus, *args]
+    if nice is None:
+        return placed
+    grouped = ["sh", "-c", f'echo {int(nice)} > /proc/self/autogroup && exec "$@"', "sh", *placed]
+    return ["setsid", *grouped] if new_session else grouped
 
 
 @contextlib.contextmanager
 def mosquitto_broker(
-    spec: SiteFile, creds: Path, root: Path, cpus: str | None = None
+    spec: SiteFile, creds: Path, root: Path, cpus: str | None = None, nice: int | None = None
 ) -> Iterator[RunningBroker]:
     """Mosquitto on a free loopback port from the site's own configuration (`wsnav broker mosquitto-config`:
     the same passwords and per-id ACL as amqtt's), its files and persistence under `root`."""
     try:
-        with mosquitto_process(spec, creds, root, prefix=_pinned([], cpus)) as running:
+        with mosquitto_process(spec, creds, root, prefix=_pinned([], cpus, nice)) as running:
             yield RunningBroker(running.host, running.port, running.pid)
     except MosquittoError as exc:
         raise SystemExit(str(exc)) from None
@@ -55,11 +67,15 @@ def mosquitto_broker(
 
 @contextlib.contextmanager
 def amqtt_broker(
-    site: Path, creds: Path, cpus: str | None = None, extra_args: list[str] | None = None
+    site: Path,
+    creds: Path,
+    cpus: str | None = None,
+    extra_args: list[str] | None = None,
+    nice: int | None = None,
 ) -> Iterator[RunningBroker]:
     """`wsnav broker run` (retained messages in memory, no --data) on a free loopback port."""
     broker = BrokerProcess(site, creds, extra_args=extra_args)
-    broker.args = _pinned(broker.args, cpus)
+    broker.args = _pinned(broker.args, cpus, nice, new_session=False)  # (it starts one)
     with broker:
         assert broker.proc is not None
         yield RunningBroker(broker.host, broker.port, broker.proc.pid)
@@ -73,14 +89,15 @@ def site_broker(
     root: Path,
     cpus: str | None = None,
     amqtt_args: list[str] | None = None,
+    nice: int | None = None,
 ) -> Iterator[RunningBroker]:
     """The broker named `kind` (one of BROKERS) for `site`, on credentials already written to `creds`;
-    `amqtt_args` go to `wsnav broker run`."""
+    `amqtt_args` go to `wsnav broker run`; `cpus` and `nice` place it (`_pinned`)."""
     if kind == "mosquitto":
-        with mosquitto_broker(load_site(site).spec, creds, root, cpus) as running:
+        with mosquitto_broker(load_site(site).spec, creds, root, cpus, nice) as running:
             yield running
     elif kind == "amqtt":
-        with amqtt_broker(site, creds, cpus, amqtt_args) as running:
+        with amqtt_broker(site, creds, cpus, amqtt_args, nice) as running:
             yield running
     else:
         raise ValueError(f"unknown broker {kind!r} (one of {', '.join(BROKERS)})")

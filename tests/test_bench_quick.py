@@ -16,12 +16,6 @@ from tests.conftest import REPO
 BENCH = REPO / "bench"
 
 NOT_YET_QUICK = {
-    "zone_fanin": "the broker helper's branch gives it --quick",
-    "attack_latency": "the broker helper's branch gives it --quick",
-    "broker_latency": "the broker helper's branch gives it --quick",
-    "broker_oversize": "the broker helper's branch gives it --quick",
-    "mosquitto_autosave": "the broker helper's branch gives it --quick",
-    "mosquitto_flood_firewall": "the broker helper's branch gives it --quick",
     "firmware_heap": "the firmware helper's branch gives it --quick",
     "firmware_heap_blocks": "the firmware helper's branch gives it --quick",
     "firmware_ota": "the firmware helper's branch gives it --quick",

@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import require_tool, unavailable
+from tests.netns_fixtures import NamespaceError, NamespacePair, exec_in, namespace_pair
 from tests.site_fixtures import tiny_site
 from wsnav.broker.credentials import write_credentials
 from wsnav.broker.mosquitto.config import CONF, MosquittoOptions, write_mosquitto_config
@@ -26,45 +27,24 @@ from wsnav.broker.mosquitto.firewall import NODE_BURST_KBYTES, NODE_RATE_KBYTES,
 from wsnav.schemas.credentials import load_credentials
 from wsnav.schemas.site import load_site
 
-PREFIX = "10.99.37"
-BROKER_NS, NODES_NS = f"wsnav-b{os.getpid()}", f"wsnav-n{os.getpid()}"
 SECONDS = 6.0
 
 
-def ip(*args: str) -> None:
-    subprocess.run(["ip", *args], check=True, capture_output=True)
-
-
 @pytest.fixture
-def namespaces() -> Iterator[None]:
+def namespaces() -> Iterator[NamespacePair]:
     require_tool("ip")
     require_tool("nft")
     if os.geteuid() != 0:
         unavailable("network namespaces need root (CI runs as root)")
-    veth = f"w{os.getpid() % 100000}"
     try:
-        ip("netns", "add", BROKER_NS)
-        ip("netns", "add", NODES_NS)
-        ip("link", "add", f"{veth}a", "type", "veth", "peer", "name", f"{veth}b")
-        ip("link", "set", f"{veth}a", "netns", BROKER_NS)
-        ip("link", "set", f"{veth}b", "netns", NODES_NS)
-        ip("-n", BROKER_NS, "addr", "add", f"{PREFIX}.1/24", "dev", f"{veth}a")
-        for host in (2, 3):
-            ip("-n", NODES_NS, "addr", "add", f"{PREFIX}.{host}/24", "dev", f"{veth}b")
-        for ns, dev in ((BROKER_NS, f"{veth}a"), (NODES_NS, f"{veth}b")):
-            ip("-n", ns, "link", "set", dev, "up")
-            ip("-n", ns, "link", "set", "lo", "up")
-    except subprocess.CalledProcessError as exc:
-        unavailable(f"cannot make network namespaces here: {exc.stderr.decode(errors='replace').strip()}")
-    try:
-        yield
-    finally:
-        for ns in (BROKER_NS, NODES_NS):
-            subprocess.run(["ip", "netns", "del", ns], check=False, capture_output=True)
+        with namespace_pair("10.99.37", "t") as pair:
+            yield pair
+    except NamespaceError as exc:
+        unavailable(str(exc))
 
 
 def peer(ns: str, *args: str) -> subprocess.Popen[str]:
-    command = ["ip", "netns", "exec", ns, sys.executable, "-m", "tests.netns_peer", *args]
+    command = [*exec_in(ns), sys.executable, "-m", "tests.netns_peer", *args]
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -75,8 +55,9 @@ def result(proc: subprocess.Popen[str]) -> dict[str, int]:
 
 
 def test_a_flooding_node_is_held_to_its_byte_rate_and_the_other_node_gets_through(
-    namespaces: None, tmp_path: Path
+    namespaces: NamespacePair, tmp_path: Path
 ) -> None:
+    pair = namespaces
     site = tiny_site(tmp_path / "site")
     creds = tmp_path / "creds"
     write_credentials(load_site(site).spec, creds)
@@ -84,24 +65,26 @@ def test_a_flooding_node_is_held_to_its_byte_rate_and_the_other_node_gets_throug
     options = MosquittoOptions(bind=("0.0.0.0", 1883), data_dir=tmp_path / "data", user="root")
     write_mosquitto_config(load_site(site).spec, creds, tmp_path / "mq", options)
     rules = tmp_path / "mqtt.nft"
-    rules.write_text(nft_rules(f"{PREFIX}.0/24"))
-    subprocess.run(["ip", "netns", "exec", BROKER_NS, "nft", "-f", str(rules)], check=True)
+    rules.write_text(nft_rules(pair.subnet))
+    subprocess.run([*exec_in(pair.broker), "nft", "-f", str(rules)], check=True)
     mosquitto = require_tool("mosquitto")
     broker = subprocess.Popen(
-        ["ip", "netns", "exec", BROKER_NS, mosquitto, "-c", str(tmp_path / "mq" / CONF)],
+        [*exec_in(pair.broker), mosquitto, "-c", str(tmp_path / "mq" / CONF)],
         stderr=subprocess.PIPE,
     )
     try:
         subprocess.run(  # until it listens
-            ["ip", "netns", "exec", BROKER_NS, sys.executable, "-c",
+            [*exec_in(pair.broker), sys.executable, "-c",
              "import socket,time\nfor _ in range(300):\n    try:\n        socket.create_connection(('127.0.0.1', 1883), 1).close(); break\n"
              "    except OSError: time.sleep(0.05)"],
             check=True, timeout=60,
         )  # fmt: skip
-        watch = peer(BROKER_NS, "watch", "127.0.0.1", "robot1", password["robot1"], str(SECONDS + 4))
+        watch = peer(pair.broker, "watch", "127.0.0.1", "robot1", password["robot1"], str(SECONDS + 4))
         assert watch.stdout is not None and watch.stdout.readline().strip() == "subscribed", result(watch)
-        flood = peer(NODES_NS, "flood", f"{PREFIX}.1", "n1", password["n1"], str(SECONDS))
-        probe = peer(NODES_NS, "probe", f"{PREFIX}.1", "n2", password["n2"], "40", f"{PREFIX}.3")
+        flood = peer(pair.nodes, "flood", pair.broker_address, "n1", password["n1"], str(SECONDS))
+        probe = peer(
+            pair.nodes, "probe", pair.broker_address, "n2", password["n2"], "40", pair.node_address(2)
+        )
         flooded, probed, seen = result(flood), result(probe), result(watch)
     finally:
         broker.terminate()
