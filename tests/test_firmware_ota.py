@@ -141,9 +141,9 @@ class Board:
         data = json.loads((creds / f"{NODE}.json").read_text())
         data["broker"] = {"host": broker.host, "port": broker.port}
         data["sensor"]["warmup_s"] = 0
+        data["heartbeat_s"] = 1  # confirmation also waits for two states after the connect's: heartbeats
         if healthy_s is not None:
             data["healthy_s"] = healthy_s
-            data["heartbeat_s"] = 1  # confirmation also waits for two states after the connect's: heartbeats
         config = tmp / "config.json"
         config.write_text(NodeConfig.model_validate(data).model_dump_json())
         self.fs = tmp / "fs"
@@ -410,7 +410,8 @@ def test_a_new_app_whose_loop_fails_8_s_after_connecting_is_rolled_back(
 ) -> None:
     """The first connect is no confirmation: ota reports the trial, then the rollback (exit 1, naming the node
     and both versions); the board runs the old app again from its kept backups. The board keeps the healthy
-    period `wsnav broker credentials` gives a site's nodes (30 s): the default itself refuses to confirm early."""
+    period `wsnav broker credentials` gives a site's nodes (30 s) and a 1 s heartbeat (its two states come within
+    about 2 s of the connect): only the default period itself keeps it from confirming before the failure."""
     board = board_of(OLD, None)
     infos.wait(lambda i: i.fw == OLD)
     code, out, err = finish(ota_cli(fw, creds, broker, LATE))
