@@ -377,27 +377,47 @@ function zoneRow(z) {
 }
 
 // Node rows in view: the clock redraws only their ages (a thousand rows rewritten every second cost Chromium a
-// layout of the whole list); a row coming into view gets its age then.
-const nodeRowsInView = new Set();
-const nodeRowWatch = new IntersectionObserver((entries) => {
-  const now = serverNow();
-  for (const e of entries) {
-    const id = e.target.id.slice(9);
-    if (!e.isIntersecting) nodeRowsInView.delete(id);
-    else {
-      nodeRowsInView.add(id);
-      if (state.nodes[id]) nodeAge(e.target, state.nodes[id], now);
-    }
+// layout of the whole list); rows scrolled into view get theirs at once. One observer watches the list (one per
+// row cost a thousand intersections each frame); the rows shown are found by their offsets.
+let nodesListInView = false;
+new IntersectionObserver((entries) => {
+  nodesListInView = entries[entries.length - 1].isIntersecting;
+  if (nodesListInView) scheduleAges();
+}).observe($("nodes-list"));
+$("nodes-list").addEventListener("scroll", () => scheduleAges(), { passive: true });
+let agesDue = false;
+function scheduleAges() {
+  if (agesDue) return;
+  agesDue = true;
+  requestAnimationFrame(() => {
+    agesDue = false;
+    const now = serverNow();
+    for (const tr of nodeRowsShown()) if (state.nodes[tr.id.slice(9)]) nodeAge(tr, state.nodes[tr.id.slice(9)], now);
+  });
+}
+// Read at the start of a frame (layout is clean then), before any write.
+function nodeRowsShown() {
+  const rows = $("nodes").tBodies[0].rows;
+  if (!nodesListInView || !rows.length) return [];
+  if ($("filter").value.trim()) return [...rows].filter((tr) => !tr.hidden);
+  const list = $("nodes-list");
+  const top = list.scrollTop, bottom = top + list.clientHeight;
+  let lo = 0, hi = rows.length - 1; // the first row not wholly above the list's top (rows go down in order)
+  while (lo < hi) {
+    const mid = (lo + hi) >> 1;
+    if (rows[mid].offsetTop + rows[mid].offsetHeight < top) lo = mid + 1;
+    else hi = mid;
   }
-});
+  const shown = [];
+  for (let i = lo; i < rows.length && rows[i].offsetTop <= bottom; i++) shown.push(rows[i]);
+  return shown;
+}
 function nodeAge(tr, n, now) {
   setText(tr.cells[4], n.heard_at == null ? "never" : `${fmtAge(Math.max(0, now - n.heard_at))} ago`);
 }
 
 function nodeRow(n) {
-  const isNew = !document.getElementById(`node-row-${n.id}`);
   const tr = row($("nodes"), `node-row-${n.id}`, 6);
-  if (isNew) nodeRowWatch.observe(tr);
   nodeAge(tr, n, serverNow());
   const link = n.online === false ? "offline" : n.online ? (n.fresh ? "online" : "silent") : "unknown";
   setText(tr.cells[0], n.id);
@@ -419,7 +439,8 @@ function renderTables() {
 }
 
 function renderClock() {
-  // Once a second: the ages and times left, which change without any message.
+  // Once a second, in an animation frame: the ages and times left, which change without any message.
+  const shownNodeRows = nodeRowsShown();
   const now = serverNow();
   for (const r of Object.values(state.robots)) {
     const tr = document.getElementById(`robot-row-${r.id}`);
@@ -429,10 +450,7 @@ function renderClock() {
     const tr = document.getElementById(`block-row-${b.id}`);
     if (tr) setText(tr.cells[2], b.expires_at == null ? "until lifted" : fmtAge(Math.max(0, b.expires_at - now)), "left");
   }
-  for (const id of nodeRowsInView) {
-    const tr = document.getElementById(`node-row-${id}`);
-    if (tr && state.nodes[id]) nodeAge(tr, state.nodes[id], now);
-  }
+  for (const tr of shownNodeRows) if (state.nodes[tr.id.slice(9)]) nodeAge(tr, state.nodes[tr.id.slice(9)], now);
   const counts = Object.values(state.zones).reduce((a, z) => ((a[z.state] = (a[z.state] || 0) + 1), a), {});
   setText($("counts"), Object.entries(counts).map(([k, v]) => `${v} ${k}`).join(", "));
   setText($("clock"), new Date(now * 1000).toLocaleTimeString());
@@ -769,6 +787,6 @@ async function main() {
   setupZoom();
   setupSteering();
   connect();
-  setInterval(renderClock, 1000);
+  setInterval(() => requestAnimationFrame(renderClock), 1000);
 }
 main();
