@@ -406,6 +406,13 @@ def test_the_page_follows_a_node_going_stale_not_only_a_new_state_word(
         page.wait_for_function("document.querySelector('#zone-upper').dataset.stale === 's1'", timeout=10000)
         assert time.monotonic() - named < 2.5, "the page followed the staleness late"
         assert page.get_attribute("#zone-upper", "data-state") == "blocked"
+        # The clock redraws "last heard" for the node rows in view only (a thousand rows each second cost a
+        # layout of the list): a silent node's row in view counts up.
+        page.locator("#nodes-list").scroll_into_view_if_needed()
+        page.wait_for_function("document.querySelector('#node-row-s1').cells[3].textContent === 'silent'")
+        heard = "parseFloat(document.querySelector('#node-row-s1').cells[4].textContent)"
+        before = page.evaluate(heard)
+        page.wait_for_function(f"{heard} >= {before} + 2", timeout=4000)
     finally:
         node.silent.clear()
         node.say("clear")

@@ -126,12 +126,20 @@ function drawSite() {
 function renderZone(z) {
   state.zones[z.id] = z;
   dirty.zones.add(z.id);
-  const poly = $(`zone-${z.id}`);
-  if (poly) {
-    poly.setAttribute("class", `zone ${z.state}` + (z.stale_nodes.length ? " has-stale" : ""));
-    poly.setAttribute("data-state", z.state);
-    poly.setAttribute("data-stale", z.stale_nodes.join(" "));
+  drawDue.zones.add(z.id);
+}
+function drawZone(id) {
+  const z = state.zones[id];
+  const poly = $(`zone-${id}`);
+  if (z && poly) {
+    setAttr(poly, "class", `zone ${z.state}` + (z.stale_nodes.length ? " has-stale" : ""));
+    setAttr(poly, "data-state", z.state);
+    setAttr(poly, "data-stale", z.stale_nodes.join(" "));
   }
+}
+// An attribute written only when it changes: an unchanged write still costs Chromium a style pass.
+function setAttr(node, name, value) {
+  if (node.getAttribute(name) !== value) node.setAttribute(name, value);
 }
 
 function nodeClass(n) {
@@ -143,10 +151,14 @@ function nodeClass(n) {
 function renderNode(n) {
   state.nodes[n.id] = n;
   dirty.nodes.add(n.id);
-  const dot = $(`node-${n.id}`);
-  if (dot) {
-    dot.setAttribute("class", `node ${nodeClass(n)}`);
-    dot.setAttribute("data-online", String(n.online));
+  drawDue.nodes.add(n.id);
+}
+function drawNode(id) {
+  const n = state.nodes[id];
+  const dot = $(`node-${id}`);
+  if (n && dot) {
+    setAttr(dot, "class", `node ${nodeClass(n)}`);
+    setAttr(dot, "data-online", String(n.online));
   }
 }
 
@@ -159,6 +171,12 @@ function renderRobot(r) {
   else trail.push([r.pose[0], r.pose[1], r.t || serverNow()]);
   const horizon = (r.t || serverNow()) - 300;
   while (trail.length && trail[0][2] && trail[0][2] < horizon) trail.shift();
+  drawDue.robots.add(r.id);
+}
+function drawRobot(id) {
+  const r = state.robots[id];
+  if (!r || !r.pose) return;
+  const trail = state.trails[id] || [];
   const layer = $("layer-robots");
   let g = $(`robot-${r.id}`);
   const R = geo.robotR;
@@ -243,13 +261,24 @@ function renderAlertTimes() {
 
 const MAX_EVENTS_SHOWN = 50;
 function renderEvent(e) {
+  drawDue.events.push(e);
+  if (drawDue.events.length > MAX_EVENTS_SHOWN) drawDue.events.splice(0, drawDue.events.length - MAX_EVENTS_SHOWN);
+}
+// The frame's new events in one append and one scroll: reading scrollHeight after each event forced a layout of
+// the whole page per event.
+function drawEvents() {
+  if (!drawDue.events.length) return;
   const list = $("events");
-  const li = document.createElement("li");
-  li.className = `event ${e.kind}`;
-  li.textContent = `${new Date(e.t * 1000).toLocaleTimeString()}  ${e.text}`;
-  list.appendChild(li);
+  const items = drawDue.events.map((e) => {
+    const li = document.createElement("li");
+    li.className = `event ${e.kind}`;
+    li.textContent = `${new Date(e.t * 1000).toLocaleTimeString()}  ${e.text}`;
+    return li;
+  });
+  drawDue.events = [];
+  list.append(...items);
   while (list.children.length > MAX_EVENTS_SHOWN) list.firstElementChild.remove();
-  list.scrollTop = list.scrollHeight;
+  list.scrollTop = 1e9; // the end: the browser clamps it, no height read
 }
 
 function dropBlock(id) {
@@ -262,6 +291,8 @@ function dropBlock(id) {
 // -- tables: rows are made once per entry and updated in place (a thousand nodes cost no rebuild) ----------
 
 const dirty = { robots: new Set(), blocks: new Set(), zones: new Set(), nodes: new Set() };
+// What the map and the events list still have to draw: drawn together in the next animation frame.
+const drawDue = { zones: new Set(), nodes: new Set(), robots: new Set(), events: [] };
 
 function setText(td, text, cls) {
   const value = String(text);
@@ -345,8 +376,49 @@ function zoneRow(z) {
   setText(tr.cells[2], z.nodes.join(" "));
 }
 
+// Node rows in view: the clock redraws only their ages (a thousand rows rewritten every second cost Chromium a
+// layout of the whole list); rows scrolled into view get theirs at once. One observer watches the list (one per
+// row cost a thousand intersections each frame); the rows shown are found by their offsets.
+let nodesListInView = false;
+new IntersectionObserver((entries) => {
+  nodesListInView = entries[entries.length - 1].isIntersecting;
+  if (nodesListInView) scheduleAges();
+}).observe($("nodes-list"));
+$("nodes-list").addEventListener("scroll", () => scheduleAges(), { passive: true });
+let agesDue = false;
+function scheduleAges() {
+  if (agesDue) return;
+  agesDue = true;
+  requestAnimationFrame(() => {
+    agesDue = false;
+    const now = serverNow();
+    for (const tr of nodeRowsShown()) if (state.nodes[tr.id.slice(9)]) nodeAge(tr, state.nodes[tr.id.slice(9)], now);
+  });
+}
+// Read at the start of a frame (layout is clean then), before any write.
+function nodeRowsShown() {
+  const rows = $("nodes").tBodies[0].rows;
+  if (!nodesListInView || !rows.length) return [];
+  if ($("filter").value.trim()) return [...rows].filter((tr) => !tr.hidden);
+  const list = $("nodes-list");
+  const top = list.scrollTop, bottom = top + list.clientHeight;
+  let lo = 0, hi = rows.length - 1; // the first row not wholly above the list's top (rows go down in order)
+  while (lo < hi) {
+    const mid = (lo + hi) >> 1;
+    if (rows[mid].offsetTop + rows[mid].offsetHeight < top) lo = mid + 1;
+    else hi = mid;
+  }
+  const shown = [];
+  for (let i = lo; i < rows.length && rows[i].offsetTop <= bottom; i++) shown.push(rows[i]);
+  return shown;
+}
+function nodeAge(tr, n, now) {
+  setText(tr.cells[4], n.heard_at == null ? "never" : `${fmtAge(Math.max(0, now - n.heard_at))} ago`);
+}
+
 function nodeRow(n) {
   const tr = row($("nodes"), `node-row-${n.id}`, 6);
+  nodeAge(tr, n, serverNow());
   const link = n.online === false ? "offline" : n.online ? (n.fresh ? "online" : "silent") : "unknown";
   setText(tr.cells[0], n.id);
   setText(tr.cells[1], n.zone);
@@ -367,7 +439,8 @@ function renderTables() {
 }
 
 function renderClock() {
-  // Once a second: the ages and times left, which change without any message.
+  // Once a second, in an animation frame: the ages and times left, which change without any message.
+  const shownNodeRows = nodeRowsShown();
   const now = serverNow();
   for (const r of Object.values(state.robots)) {
     const tr = document.getElementById(`robot-row-${r.id}`);
@@ -377,13 +450,10 @@ function renderClock() {
     const tr = document.getElementById(`block-row-${b.id}`);
     if (tr) setText(tr.cells[2], b.expires_at == null ? "until lifted" : fmtAge(Math.max(0, b.expires_at - now)), "left");
   }
-  for (const n of Object.values(state.nodes)) {
-    const tr = document.getElementById(`node-row-${n.id}`);
-    if (tr) setText(tr.cells[4], n.heard_at == null ? "never" : `${fmtAge(Math.max(0, now - n.heard_at))} ago`);
-  }
+  for (const tr of shownNodeRows) if (state.nodes[tr.id.slice(9)]) nodeAge(tr, state.nodes[tr.id.slice(9)], now);
   const counts = Object.values(state.zones).reduce((a, z) => ((a[z.state] = (a[z.state] || 0) + 1), a), {});
-  $("counts").textContent = Object.entries(counts).map(([k, v]) => `${v} ${k}`).join(", ");
-  $("clock").textContent = new Date(now * 1000).toLocaleTimeString();
+  setText($("counts"), Object.entries(counts).map(([k, v]) => `${v} ${k}`).join(", "));
+  setText($("clock"), new Date(now * 1000).toLocaleTimeString());
   renderAlertTimes();
 }
 
@@ -396,22 +466,49 @@ function applyFilter() {
   }
 }
 
+// Tables at most every 300 ms, drawn in an animation frame with the map.
 let tablesDue = false;
+let tablesReady = false;
 function scheduleTables() {
   if (tablesDue) return;
   tablesDue = true;
   setTimeout(() => {
     tablesDue = false;
+    tablesReady = true;
+    scheduleFrame();
+  }, 300);
+}
+
+// Every update of the feed lands in state at once and is drawn in one animation frame: a burst of messages costs
+// one style and layout pass, and nothing reads layout between writes (the events list scrolls last).
+let frameDue = false;
+function scheduleFrame() {
+  if (frameDue) return;
+  frameDue = true;
+  requestAnimationFrame(drawFrame);
+}
+function drawFrame() {
+  frameDue = false;
+  for (const id of drawDue.zones) drawZone(id);
+  for (const id of drawDue.nodes) drawNode(id);
+  for (const id of drawDue.robots) drawRobot(id);
+  drawDue.zones.clear();
+  drawDue.nodes.clear();
+  drawDue.robots.clear();
+  if (tablesReady) {
+    tablesReady = false;
     renderTables();
     if ($("filter").value) applyFilter();
-  }, 300);
+  }
+  renderBanner();
+  drawEvents();
 }
 
 function renderBanner() {
   const banner = $("banner");
   const why = !state.streamOk ? "Lost the console server: reconnecting..." : state.linkError ? `The console is blind: ${state.linkError}` : !state.connected ? "The MQTT broker is not reachable: the console reconnects by itself; what you see may be out of date." : "";
-  banner.hidden = !why;
-  banner.textContent = why;
+  if (banner.hidden !== !why) banner.hidden = !why;
+  setText(banner, why);
 }
 
 // -- the feed -------------------------------------------------------------------------------------------
@@ -433,13 +530,16 @@ function apply(ev) {
   (ev.robots || []).forEach(renderRobot);
   (ev.blocks || []).forEach(renderBlock);
   (ev.gone || []).forEach(dropBlock);
-  if (ev.type === "snapshot") $("events").replaceChildren();
+  if (ev.type === "snapshot") {
+    $("events").replaceChildren();
+    drawDue.events = [];
+  }
   if (ev.alerts) {
     state.alerts = ev.alerts;
     renderAlerts();
   }
   (ev.events || []).forEach(renderEvent);
-  renderBanner();
+  scheduleFrame();
   scheduleTables();
 }
 
@@ -687,6 +787,6 @@ async function main() {
   setupZoom();
   setupSteering();
   connect();
-  setInterval(renderClock, 1000);
+  setInterval(() => requestAnimationFrame(renderClock), 1000);
 }
 main();
