@@ -6,6 +6,8 @@ traffic. Baseline: the same driver on `git archive BASE` (default: the branch po
 branch's changes differ), built with this checkout's mpy-cross, in the same run. Also: the largest free block after setup (`micropython.mem_info`), which decides whether a
 message of N bytes can still be allocated, and the size of the diagnostics message. Writes its section of
 BENCHMARKS.md unless --no-write.
+`--quick`: the same measure (it takes seconds); each sensor's free heap after setup against the baseline's, base
+over this at most 1.25 (a change that eats a fifth of the free heap; on main itself the baseline is this tree: 1.00).
 """
 
 from __future__ import annotations
@@ -17,7 +19,8 @@ import tempfile
 from io import BytesIO
 from pathlib import Path
 
-from bench.benchmarks_md import bench_parser, machine_note, write_section
+from bench.benchmarks_md import machine_note, write_section
+from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser
 from wsnav.firmware.testing import build_for_host, micropython_cmd, micropython_env
 
 SECTION = "## Node firmware: largest free block after setup (38 KiB, unix port; issue 19 diagnostics)"
@@ -119,9 +122,9 @@ def _build_other(checkout: Path, work: Path) -> tuple[Path, Path]:
 
 
 def main() -> None:
-    parser = bench_parser(__doc__)
+    parser = quick_parser(__doc__)
     parser.add_argument("--base", help="git revision of the baseline (default: merge-base of HEAD and main)")
-    args = parser.parse_args()
+    args = parse_quick_args(parser)
     if args.base is None:
         args.base = subprocess.run(
             ["git", "-C", str(REPO), "merge-base", "HEAD", "main"], capture_output=True, text=True, check=True
@@ -152,6 +155,14 @@ def main() -> None:
         ]
     )
     print(table)
+    if args.quick:
+        for name in SENSORS:
+            check_ratio(
+                f"{name}: free heap after setup, {args.base} over this tree",
+                base[name][0] / this[name][0],
+                1.25,
+            )
+        finish_quick()
     write_note = (
         f"```\n{COMMAND}\n```\n\nThe board's main.py sequence under `micropython -X heapsize=38k` (64-bit objects and "
         f"the fake machine/network in the heap: a conservative bound; bench.firmware_heap has 32-bit figures; both "

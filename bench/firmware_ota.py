@@ -10,6 +10,8 @@ idle and loaded, updating the node back and forth between two builds of the same
 Heap (32-bit: MicroPython's WebAssembly port with a 38 KiB heap, bench/wasm_port/setup_heap.mjs): the node after
 setup for this tree and the baseline revision, update mode after setup and at the transfer's peak.
 Writes its section of BENCHMARKS.md unless --no-write.
+`--quick`: one idle and one loaded update, no heap rows, the node confirming after a 3 s healthy period instead of
+the site's 30 s; the loaded transfer over the idle one at most 5 (0.94 in the last full run).
 """
 
 from __future__ import annotations
@@ -25,8 +27,9 @@ from pathlib import Path
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
-from bench.benchmarks_md import bench_parser, machine_note, write_section
+from bench.benchmarks_md import machine_note, write_section
 from bench.firmware_heap import WASM_PORT, build_revision, node_config, wasm_port_ready, wasm_setup
+from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser
 from wsnav.console.operator_commands import node_command
 from wsnav.firmware.build import build
 from wsnav.firmware.deploy import firmware_files
@@ -135,19 +138,21 @@ def heap_rows(tmp: Path, creds: Path, update: Update, baseline: str) -> list[tup
 
 
 def main() -> None:
-    parser = bench_parser(__doc__)
+    parser = quick_parser(__doc__)
     parser.add_argument("--runs", type=int, default=3, help="updates per condition (default 3)")
     parser.add_argument(
         "--baseline", default="main", help="git revision for the heap baseline (default main)"
     )
-    args = parser.parse_args()
+    args = parse_quick_args(parser)
+    if args.quick:
+        args.runs = 1
     with tempfile.TemporaryDirectory(prefix="wsnav-fw-ota-") as tmp_name:
         tmp = Path(tmp_name)
         stubs = build_for_host(tmp / "host")[1]
         updates = [make_update(tmp / f"build-{v}", versioned_sources(tmp / f"src-{v}", v)) for v in VERSIONS]
         creds = tmp / "creds"
         write_credentials(SITE, creds)
-        heap = heap_rows(tmp, creds, updates[0], args.baseline)
+        heap = [] if args.quick else heap_rows(tmp, creds, updates[0], args.baseline)
         broker = SiteBroker(SITE, creds, tmp / "broker-data")
         broker.start()
         fs = tmp / "fs"
@@ -155,6 +160,9 @@ def main() -> None:
         data = json.loads((creds / f"{NODE}.json").read_text())
         data["broker"] = {"host": broker.host, "port": broker.port}
         data["sensor"]["warmup_s"] = 0
+        if args.quick:
+            data["healthy_s"] = 3
+            data["heartbeat_s"] = 1
         (tmp / "config.json").write_text(NodeConfig.model_validate(data).model_dump_json())
         for name, path in firmware_files(tmp / f"build-{VERSIONS[0]}", tmp / "config.json").items():
             (fs / name).write_bytes(path.read_bytes())
@@ -197,6 +205,9 @@ def main() -> None:
     loaded_total = statistics.median(t for t, _ in times["loaded"])
     idle_xfer = statistics.median(x for _, x in times["idle"])
     loaded_xfer = statistics.median(x for _, x in times["loaded"])
+    if args.quick:
+        check_ratio("transfer on the loaded broker over the idle one", loaded_xfer / idle_xfer, 5.0)
+        finish_quick()
     rows = [
         ("idle broker (baseline)", idle_total, idle_xfer),
         ("8 nodes' zone states at 1 Hz each", loaded_total, loaded_xfer),
