@@ -5,8 +5,10 @@ An action `/navigate_to_pose` is three services and two topics (rcl_action): `_a
 `_action/cancel_goal`, `_action/get_result`, `_action/status` and `_action/feedback`. A service `/s` is the DDS
 topics `rq/sRequest` and `rr/sReply`; rmw_cyclonedds puts its request id in front of the message in both, in
 the CDR itself: the client's request writer (8 bytes: its instance handle) and a sequence number (int64), which
-the reply repeats (`cdds_request_header_t` in its serdata.hpp). rmw_fastrtps carries the id in RTPS inline QoS
-instead, so the bridge's goals and cancels reach a Nav2 on rmw_cyclonedds only (docs/ros.md).
+the reply repeats (`cdds_request_header_t` in its serdata.hpp). rmw_fastrtps puts nothing in front: a request's id
+is its DATA's sample identity (writer GUID and sequence number, which every DDS writer sends) and the reply names
+it in inline QoS (related_sample_identity), so its requests and replies are the messages' CDR alone (the `Plain`
+types here). The bridge writes whichever layout the matched server's rmw reads (ros2_bridge.nav2_client).
 
 nav2_msgs/action/NavigateToPose's goal and feedback are the same in Humble and Jazzy; the result differs
 (Humble: std_msgs/Empty; Jazzy: error_code, error_msg), and the bridge never asks for it: it follows the goals
@@ -72,6 +74,14 @@ class SendGoalRequest(IdlStruct, typename="nav2_msgs::action::dds_::NavigateToPo
 
 
 @dataclass
+class PlainSendGoalRequest(IdlStruct, typename="nav2_msgs::action::dds_::NavigateToPose_SendGoal_Request_"):
+    """rmw_fastrtps's send_goal request: no header (the id is the DATA's sample identity)."""
+
+    goal_id: UUID = field(default_factory=UUID)
+    goal: NavigateToPoseGoal = field(default_factory=NavigateToPoseGoal)
+
+
+@dataclass
 class SendGoalReply(IdlStruct, typename="nav2_msgs::action::dds_::NavigateToPose_SendGoal_Response_"):
     client: uint64 = 0
     seq: int64 = 0
@@ -89,6 +99,13 @@ class GoalInfo(IdlStruct, typename="action_msgs::msg::dds_::GoalInfo_"):
 class CancelGoalRequest(IdlStruct, typename="action_msgs::srv::dds_::CancelGoal_Request_"):
     client: uint64 = 0
     seq: int64 = 0
+    goal_info: GoalInfo = field(default_factory=GoalInfo)
+
+
+@dataclass
+class PlainCancelGoalRequest(IdlStruct, typename="action_msgs::srv::dds_::CancelGoal_Request_"):
+    """rmw_fastrtps's cancel_goal request: no header."""
+
     goal_info: GoalInfo = field(default_factory=GoalInfo)
 
 
@@ -153,6 +170,8 @@ class Path(IdlStruct, typename="nav_msgs::msg::dds_::Path_"):
 
 for _type in (
     SendGoalRequest,
+    PlainSendGoalRequest,
+    PlainCancelGoalRequest,
     SendGoalReply,
     CancelGoalRequest,
     CancelGoalReply,

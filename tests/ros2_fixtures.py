@@ -234,3 +234,28 @@ def nav2_server() -> Path:
         finally:
             shutil.rmtree(work, ignore_errors=True)
     return out / "nav2_action_server"
+
+
+NAV2_FASTDDS_SOURCE = SOURCES / "nav2_fastdds_server.cpp"
+
+
+@pytest.fixture(scope="session")
+def nav2_fastdds_server() -> Path:
+    """The Fast DDS 2.9 stand-in (rmw_fastrtps's service layout), built once per source version."""
+    require_header("libfastrtps-dev")
+    gxx = require_tool("g++")
+    digest = hashlib.sha256(NAV2_FASTDDS_SOURCE.read_bytes()).hexdigest()[:16]
+    out = Path(tempfile.gettempdir()) / f"wsnav-nav2-fastdds-server-{digest}"
+    if not (out / "nav2_fastdds_server").exists():
+        work = Path(tempfile.mkdtemp(prefix="wsnav-nav2-fastdds-server-build-"))
+        try:
+            subprocess.run(
+                [gxx, "-O0", "-o", str(work / "nav2_fastdds_server"), str(NAV2_FASTDDS_SOURCE),
+                 "-lfastrtps", "-lfastcdr"],
+                check=True,
+            )  # fmt: skip
+            with contextlib.suppress(OSError):  # another run built it meanwhile
+                work.rename(out)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    return out / "nav2_fastdds_server"

@@ -10,12 +10,21 @@ ends goals with "succeed"); no
 feedback topic, no get_result service, no result timeout (every goal it saw stays in its status list); no goal
 checks (frames, the `behavior_tree` field); no clientid matching before replying (rmw_cyclonedds's server waits up
 to 100 ms for a client's reply reader when the request writer names a clientid; the bridge's names none); no
-ros_discovery_info. Not here: rmw_fastrtps (its services carry the request id in RTPS inline QoS, which the bridge
-does not write), rclcpp, Nav2 itself.
+ros_discovery_info. Not here: rclcpp, Nav2 itself.
+
+On Fast DDS 2.9.1 (rmw_fastrtps, Humble's and Jazzy's default rmw), tests/dds_peers/nav2_fastdds_server.cpp: the
+same server as rmw_fastrtps lays a service out (the request's CDR alone, its id taken from the DATA's sample
+identity, the reply naming it in related_sample_identity): an MQTT goal reaches it and arrives, a goal in a zone
+that becomes blocked is cancelled by its UUID. It leaves out what the Cyclone one does, and also: rmw_fastrtps's
+wait for the client's reply reader before replying (it waits only when the request names that reader in
+related_sample_identity, which the bridge's do not), its ASYNCHRONOUS publish mode and its XML profiles,
+/plan; and the bridge reads no replies there (cyclonedds-python does not show inline QoS), so a goal
+bt_navigator rejects goes unseen.
 """
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -33,7 +42,6 @@ from wsnav.schemas.site import load_site
 pytestmark = pytest.mark.slow
 
 B = (29.0, 22.8)
-REQUESTS = "rq/navigate_to_pose/_action/send_goalRequest"
 Z1 = [(17.0, 5.9), (19.0, 5.9), (19.0, 8.5), (17.0, 8.5)]
 """School's z1 (south corridor by the science rooms), watched by n1."""
 
@@ -69,13 +77,13 @@ class Rig:
         return self.operator.wait_status(what, lambda s: s.state == want)
 
 
-@pytest.fixture
-def rig(tmp_path: Path, nav2_server: Path) -> Iterator[Rig]:
+@contextlib.contextmanager
+def running_rig(tmp_path: Path, server_binary: Path, domain: int) -> Iterator[Rig]:
+    """A stand-in server, the bridge (`--robot robot1`) and amqtt, the robot at A."""
     site_dir = slow_heartbeat_school(tmp_path)
     site = load_site(site_dir)
-    domain = domain_id() + 5
     with BrokerThread(site_dir) as broker:
-        server = NativePeer("Nav2 stand-in", [str(nav2_server), str(domain)], clean_env(), commands=True)
+        server = NativePeer("Nav2 stand-in", [str(server_binary), str(domain)], clean_env(), commands=True)
         bus = connect_with_credentials(broker.host, broker.port, broker.credentials("operator"))
         bus.subscribe(topics.robot_status("school", "robot1"))
         z4 = next(z for z in site.spec.zones if z.id == "z4")
@@ -102,6 +110,18 @@ def rig(tmp_path: Path, nav2_server: Path) -> Iterator[Rig]:
             for link in links.values():
                 link.close()
     assert code == 0, f"the stand-in exited {code}: {server.stderr()}"
+
+
+@pytest.fixture
+def rig(tmp_path: Path, nav2_server: Path) -> Iterator[Rig]:
+    with running_rig(tmp_path, nav2_server, domain_id() + 5) as rig:
+        yield rig
+
+
+@pytest.fixture
+def fast_rig(tmp_path: Path, nav2_fastdds_server: Path) -> Iterator[Rig]:
+    with running_rig(tmp_path, nav2_fastdds_server, domain_id() + 7) as rig:
+        yield rig
 
 
 def test_nav2_gets_mqtt_goals_cancels_in_blocked_zones_escapes_and_is_not_flooded(rig: Rig) -> None:
@@ -167,37 +187,70 @@ def test_nav2_gets_mqtt_goals_cancels_in_blocked_zones_escapes_and_is_not_floode
     assert rig.bridge.proc.poll() is None, "the bridge still runs"
 
 
-def test_a_navigate_to_pose_server_on_fast_dds_gets_no_goal_in_cyclone_s_layout(
-    tmp_path: Path, peer_binaries: Path
+def test_nav2_on_fast_dds_gets_mqtt_goals_in_its_layout_and_cancels_by_uuid(fast_rig: Rig) -> None:
+    """rmw_fastrtps's layout: the request is the goal's CDR alone (a Cyclone header in front would be read as the
+    UUID and shift the pose), its id the DATA's sample identity, here the bridge's Cyclone writer (vendor 1.16)."""
+    rig = fast_rig
+    send_goal(rig.operator, "B")
+    goal = rig.new_goal(0, "the MQTT goal at the Fast DDS action server")
+    assert (goal["x"], goal["y"], goal["frame_id"]) == (*B, "map"), goal
+    assert goal["writer"].startswith("0110") and goal["seq"] >= 1, goal
+    status = rig.state("navigating", "navigating to B, from the server's status")
+    assert status.goal == "B"
+    rig.server.command("succeed")
+    rig.state("arrived", "arrived, from the server's SUCCEEDED")
+
+    _, node4_link, node4 = rig.z4
+    inside = (25.0, 15.0)
+    send_goal(rig.operator, [*inside, 0.0])
+    goal = rig.new_goal(1, "the goal into z4")
+    assert (goal["x"], goal["y"]) == inside, goal
+    rig.state("navigating", "navigating into z4")
+    zone_state(node4_link, "z4", node4, "blocked", 5)
+    wait_until(lambda: bool(rig.cancels()), 15, "the cancel of the goal in blocked z4")
+    assert rig.cancels()[0]["cancel"] == goal["goal"]
+    status = rig.state("cancelled", "cancelled, from the server's CANCELED")
+    assert status.reason is not None and "z4" in status.reason
+    assert not any("unreadable" in s for s in rig.server.samples), rig.server.samples
+    assert rig.bridge.proc.poll() is None, "the bridge still runs"
+
+
+def test_servers_on_both_rmws_at_once_get_no_goal_and_the_bridge_says_why_in_one_line(
+    tmp_path: Path, nav2_server: Path, nav2_fastdds_server: Path
 ) -> None:
-    """rmw_fastrtps reads a request's id from RTPS inline QoS, not from the CDR: a Fast DDS server would take the
-    bridge's request header for the goal's UUID and the rest for a garbled pose. With a Fast DDS 2.9.1 reader of
-    the send_goal requests matched (tests/dds_peers/fastdds_peer.cpp with the request's type name, volatile, as
-    rmw_fastrtps's service readers), the bridge holds the MQTT goal and says why."""
+    """A site runs one rmw: with a rmw_cyclonedds and a rmw_fastrtps navigate_to_pose server matched at once,
+    either layout would be garbage to one of them, so the bridge holds the MQTT goal and says why, once."""
     site_dir = slow_heartbeat_school(tmp_path)
     site = load_site(site_dir)
     domain = domain_id() + 6
-    request_type = "nav2_msgs::action::dds_::NavigateToPose_SendGoal_Request_"
     with BrokerThread(site_dir) as broker:
-        fast = NativePeer(
-            "Fast DDS 2.9 send_goal request reader",
-            [str(peer_binaries / "fastdds_peer"), str(domain), REQUESTS, "10", request_type],
-            clean_env(),
-        )
+        servers = [
+            NativePeer(name, [str(binary), str(domain)], clean_env(), commands=True)
+            for name, binary in (
+                ("Cyclone stand-in", nav2_server),
+                ("Fast DDS stand-in", nav2_fastdds_server),
+            )
+        ]
         bus = connect_with_credentials(broker.host, broker.port, broker.credentials("operator"))
+        bus.subscribe(topics.robot_status("school", "robot1"))
         args = bridge_args(
             site, f"{broker.host}:{broker.port}", broker.credentials_dir / "robot1.json", domain
         )
         bridge = WsnavChild([*args, "--robot", "robot1"], clean_env())
         try:
             bridge.wait_for("MQTT broker connected", 60)
-            send_goal(Operator(bus, "school"), "B")
-            line = bridge.wait_for("on another DDS", 20)
-            assert "vendor 1.0f" in line, line
-            assert not any("goal " in s and "-> (29.0, 22.8" in s for s in bridge.lines), bridge.lines
+            operator = Operator(bus, "school")
+            for x, server in zip((12.0, 13.0), servers, strict=True):  # both matched before the goal
+                server.command(f"pose {x} 7.2 0.0")
+                operator.wait_status(f"the pose from the {server.name}", lambda s, x=x: s.pose[0] == x)
+            send_goal(operator, "B")
+            bridge.wait_for("rmw_cyclonedds AND rmw_fastrtps", 20)
+            time.sleep(1.0)
+            assert sum("rmw_cyclonedds AND rmw_fastrtps" in s for s in bridge.lines) == 1, bridge.lines
+            assert not [s for server in servers for s in server.samples], "no goal reached either server"
         finally:
-            code = fast.stop()
+            codes = [server.stop() for server in servers]
             bridge.stop()
             print("bridge output:", *bridge.lines, sep="\n")
             bus.close()
-    assert code == 0
+    assert codes == [0, 0]
