@@ -48,8 +48,8 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     bridge.add_argument(
         "--robot",
         metavar="ID",
-        help="supervise this robot's Nav2 (navigate_to_pose on rmw_cyclonedds): cancel goals in blocked zones, "
-        "drive out of a zone blocked around it, MQTT goals and status (the credentials must be its own)",
+        help="supervise this robot's Nav2 (navigate_to_pose on rmw_cyclonedds or rmw_fastrtps): cancel goals in "
+        "blocked zones, drive out of a zone blocked around it, MQTT goals and status (the credentials must be its own)",
     )
     bridge.add_argument(
         "--nav2-action", default="/navigate_to_pose", help="Nav2's NavigateToPose action (with --robot)"
