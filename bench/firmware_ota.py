@@ -230,7 +230,7 @@ def main() -> None:
         "numbers are the protocol's and the broker's, not an ESP8266's, whose Wi-Fi round trips and flash "
         "writes add to every chunk. `command to new version confirmed` counts the reboot into update mode, the "
         "transfer, the swap, the trial boot, its first connect, and the healthy period the node runs before it "
-        "confirms (30 s after boot, config.json's default `healthy_s`, and two states sent: health.py), which `wsnav firmware ota` "
+        "confirms (30 s after boot and two states sent: app._HEALTHY_S, health.py), which `wsnav firmware ota` "
         "waits for.\n\n"
         + "\n".join(table)
         + "\n\nHeap, on MicroPython's WebAssembly port (32-bit: the ESP8266's object sizes; bench/wasm_port, "

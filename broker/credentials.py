@@ -103,8 +103,6 @@ def write_credentials(
             node = node_by_id[ident]
             keepalive = old.get("keepalive_s") if old else None
             keepalive_s = keepalive if isinstance(keepalive, int) and 5 <= keepalive <= 3600 else 30
-            healthy = old.get("healthy_s") if old else None  # a hand-edited period is kept, as keepalive_s is
-            healthy_s = healthy if isinstance(healthy, int) and 1 <= healthy <= 600 else 30
             record = NodeConfig(
                 role="node",
                 username=ident,
@@ -118,7 +116,6 @@ def write_credentials(
                 on_delay_ms=node.on_delay_ms,
                 off_delay_ms=node.off_delay_ms,
                 keepalive_s=keepalive_s,
-                healthy_s=healthy_s,
                 wifi=wifi,
                 update_key=node_update_key(site_key, ident),
             )

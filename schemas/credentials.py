@@ -55,9 +55,6 @@ class NodeConfig(Credentials):
     on_delay_ms: Annotated[int, Field(ge=0, le=MAX_DELAY_MS)]
     off_delay_ms: Annotated[int, Field(ge=0, le=MAX_DELAY_MS)]
     keepalive_s: Annotated[int, Field(ge=5, le=3600)] = 30
-    healthy_s: Annotated[int, Field(ge=1, le=600)] = 30
-    """How long the node runs (connected, sending states, its loop without an error) before an update on trial
-    is confirmed and a boot loop's count cleared (firmware/device/health.py). 30 s on a site; tests shorten it."""
     wifi: WifiConfig = WifiConfig()
     update_key: Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")] | None = None
     """This node's key for over-the-air updates (`node_update_key` of the site's UPDATE_KEY_FILE): the node takes

@@ -130,22 +130,6 @@ def test_rerun_keeps_secrets_adds_new_ids_reports_removed(tmp_path: Path) -> Non
     assert after_key == before_key  # the update key is kept: deployed nodes keep taking updates
 
 
-def test_a_hand_edited_healthy_period_is_kept_and_a_bad_one_reset(tmp_path: Path) -> None:
-    """`healthy_s` (how long a node runs before it confirms an update) is 30 s unless the installer edited a
-    node's file; a rerun keeps an edited period in range, and puts 30 back for one out of range."""
-    site = tiny_site(tmp_path / "site")
-    out = tmp_path / "creds"
-    assert wsnav("broker", "credentials", "--site", site, "--out", out).returncode == 0
-    assert NodeConfig.model_validate_json((out / "n1.json").read_text()).healthy_s == 30
-    for node, period in (("n1", 5), ("n2", 0)):
-        data = json.loads((out / f"{node}.json").read_text())
-        data["healthy_s"] = period
-        (out / f"{node}.json").write_text(json.dumps(data))
-    assert wsnav("broker", "credentials", "--site", site, "--out", out).returncode == 0
-    assert NodeConfig.model_validate_json((out / "n1.json").read_text()).healthy_s == 5
-    assert NodeConfig.model_validate_json((out / "n2.json").read_text()).healthy_s == 30
-
-
 def test_a_damaged_update_key_is_one_line_and_not_replaced(tmp_path: Path) -> None:
     site = tiny_site(tmp_path / "site")
     out = tmp_path / "creds"

@@ -183,7 +183,6 @@ def test_config_accepts_what_the_schema_accepts(sensor: dict[str, Any], tmp_path
     cfg = nodeconfig.load(str(path))
     assert (cfg["site"], cfg["node"], cfg["zone"]) == ("school", "n1", "z1")
     assert cfg["heartbeat_ms"] == 5000 and cfg["keepalive_s"] == 30 and cfg["broker_port"] == 1883
-    assert cfg["healthy_s"] == 30  # a site node's healthy period before an update is confirmed
     assert cfg["sensor_type"] == sensor["type"]
     if sensor["type"] == "hcsr04":
         assert (cfg["trigger_pin"], cfg["echo_pin"], cfg["threshold_mm"]) == (12, 14, 800)
@@ -205,7 +204,6 @@ def test_config_accepts_what_the_schema_accepts(sensor: dict[str, Any], tmp_path
         ({"sensor": {"type": "ir_beam", "pin": 1}}, "sensor.pin must be a GPIO the sensor can use"),
         ({"sensor": {"type": "sonar", "pin": 1}}, "sensor.type must be pir, ir_beam or hcsr04"),
         ({"keepalive_s": 2}, "keepalive_s must be in [5, 3600]"),
-        ({"healthy_s": 0}, "healthy_s must be in [1, 600]"),
         (
             {
                 "sensor": {

@@ -70,9 +70,6 @@ APPENDED = {
     LATE: {"app.py": LATE_FAILURE},
 }
 WAIT = 120.0
-HEALTHY_S = 3
-"""The boards' healthy period here (config.json's `healthy_s`, with a 1 s heartbeat): a few seconds, not a site's
-30 s, which only the test that needs a node to stay unconfirmed for a while keeps (`Board(..., healthy_s=None)`)."""
 
 
 @pytest.fixture(scope="module")
@@ -128,22 +125,10 @@ def infos(broker: SiteBroker, creds: Path) -> Iterator[Infos]:
 class Board:
     """The node on the unix port, its filesystem `fs` holding `version`'s build and its real config."""
 
-    def __init__(
-        self,
-        fw: dict[str, Path],
-        version: str,
-        creds: Path,
-        broker: SiteBroker,
-        tmp: Path,
-        healthy_s: int | None = HEALTHY_S,
-    ) -> None:
-        """`healthy_s` None: the config as `wsnav broker credentials` wrote it, the site's default period."""
+    def __init__(self, fw: dict[str, Path], version: str, creds: Path, broker: SiteBroker, tmp: Path) -> None:
         data = json.loads((creds / f"{NODE}.json").read_text())
         data["broker"] = {"host": broker.host, "port": broker.port}
         data["sensor"]["warmup_s"] = 0
-        data["heartbeat_s"] = 1  # confirmation also waits for two states after the connect's: heartbeats
-        if healthy_s is not None:
-            data["healthy_s"] = healthy_s
         config = tmp / "config.json"
         config.write_text(NodeConfig.model_validate(data).model_dump_json())
         self.fs = tmp / "fs"
@@ -195,8 +180,8 @@ def board_of(
 ) -> Iterator[Callable[[str], Board]]:
     made: list[Board] = []
 
-    def make(version: str, healthy_s: int | None = HEALTHY_S) -> Board:
-        b = Board(fw, version, creds, broker, tmp_path, healthy_s)
+    def make(version: str) -> Board:
+        b = Board(fw, version, creds, broker, tmp_path)
         b.unix.power_on()
         made.append(b)
         return b
@@ -409,10 +394,8 @@ def test_a_new_app_whose_loop_fails_8_s_after_connecting_is_rolled_back(
     fw, creds, broker, infos, board_of
 ) -> None:
     """The first connect is no confirmation: ota reports the trial, then the rollback (exit 1, naming the node
-    and both versions); the board runs the old app again from its kept backups. The board keeps the healthy
-    period `wsnav broker credentials` gives a site's nodes (30 s) and a 1 s heartbeat (its two states come within
-    about 2 s of the connect): only the default period itself keeps it from confirming before the failure."""
-    board = board_of(OLD, None)
+    and both versions); the board runs the old app again from its kept backups."""
+    board = board_of(OLD)
     infos.wait(lambda i: i.fw == OLD)
     code, out, err = finish(ota_cli(fw, creds, broker, LATE))
     assert code == 1, (out, err, board.serial()[-3000:])
@@ -433,8 +416,8 @@ def test_a_version_that_keeps_failing_goes_to_safe_mode_and_takes_an_update(
 ) -> None:
     """No update on trial (the failing version was put on by USB): after three watchdog resets in a row the node
     stops starting its app and waits online in safe mode, from which an update over the air is taken; the new
-    version's healthy run clears the count. A 10 s healthy period: the failing version's loop fails before it."""
-    board = board_of(LATE, 10)
+    version's healthy run clears the count."""
+    board = board_of(LATE)
     safe = infos.wait(lambda i: (i.error or "").startswith("safe:"), WAIT * 2)
     assert safe.error == "safe: 3 resets in a row" and safe.fw == LATE
     assert board.unix.resets == ["watchdog"] * 3, board.unix.resets

@@ -51,6 +51,11 @@ _INFO_RETRY_MS = const(60000)
 """When the diagnostics could not be loaded (no heap), try again after this long, not every iteration."""
 _MAX_ERRORS = const(20)
 """Consecutive unexpected exceptions in the loop before it stops feeding the watchdog."""
+_HEALTHY_S = const(30)
+"""How long after boot the node must be running, its last pass without an error (and, for an update on trial,
+online with two states or heartbeats sent after the first connect's), before it counts as healthy
+(health.apply): an update is confirmed, the boot-loop count cleared. A first connect proves little: a version whose loop fails 8 s later
+was once confirmed at it, then boot-looped with its backups gone."""
 
 _OFFLINE = const(0)
 _WIFI_JOINING = const(1)
@@ -116,18 +121,7 @@ class Node:
         # Not yet known healthy (health.apply): 2 with an update on trial (otaboot.boot said so), 1 without
         # (the boot-loop count to clear), 0 once done. Names the firmware already has: on the 64-bit unix port
         # its interned strings sit at the edge of a qstr pool (diagnostics.py).
-        # config.json's `healthy_s` (30 s on a site; the tests shorten it), negative during an update's trial
-        # (otaboot.boot: one more key in the config dict would grow its table past what a 38 KiB setup has on
-        # the 64-bit unix port); absent with the nodeconfig of before 0.6.1 (a boot file, updated only over
-        # USB), whose otaboot says `trial` with a key.
-        healthy_s = cfg.get("healthy_s", 30)
-        self.trial = 2 if "trial" in cfg or healthy_s < 0 else 1
-        # How long after boot the node must be running, its last pass without an error (and, for an update on
-        # trial, online with two states or heartbeats sent after the first connect's), before it counts as
-        # healthy (health.apply): an update is confirmed, the boot-loop count cleared. A first connect proves
-        # little: a version whose loop fails 8 s later was once confirmed at it, then boot-looped with its
-        # backups gone.
-        self.healthy_s = healthy_s if healthy_s > 0 else -healthy_s
+        self.trial = 2 if "trial" in cfg else 1
 
     def ticks(self) -> int:
         """The clock's tick count: an int (a small one on the board), whatever type the stubs give it."""
@@ -271,7 +265,7 @@ class Node:
             try:
                 self.iteration()
                 self.errors = 0
-                if self.trial and self.uptime_s >= self.healthy_s:
+                if self.trial and self.uptime_s >= _HEALTHY_S:
                     __import__("health").apply(self)  # loaded for this, drops itself (no name kept here)
             except MemoryError:
                 gc.collect()

@@ -15,7 +15,7 @@ every string of 10 characters or less (interned when the module loads) counts; t
 """
 
 INFO_PERIOD_MS = 300000
-FIRMWARE_VERSION = "0.6.1"
+FIRMWARE_VERSION = "0.6.0"
 """Bump it with every change under firmware/device/: it is how an operator tells which boards are behind."""
 RESET_NAMES = "power_on watchdog exception soft_wdt soft_reset deep_sleep reset_pin unknown"
 """`machine.reset_cause()` on the ESP8266 is the SDK's rst_info reason, 0..6 in this order (REASON_DEFAULT_RST,

@@ -1,4 +1,4 @@
-"""The node has run healthy (app.Node.run: config.json's `healthy_s` after boot, its last pass without an error): loaded
+"""The node has run healthy (app.Node.run: app._HEALTHY_S after boot, its last pass without an error): loaded
 for that and dropped once done (it removes itself from sys.modules), as command.py is for a command, and kept
 small so that it loads on a fragmented heap."""
 

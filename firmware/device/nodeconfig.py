@@ -120,9 +120,6 @@ def parse(d) -> dict:
     c["keepalive_s"] = _int(d, "keepalive_s", 30)
     if not 5 <= c["keepalive_s"] <= 3600:
         raise ConfigError("config: keepalive_s must be in [5, 3600]")
-    c["healthy_s"] = _int(d, "healthy_s", 30)
-    if not 1 <= c["healthy_s"] <= 600:
-        raise ConfigError("config: healthy_s must be in [1, 600]")
     sensor = _dict(d, "sensor")
     c["sensor_type"] = _str(sensor, "type", where="sensor.")
     c["pin"] = -1

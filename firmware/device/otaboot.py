@@ -129,9 +129,7 @@ def boot(cfg) -> None:
         return
     save(st)
     if stage == "trial":
-        # The app says so in `info` until it confirms (health.apply): the healthy period negated, not a key of
-        # its own (app.Node reads both ways: an app updated over the air may meet the otaboot of before 0.6.1).
-        cfg["healthy_s"] = -cfg["healthy_s"]
+        cfg["trial"] = 1  # the app says so in `info` until it confirms (health.apply)
     if stage == "swap":  # here, not in the updater: a swap cut short may have moved updater.mpy out
         swap(st)
         import machine

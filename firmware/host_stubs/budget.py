@@ -388,7 +388,6 @@ cfg = {
     "username": "n1",
     "password": "p" * 24,
     "keepalive_s": 30,
-    "healthy_s": 30,
     "warmup_ms": 0,
 }
 wdt = Watchdog()
