@@ -11,7 +11,7 @@ Baselines in the same run: each bare interpreter's free heap (the ratio is the s
 and on the unix port the firmware of another git revision (`--baseline REF`, default main).
 Writes its section of BENCHMARKS.md unless --no-write. Target (issue 19): >= 8 KB free after setup, 32-bit.
 `--quick`: the 32-bit rows after setup alone (PIR and HC-SR04), each as the floor over the free heap, at most 1.0:
-any change that takes a node under the 8 KB floor fails (HC-SR04 measured 8192/8288 = 0.99 at 1b90744).
+any change that takes a node under the 8 KB floor fails.
 """
 
 from __future__ import annotations
