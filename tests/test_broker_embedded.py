@@ -5,17 +5,20 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import socket
 import threading
 import time
 from pathlib import Path
 
 import paho.mqtt.client as mqtt
 import pytest
+from amqtt.broker import Broker
 from paho.mqtt.enums import CallbackAPIVersion
 
 from tests.broker_fixtures import TIMEOUT, Endpoint, client
 from tests.site_fixtures import tiny_site
 from wsnav.broker.amqtt.embedded import BrokerThread, embedded_broker
+from wsnav.broker.amqtt.patch import SHUTDOWN_GRACE_S
 from wsnav.schemas import topics
 
 SITE = "tiny"
@@ -113,3 +116,45 @@ def test_a_subscriber_that_never_acknowledges_costs_one_warning_line_not_a_trace
     timeouts = [r for r in caplog.records if "Timeout waiting for PUBACK" in r.getMessage()]
     assert len(timeouts) == 1 and timeouts[0].levelno == logging.WARNING
     assert [r.getMessage() for r in caplog.records if r.exc_info] == []
+
+
+def test_a_stop_whose_session_cleanup_hangs_still_closes_every_connection_within_the_grace(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A robot's link must see the broker go at once: with a session's cleanup stuck (as under load), it saw the
+    close only after two keepalives (60 s), and the robot went on trusting a zone map nobody updated."""
+
+    async def stuck(self: Broker, handler: object) -> None:
+        await asyncio.sleep(8.0)
+
+    assert SHUTDOWN_GRACE_S < 4.0
+    monkeypatch.setattr(Broker, "_stop_handler", stuck)
+    site = tiny_site(tmp_path / "site")
+    with BrokerThread(site) as broker:
+        ep = Endpoint("amqtt", broker.host, broker.port, broker.credentials_dir)
+        with client(ep, "robot1") as robot:
+            stopping = threading.Thread(target=broker.stop, args=(1.0,))
+            deadline = time.monotonic() + 5.0  # the cleanup is stuck for 8 s
+            stopping.start()
+            while not robot.disconnects:
+                assert time.monotonic() < deadline, "the robot's client still thinks it is connected"
+                time.sleep(0.05)
+            stopping.join()
+
+
+def test_a_stop_closes_every_connection_at_once_even_one_that_never_logged_in(tmp_path: Path) -> None:
+    """amqtt's shutdown ends logged-in sessions only; a socket still in its handshake stayed open after the broker
+    was gone, and a client whose cleanup hung was told only by its keepalive (60 s with paho's 30 s)."""
+
+    site = tiny_site(tmp_path / "site")
+    with BrokerThread(site) as broker:
+        idle = socket.create_connection((broker.host, broker.port), timeout=TIMEOUT)
+        time.sleep(0.3)  # accepted and admitted, no CONNECT sent
+        broker.stop()
+    idle.settimeout(2.0)
+    try:
+        assert idle.recv(1) == b"", "the broker answered a client that never sent CONNECT"
+    except ConnectionResetError:
+        pass  # aborted: the same news for the client
+    finally:
+        idle.close()

@@ -124,6 +124,14 @@ class Admission:
             ticket.close()
         return len(mine)
 
+    def close_all(self) -> int:
+        """Abort every connection still open (the end of a shutdown): a peer must see the broker go at once, not
+        a keepalive or two later because a session's cleanup left its socket open."""
+        every = [*self._pending, *self._logged_in]
+        for ticket in every:
+            ticket.close()
+        return len(every)
+
     def out_of_descriptors(self) -> None:
         """asyncio could not accept (EMFILE): counted and reported like a refusal, without its traceback."""
         self.refused += 1

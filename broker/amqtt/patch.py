@@ -200,6 +200,8 @@ class WsnavProtocolHandler(BrokerProtocolHandler):
 
 
 STORED_WITHIN_S = 10.0
+SHUTDOWN_GRACE_S = 2.0
+"""A shutdown still running after this long aborts every connection it has not closed yet."""
 PUBLISH_DECISIONS_KEPT = 100_000
 """ACL answers kept (`WsnavBroker._topic_filtering`); all are forgotten when full (an operator's block ids, a
 client trying random topics), so memory stays bounded."""
@@ -266,7 +268,14 @@ class WsnavBroker(Broker):
         for server in self._servers.values():
             if server.instance is not None:
                 server.instance.close()
-        await super().shutdown()
+        # A session's cleanup can hang or crawl under load; the peers must still see the broker go at once, not
+        # two keepalives later (60 s for paho's 30 s, seen twice in whole-suite runs).
+        deadline = asyncio.get_running_loop().call_later(SHUTDOWN_GRACE_S, self.admission.close_all)
+        try:
+            await super().shutdown()
+        finally:
+            deadline.cancel()
+            self.admission.close_all()
         for delivery in list(self._deliveries):
             delivery.cancel()
         if self._deliveries:
