@@ -24,8 +24,8 @@ from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parse
 from bench.synthetic_building import BLOCK, building_grid
 from wsnav.navigation.costmap.inflation import InflationParams
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
-from wsnav.navigation.planning.costmap_planner import PlannerWeights
-from wsnav.navigation.planning.global_planner import PlannerParams, plan_path, weights_for
+from wsnav.navigation.planning.astar import PlannerParams, plan_path, weights_for
+from wsnav.navigation.planning.global_planner import PlannerWeights
 
 SECTION = "## Global planner: plan time vs whole-map Dijkstra"
 COMMAND = "./.venv/bin/python -m bench.plan_time"
@@ -119,7 +119,7 @@ def main() -> None:
         f"```\n{COMMAND}\n```\n\n"
         "Plans on a synthetic building floor (bench/synthetic_building.py: 0.05 m cells, corridors every 12.5 m, "
         "rooms with doors, inflation radius 1 m): `across` corner to corner, `along` one corridor. Columns: "
-        "`plan_path` given the costmap's cached weights and their block grid (`costmap_planner.PlannerWeights`, "
+        "`plan_path` given the costmap's cached weights and their block grid (`global_planner.PlannerWeights`, "
         "both updated in changed bounds only: what the agent does), the same building both itself, building the "
         "weights alone, "
         "pyastar2d over the whole grid (no hierarchy), and skimage 0.26 `MCP_Geometric` (whole-map Dijkstra, "

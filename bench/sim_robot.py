@@ -28,7 +28,7 @@ from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parse
 from wsnav.navigation.control.controller import PathFollower
 from wsnav.navigation.costmap.inflation import InflationParams
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
-from wsnav.navigation.planning.global_planner import plan_path
+from wsnav.navigation.planning.astar import plan_path
 from wsnav.robot_agent.sim.lidar import LidarParams, cast_scan
 from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
 from wsnav.robot_agent.sim.world_grid import SimWorldGrid

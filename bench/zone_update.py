@@ -22,7 +22,7 @@ from wsnav.navigation.costmap.inflation import InflationParams
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
 from wsnav.schemas.messages import ZoneState
 from wsnav.zones.geometry import GridFrame
-from wsnav.zones.zone_layer import ZoneLayer
+from wsnav.zones.zone_rule import ZoneRule
 
 SECTION = "## Costmap: zone change, bounded vs whole map"
 COMMAND = "./.venv/bin/python -m bench.zone_update"
@@ -36,7 +36,7 @@ def measure(cells: int, changes: int, rebuilds: int) -> dict[str, float]:
     grid = building_grid(cells)
     spec = corridor_zones(cells, 20)
     frame = GridFrame(grid.width, grid.height, grid.resolution, grid.origin[0], grid.origin[1])
-    layer = ZoneLayer(spec, frame)
+    layer = ZoneRule(spec, frame)
     costmap = LayeredCostmap(grid, InflationParams(), zone_layer=layer, obstacle_layer=False)
     nodes = [(n.zone, n.id) for n in spec.nodes]
 

@@ -27,7 +27,7 @@ from wsnav.schemas.messages import (
 )
 from wsnav.schemas.site import Site
 from wsnav.zones.geometry import GridFrame
-from wsnav.zones.zone_layer import ZoneLayer
+from wsnav.zones.zone_rule import ZoneRule
 
 Kind = Literal["zone", "node", "robot", "block"]
 Key = tuple[Kind, str]
@@ -83,7 +83,7 @@ class SiteView:
             self.zone_nodes[n.zone].append(n.id)
         self.robots: dict[str, RobotView] = {r.id: RobotView() for r in spec.robots}
         self.blocks: dict[str, BlockView] = {}
-        self.rule = ZoneLayer(spec, GridFrame.of_grid(site.grid))
+        self.rule = ZoneRule(spec, GridFrame.of_grid(site.grid))
         """The robots' own zone layer, fed the same messages: a zone's state is what the robots make of it."""
         self.events: list[Event] = []
         """What happened (live messages only, never a broker's replay), for the event log; its reader empties it."""

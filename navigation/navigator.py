@@ -44,12 +44,12 @@ from wsnav.navigation.behaviors.recovery import (
     RecoveryTrigger,
     Rotation,
 )
-from wsnav.navigation.planning.costmap_planner import GlobalPlanner, PlanningCostmap
-from wsnav.navigation.planning.global_planner import Plan
+from wsnav.navigation.planning.astar import Plan
+from wsnav.navigation.planning.global_planner import GlobalPlanner, PlanningCostmap
 from wsnav.navigation.replan_policy import ZONE_REPLAN_INTERVAL_S, ReplanPolicy, Verdict
 from wsnav.runtime.timers import Every
 from wsnav.zones.geometry import Bounds, GridFrame
-from wsnav.zones.zone_layer import BlockedArea
+from wsnav.zones.zone_rule import BlockedArea
 
 NavState = Literal["idle", "navigating", "waiting", "arrived", "cancelled"]
 """What the robot's status says; `Navigator.mode` says more."""

@@ -3,12 +3,13 @@
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the submodules load when imported, not with the package
-    from wsnav.robot_agent import agent, agent_config, cli, robot_command, sim
+    from wsnav.robot_agent import agent, agent_config, cli, robot_command, robot_session, sim
 
 __all__ = [
     "agent",
     "agent_config",
     "cli",
     "robot_command",
+    "robot_session",
     "sim",
 ]

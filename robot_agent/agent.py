@@ -32,7 +32,7 @@ from wsnav.navigation.control.controller import ControllerParams, PathFollower
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
 from wsnav.navigation.costmap.layers import OtherRobot, RobotsLayer
 from wsnav.navigation.navigator import GoalLabel, Navigator, NavigatorParams
-from wsnav.navigation.planning.costmap_planner import GlobalPlanner
+from wsnav.navigation.planning.global_planner import GlobalPlanner
 from wsnav.robot_agent.agent_config import AgentConfig
 from wsnav.runtime.bus import Bus, Message
 from wsnav.runtime.clock import Clock
@@ -53,7 +53,7 @@ from wsnav.schemas.site import Site
 from wsnav.zones.geometry import GridFrame
 from wsnav.zones.intake import ZoneIntake
 from wsnav.zones.last_known import LastKnownZones
-from wsnav.zones.zone_layer import ZoneLayer
+from wsnav.zones.zone_rule import ZoneRule
 
 log = logging.getLogger(__name__)
 
@@ -141,11 +141,11 @@ class RobotAgent:
             }
         self.robots_layer = RobotsLayer(GridFrame.of_grid(site.grid)) if self.fleet else None
         inflation = config.inflation.params(radius)
-        self.zone_layer: ZoneLayer | None = None
+        self.zone_layer: ZoneRule | None = None
         self.intake: ZoneIntake | None = None
         plugins = config.layer_plugins()
         if "zone_layer" in plugins:
-            self.zone_layer = ZoneLayer(site.spec, GridFrame.of_grid(site.grid), site.spec.policy)
+            self.zone_layer = ZoneRule(site.spec, GridFrame.of_grid(site.grid), site.spec.policy)
             self.intake = ZoneIntake(site.spec, self.zone_layer, memory=zone_memory)
             self.intake.restore(clock.now())
         self.costmap = LayeredCostmap(

@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from wsnav.navigation.behaviors.recovery import RecoveryParams
 from wsnav.navigation.costmap.inflation import InflationParams
 from wsnav.navigation.costmap.layered_costmap import LAYER_PLUGINS, check_plugins
-from wsnav.navigation.planning.global_planner import PlannerParams
+from wsnav.navigation.planning.astar import PlannerParams
 from wsnav.schemas.yaml_file import read_yaml_mapping
 
 CONFIG_DIR = Path(__file__).parent / "configs"
@@ -47,7 +47,7 @@ class InflationSection(_Strict):
 
 
 class PlannerSection(_Strict):
-    """The global planner (NavFn's cost model, see wsnav.navigation.planning.global_planner)."""
+    """The global planner (NavFn's cost model, see wsnav.navigation.planning.astar)."""
 
     neutral_cost: Annotated[float, Field(gt=0)] = 50.0
     cost_factor: Annotated[float, Field(ge=0)] = 0.8

@@ -52,7 +52,7 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
 
 def robot_parser(sub: argparse._SubParsersAction[Parser]) -> Parser:
     """The `wsnav robot` parser, for a component that adds a robot backend to it: its flag stores a
-    robot_command.BackendFactory in `args.backend`."""
+    robot_session.BackendFactory in `args.backend`."""
     parser = sub.choices.get("robot")
     if parser is None:
         raise RuntimeError("robot_agent.cli.register must run before a backend is added to `wsnav robot`")

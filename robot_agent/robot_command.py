@@ -13,14 +13,13 @@ import math
 import signal
 import sys
 import threading
-from collections.abc import Callable
-from dataclasses import dataclass, field
 from types import FrameType
 
-from wsnav.navigation.backend import Pose, RobotBackend
+from wsnav.navigation.backend import Pose
 from wsnav.navigation.planning.offline_plan import parse_point
-from wsnav.robot_agent.agent import RobotAgent, SimWorldSink
+from wsnav.robot_agent.agent import RobotAgent
 from wsnav.robot_agent.agent_config import AgentConfig, AgentConfigError, load_agent_config
+from wsnav.robot_agent.robot_session import BackendFactory, RobotSession
 from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
 from wsnav.robot_agent.sim.world_grid import SimWorldGrid
 from wsnav.runtime.cli_support import CliError, read_robot_credentials, refuse_bad_login
@@ -33,25 +32,6 @@ from wsnav.zones.last_known import LastKnownZones
 
 SIM_DT_S = 0.02
 """The simulated robot is advanced at 50 Hz of real time."""
-
-
-@dataclass
-class RobotSession:
-    """A robot the real-time loop drives: the backend, and what the loop must do for it besides the agent."""
-
-    robot: RobotBackend
-    tick: Callable[[float], float]
-    """Called every loop turn with the clock's time; returns when it wants to run next (a simulator steps here)."""
-    describe: str
-    """What drives the robot, for the banner line."""
-    sim_world: SimWorldSink | None = None
-    """Where `sim/world` goes (the simulator's lidar and bumper); None for a real robot."""
-    close: Callable[[], None] = field(default=lambda: None)
-    """Stop the robot and let go of what the session holds; called once, also after an error."""
-
-
-BackendFactory = Callable[[argparse.Namespace, Site, str, "Pose | None"], RobotSession]
-"""(args, site, robot id, --start pose or None) -> a started session; CliError for what the user must fix."""
 
 
 def robot_command(args: argparse.Namespace) -> int:

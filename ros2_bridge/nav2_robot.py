@@ -26,7 +26,7 @@ from wsnav.runtime.bus import Bus, Message
 from wsnav.schemas import topics
 from wsnav.schemas.ros_map import FREE
 from wsnav.schemas.site import Site
-from wsnav.zones.zone_layer import BlockedArea
+from wsnav.zones.zone_rule import BlockedArea
 
 log = logging.getLogger(__name__)
 

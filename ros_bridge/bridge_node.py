@@ -42,7 +42,7 @@ from wsnav.schemas.site import Site
 from wsnav.zones.cost_values import LETHAL_OBSTACLE
 from wsnav.zones.geometry import Bounds, GridFrame
 from wsnav.zones.last_known import LastKnownZones
-from wsnav.zones.zone_layer import BlockedArea
+from wsnav.zones.zone_rule import BlockedArea
 
 log = logging.getLogger(__name__)
 

@@ -29,7 +29,7 @@ from wsnav.navigation.replan_policy import ReplanPolicy, Verdict
 from wsnav.ros_bridge.zone_feed import ZoneChange, ZoneFeed
 from wsnav.schemas.messages import RobotStateValue, RobotStatus
 from wsnav.zones.geometry import Bounds
-from wsnav.zones.zone_layer import BlockedArea
+from wsnav.zones.zone_rule import BlockedArea
 
 Pose = tuple[float, float, float]
 

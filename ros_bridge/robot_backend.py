@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from wsnav.navigation.backend import BURGER_RADIUS_M, DriveLimits, LaserScan, Pose, Velocity
-from wsnav.robot_agent.robot_command import RobotSession
+from wsnav.robot_agent.robot_session import RobotSession
 from wsnav.ros_bridge.ros_env import master_uri, require_rospy, wait_for_master
 from wsnav.runtime.cli_support import CliError
 from wsnav.schemas.site import Site

@@ -12,7 +12,7 @@ from wsnav.runtime.cli_support import host_port
 
 if TYPE_CHECKING:
     from wsnav.navigation.backend import Pose
-    from wsnav.robot_agent.robot_command import RobotSession
+    from wsnav.robot_agent.robot_session import RobotSession
     from wsnav.runtime.cli_support import Parser
     from wsnav.schemas.site import Site
 

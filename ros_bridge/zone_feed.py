@@ -17,7 +17,7 @@ from wsnav.zones.cost_values import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION
 from wsnav.zones.geometry import Bounds, CellWindow, GridFrame
 from wsnav.zones.intake import ZoneIntake
 from wsnav.zones.last_known import LastKnownZones
-from wsnav.zones.zone_layer import BlockedArea, ZoneLayer
+from wsnav.zones.zone_rule import BlockedArea, ZoneRule
 
 ESCAPE_COST = 200
 """What a cell lethal only because of an area the robot stands in is sent as while it drives out: passable for
@@ -37,7 +37,7 @@ class ZoneFeed:
     ) -> None:
         """`memory`: the last known zone states on disk (`--state-dir`), served from the start, read at `now`."""
         self.frame = frame
-        self.layer = ZoneLayer(spec, frame, spec.policy)
+        self.layer = ZoneRule(spec, frame, spec.policy)
         self.intake = ZoneIntake(spec, self.layer, memory=memory)
         self.intake.restore(now)
         self.costs: NDArray[np.uint8] = self.layer.paint(

@@ -27,7 +27,7 @@ from wsnav.schemas.messages import (
 )
 from wsnav.schemas.site import Site, load_site
 from wsnav.zones.geometry import GridFrame
-from wsnav.zones.zone_layer import ZoneLayer
+from wsnav.zones.zone_rule import ZoneRule
 
 HB = 5.0  # tiny_site's heartbeat; stale after 3 heartbeats
 
@@ -66,14 +66,14 @@ def test_zone_states_follow_nodes_silence_wills_and_operator_blocks(site: Site) 
     assert view.zone_state("z2", 125.0) == "caution"
 
 
-def robots_view(tmp_path: Path, policy: dict[str, object], watchers: int) -> tuple[SiteView, ZoneLayer]:
+def robots_view(tmp_path: Path, policy: dict[str, object], watchers: int) -> tuple[SiteView, ZoneRule]:
     """The console's view and a robot's zone layer on a site whose z1 is watched by `watchers` nodes."""
     nodes = [
         {"id": f"n{i}", "zone": "z1", "sensor": {"type": "pir", "pin": 5}} for i in range(1, watchers + 1)
     ]
     nodes.append({"id": "m", "zone": "z2", "sensor": {"type": "pir", "pin": 5}})
     s = load_site(tiny_site(tmp_path / "policy", nodes=nodes, policy=policy))
-    return SiteView(s), ZoneLayer(s.spec, GridFrame.of_grid(s.grid))
+    return SiteView(s), ZoneRule(s.spec, GridFrame.of_grid(s.grid))
 
 
 def test_majority_fusion_shows_what_the_robot_does_with_one_blocked_node_of_three(tmp_path: Path) -> None:

@@ -16,7 +16,7 @@ from wsnav.navigation.backend import LaserScan, Velocity
 from wsnav.navigation.control.controller import ControllerParams, ControlResult, PathFollower
 from wsnav.navigation.costmap.inflation import InflationParams
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
-from wsnav.navigation.planning.global_planner import plan_path
+from wsnav.navigation.planning.astar import plan_path
 from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
 from wsnav.robot_agent.sim.world_grid import SimWorldGrid
 from wsnav.schemas.messages import SimObstacle, SimWorld

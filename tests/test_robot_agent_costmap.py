@@ -19,15 +19,15 @@ from wsnav.navigation.costmap.inflation import InflationParams, cost_lut, inflat
 from wsnav.navigation.costmap.layered_costmap import CHANGE_LOG, Bounds, LayeredCostmap
 from wsnav.navigation.costmap.layers import InflationLayer, Layer, RobotsLayer
 from wsnav.navigation.costmap.merge import update_with_max, update_with_overwrite
-from wsnav.navigation.planning.costmap_planner import PlannerWeights
-from wsnav.navigation.planning.global_planner import PlannerParams, plan_path, weights_for
+from wsnav.navigation.planning.astar import PlannerParams, plan_path, weights_for
+from wsnav.navigation.planning.global_planner import PlannerWeights
 from wsnav.navigation.planning.offline_plan import zone_lethal
 from wsnav.schemas.messages import NodeStatus, OperatorBlock, ZoneState
 from wsnav.schemas.site import Site, load_site
 from wsnav.schemas.site_file import ZonePolicy
 from wsnav.zones.cost_values import FREE_SPACE, INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
 from wsnav.zones.geometry import GridFrame
-from wsnav.zones.zone_layer import ZoneLayer
+from wsnav.zones.zone_rule import ZoneRule
 
 MergeRule = Callable[[np.ndarray, np.ndarray], None]
 INFLATION = InflationParams(inscribed_radius=0.105, inflation_radius=1.0, cost_scaling_factor=3.0)
@@ -38,8 +38,8 @@ def tiny(tmp_path: Path) -> Site:
     return load_site(tiny_site(tmp_path / "tiny"))
 
 
-def school_costmap(site: Site, policy: ZonePolicy | None = None) -> tuple[LayeredCostmap, ZoneLayer]:
-    layer = ZoneLayer(site.spec, GridFrame.of_grid(site.grid), policy)
+def school_costmap(site: Site, policy: ZonePolicy | None = None) -> tuple[LayeredCostmap, ZoneRule]:
+    layer = ZoneRule(site.spec, GridFrame.of_grid(site.grid), policy)
     return LayeredCostmap(site.grid, INFLATION, zone_layer=layer), layer
 
 
@@ -278,7 +278,7 @@ def test_a_new_layer_is_one_class_in_the_stack_and_updates_only_its_bounds(schoo
 
 
 def test_inflation_is_the_last_layer_of_the_list_called_like_the_others(school: Site) -> None:
-    layer = ZoneLayer(school.spec, GridFrame.of_grid(school.grid))
+    layer = ZoneRule(school.spec, GridFrame.of_grid(school.grid))
     robots = RobotsLayer(GridFrame.of_grid(school.grid))
     costmap = LayeredCostmap(school.grid, INFLATION, zone_layer=layer, robots_layer=robots)
     assert costmap.layers == [costmap.static, costmap.obstacles, costmap.zones, robots, costmap.inflation]
@@ -341,7 +341,7 @@ def test_inflation_after_the_zone_layer_inflates_a_blocked_zone_and_not_a_cautio
 def test_clear_empties_the_clearable_layers_in_a_window_and_master_is_inflated_again(tiny: Site) -> None:
     """Every layer is asked: the lidar's marks and a clearable extra layer go in the window only; the map and
     the blocked zone stay (a recovery must not drive the robot into a zone the network reports blocked)."""
-    layer = ZoneLayer(tiny.spec, GridFrame.of_grid(tiny.grid))
+    layer = ZoneRule(tiny.spec, GridFrame.of_grid(tiny.grid))
     costmap = LayeredCostmap(tiny.grid, INFLATION, zone_layer=layer)
     zone = tiny.spec.zones[1].id
     layer.on_operator_block("spill", OperatorBlock(zone=zone), 0.0)
@@ -482,7 +482,7 @@ def test_the_builtin_configs_name_todays_layers_and_a_config_may_name_others(
     for name in ("default", "zones", "full"):  # the switches, unset plugins: the same list as before
         switches = load_agent_config(name).model_copy(update={"plugins": None})
         assert switches.layer_plugins() == load_agent_config(name).layer_plugins()
-    layer = ZoneLayer(school.spec, GridFrame.of_grid(school.grid))
+    layer = ZoneRule(school.spec, GridFrame.of_grid(school.grid))
     plugins = AgentConfig(plugins=["static_layer", "zone_layer", "inflation_layer"]).layer_plugins()
     costmap = LayeredCostmap(school.grid, INFLATION, zone_layer=layer, plugins=plugins)
     assert [type(x).__name__ for x in costmap.layers] == ["StaticLayer", "ZoneCostLayer", "InflationLayer"]

@@ -15,14 +15,14 @@ from wsnav.navigation.backend import LaserScan
 from wsnav.navigation.behaviors.escape import ESCAPE_COST, ZoneEscape, plan_escape
 from wsnav.navigation.costmap.inflation import InflationParams
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
-from wsnav.navigation.planning.costmap_planner import GlobalPlanner
-from wsnav.navigation.planning.global_planner import PlannerParams
+from wsnav.navigation.planning.astar import PlannerParams
+from wsnav.navigation.planning.global_planner import GlobalPlanner
 from wsnav.schemas import topics
 from wsnav.schemas.messages import OperatorBlock, SimObstacle, SimWorld, ZoneState
 from wsnav.schemas.site import Site, load_site
 from wsnav.zones.cost_values import INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE
 from wsnav.zones.geometry import GridFrame
-from wsnav.zones.zone_layer import BlockedArea, ZoneLayer
+from wsnav.zones.zone_rule import BlockedArea, ZoneRule
 
 RADIUS = 0.105
 INSIDE_Z1 = (17.5, 7.2)
@@ -42,7 +42,7 @@ def scan_from(pose: tuple[float, float, float], ranges: dict[int, float], beams:
 def test_the_escape_view_lets_the_robot_out_of_its_zone_and_never_into_walls_or_what_the_lidar_sees(
     school: Site,
 ) -> None:
-    layer = ZoneLayer(school.spec, GridFrame.of_grid(school.grid))
+    layer = ZoneRule(school.spec, GridFrame.of_grid(school.grid))
     costmap = LayeredCostmap(school.grid, InflationParams(inscribed_radius=RADIUS), zone_layer=layer)
     for node in ("n1", "n2"):
         layer.on_zone_state(ZoneState(zone="z1", node=node, state="blocked", seq=1), 1.0)
@@ -91,7 +91,7 @@ def test_the_escape_view_lets_the_robot_out_of_its_zone_and_never_into_walls_or_
 
 
 def test_an_operator_polygon_block_is_left_like_a_zone(school: Site) -> None:
-    layer = ZoneLayer(school.spec, GridFrame.of_grid(school.grid))
+    layer = ZoneRule(school.spec, GridFrame.of_grid(school.grid))
     costmap = LayeredCostmap(school.grid, InflationParams(inscribed_radius=RADIUS), zone_layer=layer)
     spill = [(30.0, 22.0), (31.0, 22.0), (31.0, 23.5), (30.0, 23.5)]
     layer.on_operator_block("spill", OperatorBlock(polygon=spill), 0.0)

@@ -27,7 +27,7 @@ from wsnav.schemas.site import Site, load_site
 from wsnav.zones.cost_values import LETHAL_OBSTACLE
 from wsnav.zones.geometry import GridFrame, polygon_window
 from wsnav.zones.intake import ZoneIntake
-from wsnav.zones.zone_layer import ZoneLayer
+from wsnav.zones.zone_rule import ZoneRule
 
 # The firmware's own state machine (pyright cannot follow a module loaded at run time).
 NodeLogic: Any = firmware.load_device_modules("node_logic")["node_logic"].NodeLogic
@@ -39,7 +39,7 @@ class Agent:
     """The agent's zone pipeline: intake -> zone layer -> layered costmap."""
 
     def __init__(self, site: Site) -> None:
-        self.layer = ZoneLayer(site.spec, GridFrame.of_grid(site.grid))
+        self.layer = ZoneRule(site.spec, GridFrame.of_grid(site.grid))
         self.intake = ZoneIntake(site.spec, self.layer)
         self.costmap = LayeredCostmap(
             site.grid, InflationParams(), zone_layer=self.layer, obstacle_layer=False

@@ -11,13 +11,13 @@ import numpy as np
 from wsnav.navigation.backend import LaserScan
 from wsnav.navigation.costmap.inflation import InflationParams
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
-from wsnav.navigation.planning.costmap_planner import GlobalPlanner, PlannerWeights
-from wsnav.navigation.planning.global_planner import PlannerParams, coarse_weights, plan_path, weights_for
+from wsnav.navigation.planning.astar import PlannerParams, coarse_weights, plan_path, weights_for
+from wsnav.navigation.planning.global_planner import GlobalPlanner, PlannerWeights
 from wsnav.schemas.messages import ZoneState
 from wsnav.schemas.site import Site
 from wsnav.zones.cost_values import FREE_SPACE, LETHAL_OBSTACLE
 from wsnav.zones.geometry import Bounds, GridFrame
-from wsnav.zones.zone_layer import ZoneLayer
+from wsnav.zones.zone_rule import ZoneRule
 
 WHOLE = PlannerParams(coarse_above_cells=0)
 COARSE = PlannerParams(coarse_above_cells=100_000)
@@ -89,7 +89,7 @@ def test_a_block_grid_updated_where_weights_changed_equals_one_made_anew() -> No
 def test_the_planners_kept_block_grid_follows_costmap_changes_and_gives_the_plan_made_anew(
     school: Site,
 ) -> None:
-    layer = ZoneLayer(school.spec, GridFrame.of_grid(school.grid), None)
+    layer = ZoneRule(school.spec, GridFrame.of_grid(school.grid), None)
     costmap = LayeredCostmap(school.grid, INFLATION, zone_layer=layer)
     params = PlannerParams()
     planner = GlobalPlanner(params)

@@ -18,8 +18,8 @@ from wsnav.navigation.control.controller import ControlResult
 from wsnav.navigation.costmap.inflation import InflationParams
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
 from wsnav.navigation.navigator import Mode, Navigator, NavigatorParams
-from wsnav.navigation.planning.costmap_planner import GlobalPlanner
-from wsnav.navigation.planning.global_planner import PlannerParams
+from wsnav.navigation.planning.astar import PlannerParams
+from wsnav.navigation.planning.global_planner import GlobalPlanner
 from wsnav.robot_agent.sim.turtlebot3 import SimTurtleBot3
 from wsnav.robot_agent.sim.world_grid import SimWorldGrid
 from wsnav.schemas.site import Site, load_site

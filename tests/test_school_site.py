@@ -18,7 +18,7 @@ from scipy.ndimage import distance_transform_edt
 from tests.conftest import SCHOOL
 from wsnav.cli import main
 from wsnav.navigation.costmap.inflation import InflationParams
-from wsnav.navigation.planning.global_planner import Plan, PlannerParams, densify, plan_path
+from wsnav.navigation.planning.astar import Plan, PlannerParams, densify, plan_path
 from wsnav.navigation.planning.offline_plan import site_costmap, zone_lethal
 from wsnav.robot_agent.sim.lidar import LidarParams
 from wsnav.schemas.site import Site

@@ -25,7 +25,7 @@ from wsnav.zones.cost_values import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION
 from wsnav.zones.geometry import GridFrame
 from wsnav.zones.intake import ZoneIntake
 from wsnav.zones.last_known import LastKnownZones
-from wsnav.zones.zone_layer import ZoneLayer
+from wsnav.zones.zone_rule import ZoneRule
 
 T0 = 1_800_000_000.0
 """Unix time of the first run; the layer's clock is Unix time too (WallClock), as in the agent and bridges."""
@@ -43,11 +43,11 @@ class FakeUnixTime:
 
 def reader(
     spec: SiteFile, path: Path | None, now: float, policy: str = "keep"
-) -> tuple[ZoneIntake, ZoneLayer]:
+) -> tuple[ZoneIntake, ZoneRule]:
     """A zone reader as the agent and the bridges build one, started at `now`."""
     spec = spec.model_copy(update={"policy": ZonePolicy(stale=policy)})  # type: ignore[arg-type]
     site_frame = GridFrame(400, 200, 0.05, 0.0, 0.0)
-    layer = ZoneLayer(spec, site_frame)
+    layer = ZoneRule(spec, site_frame)
     memory = None if path is None else LastKnownZones(path, spec, unix_time=FakeUnixTime(now))
     intake = ZoneIntake(spec, layer, memory=memory)
     intake.restore(now)

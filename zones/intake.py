@@ -46,7 +46,7 @@ from wsnav.schemas.messages import (
 )
 from wsnav.schemas.site_file import SiteFile
 from wsnav.zones.last_known import LastKnownZones
-from wsnav.zones.zone_layer import ZoneLayer
+from wsnav.zones.zone_rule import ZoneRule
 
 log = logging.getLogger(__name__)
 
@@ -64,12 +64,12 @@ def seq_is_newer(seq: int, last: int) -> bool:
 
 
 class ZoneIntake:
-    """Validates zone states, node statuses and operator blocks of one site and feeds them to a ZoneLayer."""
+    """Validates zone states, node statuses and operator blocks of one site and feeds them to a ZoneRule."""
 
     def __init__(
         self,
         spec: SiteFile,
-        layer: ZoneLayer,
+        layer: ZoneRule,
         drop_log_interval: float = DROP_LOG_INTERVAL,
         memory: LastKnownZones | None = None,
     ) -> None:

@@ -21,11 +21,11 @@ from numpy.typing import NDArray
 from scipy.ndimage import distance_transform_edt
 
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
-from wsnav.navigation.planning.costmap_planner import GlobalPlanner, PlanningCostmap
-from wsnav.navigation.planning.global_planner import XY, Plan, PlannerParams, plan_exit
+from wsnav.navigation.planning.astar import XY, Plan, PlannerParams, plan_exit
+from wsnav.navigation.planning.global_planner import GlobalPlanner, PlanningCostmap
 from wsnav.zones.cost_values import FREE_SPACE, INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE
 from wsnav.zones.geometry import Bounds, CellWindow, GridFrame
-from wsnav.zones.zone_layer import BlockedArea
+from wsnav.zones.zone_rule import BlockedArea
 
 ESCAPE_COST = 200
 """What a cell made lethal or inscribed only by a zone the robot stands in costs in an escape view: passable, but

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wsnav.navigation.backend import DriveLimits, Pose, Velocity
-from wsnav.navigation.planning.global_planner import densify, steps_to
+from wsnav.navigation.planning.astar import densify, steps_to
 from wsnav.zones.cost_values import FREE_SPACE, INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
 from wsnav.zones.geometry import GridFrame
 

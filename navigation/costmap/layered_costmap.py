@@ -32,7 +32,7 @@ from wsnav.navigation.costmap.layers import (
 from wsnav.schemas.ros_map import OccupancyGrid
 from wsnav.zones.cost_values import FREE_SPACE, INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, NO_INFORMATION
 from wsnav.zones.geometry import Bounds, GridFrame
-from wsnav.zones.zone_layer import ZoneLayer
+from wsnav.zones.zone_rule import ZoneRule
 
 __all__ = ["LAYER_PLUGINS", "Bounds", "LayeredCostmap", "check_plugins"]
 
@@ -56,7 +56,7 @@ class LayeredCostmap:
         grid: OccupancyGrid,
         inflation: InflationParams,
         *,
-        zone_layer: ZoneLayer | None = None,
+        zone_layer: ZoneRule | None = None,
         obstacle_layer: bool = True,
         obstacle_range_m: float = 3.0,
         raytrace_range_m: float = 3.5,
@@ -141,7 +141,7 @@ class LayeredCostmap:
         return layer
 
     @property
-    def zone_layer(self) -> ZoneLayer | None:
+    def zone_layer(self) -> ZoneRule | None:
         zones = self.zones
         return zones.zone_layer if zones is not None else None
 

@@ -31,7 +31,7 @@ from wsnav.navigation.costmap.merge import (
 from wsnav.schemas.ros_map import OccupancyGrid
 from wsnav.zones.cost_values import LETHAL_OBSTACLE, NO_INFORMATION, Costs
 from wsnav.zones.geometry import Bounds, GridFrame
-from wsnav.zones.zone_layer import BlockedArea, ZoneLayer
+from wsnav.zones.zone_rule import BlockedArea, ZoneRule
 
 
 class Layer(Protocol):
@@ -246,7 +246,7 @@ class ZoneCostLayer:
     (0) changes nothing known, an unknown (stale) zone changes nothing at all, and walls stay walls. Cells outside
     every zone and block are NO_INFORMATION here, so the layer never opens the map's unknown space."""
 
-    def __init__(self, zone_layer: ZoneLayer) -> None:
+    def __init__(self, zone_layer: ZoneRule) -> None:
         self.zone_layer = zone_layer
         frame = zone_layer.frame
         self.costs: Costs = np.full((frame.height, frame.width), NO_INFORMATION, dtype=np.uint8)

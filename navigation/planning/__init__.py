@@ -1,14 +1,14 @@
-"""Global planning: A* over the costmap (pyastar2d), the planner the navigator calls, and `wsnav plan`'s
-offline plan.
+"""Global planning: A* over a weighted grid (`astar.py`, pyastar2d with a coarse-to-fine band), the planner the
+navigator calls on the costmap (`global_planner.py::GlobalPlanner`), and `wsnav plan`'s offline plan.
 """
 
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the submodules load when imported, not with the package
-    from wsnav.navigation.planning import costmap_planner, global_planner, offline_plan
+    from wsnav.navigation.planning import astar, global_planner, offline_plan
 
 __all__ = [
-    "costmap_planner",
+    "astar",
     "global_planner",
     "offline_plan",
 ]

@@ -18,13 +18,13 @@ from numpy.typing import NDArray
 
 from wsnav.navigation.costmap.inflation import InflationParams
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
-from wsnav.navigation.planning.global_planner import Plan, PlannerParams, plan_path, simplify
+from wsnav.navigation.planning.astar import Plan, PlannerParams, plan_path, simplify
 from wsnav.runtime.cli_support import CliError
 from wsnav.schemas.messages import OperatorBlock
 from wsnav.schemas.ros_map import FREE
 from wsnav.schemas.site import Site, SiteError, load_site
 from wsnav.zones.geometry import GridFrame, polygon_window
-from wsnav.zones.zone_layer import ZoneLayer
+from wsnav.zones.zone_rule import ZoneRule
 
 
 def zone_lethal(site: Site, blocked: Sequence[str]) -> NDArray[np.bool_]:
@@ -41,7 +41,7 @@ def zone_lethal(site: Site, blocked: Sequence[str]) -> NDArray[np.bool_]:
 def site_costmap(site: Site, blocked: Sequence[str], inflation: InflationParams) -> NDArray[np.uint8]:
     """The agent's global costmap for these zone states: the robot's own LayeredCostmap, each blocked zone set
     as an operator block (so a zone no node watches can be blocked too), no lidar."""
-    layer = ZoneLayer(site.spec, GridFrame.of_grid(site.grid))
+    layer = ZoneRule(site.spec, GridFrame.of_grid(site.grid))
     for zone_id in blocked:
         layer.on_operator_block(f"plan-{zone_id}", OperatorBlock(zone=zone_id), 0.0)
     return LayeredCostmap(site.grid, inflation, zone_layer=layer, obstacle_layer=False).master

@@ -1,4 +1,5 @@
-"""The WSN zone layer: what the nodes say about their zones, turned into one costmap cost per zone.
+"""The zone rule: what the nodes say about their zones, turned into one costmap cost per zone (the costmap's
+zone layer, navigation.costmap.layers.ZoneCostLayer, paints what this decides).
 
 Pure state (no MQTT, no threads, no clock of its own): the intake feeds it validated messages with the time they
 arrived, the costmap asks it which areas changed and paints their costs. Rules: `blocked` -> lethal, `caution` -> `policy.caution_cost`; a node silent for
@@ -61,7 +62,7 @@ class _Block:
     expires_at: float | None
 
 
-class ZoneLayer:
+class ZoneRule:
     """Effective cost per zone (and per operator polygon) from node messages, fused and aged by the policy."""
 
     def __init__(self, spec: SiteFile, frame: GridFrame, policy: ZonePolicy | None = None) -> None:

@@ -10,14 +10,14 @@ from wsnav.schemas.site import Site
 from wsnav.schemas.site_file import ZonePolicy
 from wsnav.zones.cost_values import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION
 from wsnav.zones.geometry import GridFrame
-from wsnav.zones.zone_layer import ZoneLayer
+from wsnav.zones.zone_rule import ZoneRule
 
 HEARTBEAT = 5.0  # the school's heartbeat_s
 STALE_AFTER = 3 * HEARTBEAT
 
 
-def layer_for(site: Site, **policy: object) -> ZoneLayer:
-    return ZoneLayer(
+def layer_for(site: Site, **policy: object) -> ZoneRule:
+    return ZoneRule(
         site.spec, GridFrame.of_grid(site.grid), ZonePolicy.model_validate(policy) if policy else None
     )
 
@@ -25,7 +25,7 @@ def layer_for(site: Site, **policy: object) -> ZoneLayer:
 class Feed:
     """Sends zone states with increasing seq, as a node would."""
 
-    def __init__(self, layer: ZoneLayer) -> None:
+    def __init__(self, layer: ZoneRule) -> None:
         self.layer = layer
         self.seq = 0
 
@@ -90,7 +90,7 @@ def test_a_per_node_heartbeat_override_sets_its_stale_time(school: Site) -> None
             ]
         }
     )
-    layer = ZoneLayer(spec, GridFrame.of_grid(school.grid), ZonePolicy(stale="unknown"))
+    layer = ZoneRule(spec, GridFrame.of_grid(school.grid), ZonePolicy(stale="unknown"))
     feed = Feed(layer)
     feed("z2", "n3", "clear", 0.0)
     feed("z3", "n4", "clear", 0.0)

@@ -12,10 +12,10 @@ from wsnav.schemas.messages import NodeStatus, OperatorBlock, ZoneState
 from wsnav.schemas.site import Site
 from wsnav.schemas.site_file import ZonePolicy
 from wsnav.zones.geometry import GridFrame
-from wsnav.zones.zone_layer import ZoneLayer
+from wsnav.zones.zone_rule import ZoneRule
 
 
-def everything_again(layer: ZoneLayer) -> dict[str, str]:
+def everything_again(layer: ZoneRule) -> dict[str, str]:
     """What the layer's words would be if every zone were evaluated from scratch now."""
     return {z: layer.zone_word(z) for z in layer._zone_ids}
 
@@ -24,8 +24,8 @@ def everything_again(layer: ZoneLayer) -> dict[str, str]:
 @pytest.mark.parametrize("fuse", ["any_blocked", "majority"])
 def test_incremental_refresh_matches_evaluating_every_zone(school: Site, stale: str, fuse: str) -> None:
     policy = ZonePolicy.model_validate({"stale": stale, "fuse": fuse})
-    fast = ZoneLayer(school.spec, GridFrame.of_grid(school.grid), policy)
-    full = ZoneLayer(school.spec, GridFrame.of_grid(school.grid), policy)
+    fast = ZoneRule(school.spec, GridFrame.of_grid(school.grid), policy)
+    full = ZoneRule(school.spec, GridFrame.of_grid(school.grid), policy)
     rng = random.Random(f"{stale}-{fuse}")
     nodes = [(n.id, n.zone) for n in school.spec.nodes]
     zones = [z.id for z in school.spec.zones]

@@ -13,7 +13,7 @@ from scipy.ndimage import distance_transform_edt
 
 from tests.conftest import SITES
 from wsnav.navigation.costmap.inflation import InflationParams, inflate, static_layer
-from wsnav.navigation.planning.global_planner import (
+from wsnav.navigation.planning.astar import (
     PlannerParams,
     _astar,
     densify,
