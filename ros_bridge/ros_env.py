@@ -27,6 +27,13 @@ DEBIAN_PACKAGES = (
 DEFAULT_MASTER_URI = "http://localhost:11311"
 
 
+def say(text: str, *, warn: bool = False) -> None:
+    """Log as a ROS node does: through rospy, to /rosout and the console (the node is initialised by then)."""
+    import rospy  # pyright: ignore[reportMissingImports]  (Debian's, outside the venv)
+
+    (rospy.logwarn if warn else rospy.loginfo)(text)
+
+
 def require_rospy() -> None:
     """Fail with one line (not an ImportError traceback) when ROS 1's Python packages are missing."""
     try:
