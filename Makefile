@@ -28,8 +28,17 @@ typecheck: $(STAMP)
 	cd firmware/device && ../../$(BIN)/pyright -p pyrightconfig.json
 	cd firmware/host_stubs && ../../$(BIN)/pyright -p pyrightconfig.json
 
+# The whole suite on TEST_WORKERS processes (pytest-xdist; a module stays on one worker, with its fixtures): most
+# tests wait on brokers, robots and browsers, so three share two cores well. A test that fails beside the others
+# runs again alone, after them, and is named; one that fails alone fails the run.
+TEST_WORKERS ?= 3
 pytest: $(STAMP)
-	@$(BIN)/pytest -q $(PYTEST_ARGS); rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest: no tests collected"; rc=0; fi; exit $$rc
+	@$(BIN)/pytest -q -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS); rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "pytest: no tests collected"; rc=0; fi; \
+	if [ $$rc -eq 1 ]; then \
+		echo "pytest: the tests that failed above ran beside others; each runs again alone:"; \
+		$(BIN)/pytest -q -p no:xdist --last-failed --last-failed-no-failures none $(PYTEST_ARGS); rc=$$?; \
+	fi; exit $$rc
 
 test: lint typecheck pytest
 
