@@ -19,11 +19,11 @@ from wsnav.schemas.messages import (
     MAX_OPERATOR_PAYLOAD_BYTES,
     NodeInfo,
     NodeStatus,
-    is_yielding,
     OperatorBlock,
     PayloadError,
     RobotStatus,
     ZoneState,
+    is_yielding,
     parse_payload,
 )
 from wsnav.schemas.site import Site

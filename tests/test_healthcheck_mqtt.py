@@ -12,13 +12,13 @@ import pytest
 
 from tests.broker_fixtures import mosquitto_on
 from tests.site_fixtures import tiny_site
-from wsnav.broker.credentials import write_credentials
 from wsnav.broker.amqtt.embedded import BrokerThread
+from wsnav.broker.credentials import write_credentials
 from wsnav.healthcheck import main
 from wsnav.runtime.bus import Will
 from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
-from wsnav.schemas.credentials import load_credentials
 from wsnav.schemas import topics
+from wsnav.schemas.credentials import load_credentials
 from wsnav.schemas.messages import NodeStatus, RobotStatus
 from wsnav.schemas.site import load_site
 

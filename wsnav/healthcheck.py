@@ -50,7 +50,12 @@ def _bus(args: argparse.Namespace) -> MqttBus:
     try:
         login = tool_login(creds, "health")  # the operator's: beside its console and watch on Mosquitto
         return connect_with_credentials(
-            host, port, login, client_id=f"health-{login.username}-{os.getpid()}", timeout_s=args.timeout
+            host,
+            port,
+            login,
+            client_id=f"health-{login.username}-{os.getpid()}",
+            timeout_s=args.timeout,
+            copies=True,  # the nodes' and the robot's checks may run at the same moment
         )
     except BusError as exc:
         raise Unhealthy(str(exc)) from None
