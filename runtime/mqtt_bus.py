@@ -132,6 +132,8 @@ class MqttBus:
             sock = self._client.socket()
             if sock is not None:  # a failed connect leaves nothing open behind it
                 sock.close()
+            if self._logins is not None:
+                self._logins.release()
             where = f"MQTT broker {self._host}:{self._port}"
             if self._refused is not None:
                 raise BusError(
