@@ -17,6 +17,7 @@ subscriber). State changes: the share of the probe's changes the page received (
 snapshot that replaced a backlog). The page: first load (a reload, navigation start -> the first frame after the
 snapshot is drawn), frame intervals (requestAnimationFrame) and long tasks (PerformanceObserver 'longtask');
 WSNAV_BENCH_JSPROFILE=FILE writes the page's CPU profile over the window (self time per function),
+WSNAV_BENCH_TRACE=FILE Chromium's trace of the window (devtools.timeline; FILE.txt: time per event and thread),
 WSNAV_BENCH_DUMP=FILE the arrivals, WSNAV_BENCH_DEBUG=1 the probe's changes sent and seen.
 CPU: the console process before the page is opened (same traffic) and with it open.
 """
@@ -156,6 +157,26 @@ def js_self_time(profile: dict[str, Any], top: int = 25) -> str:
     return "\n".join(f"{ms:9.0f} ms  {name}" for name, ms in rows) + "\n"
 
 
+TRACE_CATEGORIES = ["devtools.timeline", "disabled-by-default-devtools.timeline", "cc", "blink"]
+
+
+def trace_summary(trace: dict[str, Any], top: int = 30) -> str:
+    """Chromium's trace (WSNAV_BENCH_TRACE=FILE) as total time per event name and thread (nested events counted
+    in each enclosing one too): where the page's main thread and the raster threads spend the window."""
+    events = trace["traceEvents"] if isinstance(trace, dict) else trace
+    threads = {(e["pid"], e["tid"]): e["args"]["name"] for e in events if e.get("name") == "thread_name"}
+    spent: dict[tuple[str, str], list[float]] = {}
+    for e in events:
+        if e.get("ph") == "X" and "dur" in e:
+            thread = threads.get((e["pid"], e["tid"]), str(e["tid"]))
+            spent.setdefault((thread, e["name"]), []).append(e["dur"] / 1000)
+    rows = sorted(spent.items(), key=lambda kv: -sum(kv[1]))[:top]
+    return "".join(
+        f"{sum(d):9.0f} ms {len(d):6d}x max {max(d):6.0f} ms  {thread:22.22s} {name}\n"
+        for (thread, name), d in rows
+    )
+
+
 def commit() -> str:
     """The commit measured (with `+dirty` when the tree has changes), for BENCHMARKS.md."""
     here = Path(__file__).resolve().parent
@@ -232,7 +253,13 @@ def measure(nodes: int, robots: int, seconds: float, quick: bool = False) -> dic
                 if cdp is not None:
                     cdp.send("Profiler.enable")
                     cdp.send("Profiler.start")
+                trace = os.environ.get("WSNAV_BENCH_TRACE")
+                if trace:
+                    browser.start_tracing(page=page, path=trace, categories=TRACE_CATEGORIES)
                 time.sleep(seconds)
+                if trace:
+                    browser.stop_tracing()
+                    Path(trace + ".txt").write_text(trace_summary(json.loads(Path(trace).read_text())))
                 c2, t2 = cpu_s(console_ps), time.monotonic()
                 if cdp is not None and js_profile:
                     Path(js_profile).write_text(js_self_time(cdp.send("Profiler.stop")["profile"]))

@@ -436,7 +436,7 @@ def ha_discovery_command(args: argparse.Namespace) -> int:
     host, port = args.broker
     try:
         creds = load_credentials(args.credentials)
-        bus = connect_with_credentials(host, port, tool_login(creds, "ha-discovery"))
+        bus = connect_with_credentials(host, port, tool_login(creds, "ha-discovery"), copies=True)
     except (CredentialsError, BusError) as exc:
         raise CliError(str(exc)) from None
     # Read them back: a broker drops a publish its ACL refuses without telling the publisher.

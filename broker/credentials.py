@@ -158,10 +158,15 @@ def write_password_file(path: Path, passwords: dict[str, str]) -> None:
     """The argon2 password file; an existing line is kept when it still matches, so reruns cause no churn."""
     old = read_password_file(path) if path.exists() else {}
     lines = []
+    checked: dict[tuple[str, str], bool] = {}  # the operator's tools' 64 logins share one password and hash
+    made: dict[str, str] = {}
     for user, password in passwords.items():
         digest = old.get(user)
-        if digest is None or not verify_password(digest, password):
-            digest = HASHER.hash(password)
+        if digest is not None and (digest, password) not in checked:
+            checked[digest, password] = verify_password(digest, password)
+        if digest is None or not checked[digest, password]:
+            digest = made.get(password) or HASHER.hash(password)
+        made.setdefault(password, digest)
         lines.append(f"{user}:{digest}\n")
     write_private(path, "".join(lines))
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from wsnav.broker.acl import site_rules
 from wsnav.runtime.mqtt_bus import BusError, connect_with_credentials
-from wsnav.schemas.credentials import OPERATOR_TOOLS, Credentials, tool_login
+from wsnav.schemas.credentials import OPERATOR_TOOLS, Credentials, tool_copies, tool_login
 from wsnav.schemas.site_file import SiteFile
 
 SETTLE_S = 1.0
@@ -63,7 +63,8 @@ def clear_retained(
             time.sleep(0.5)
     try:
         time.sleep(SETTLE_S)
-        for login in [tool_login(new, tool) for tool in OPERATOR_TOOLS] if new.role == "operator" else []:
+        tools = [tool_login(new, tool) for tool in OPERATOR_TOOLS] if new.role == "operator" else []
+        for login in [new.model_copy(update={"username": c}) for tool in tools for c in tool_copies(tool)]:
             # Mosquitto closes a connection of the old password only when its client id (= login) is taken over
             connect_with_credentials(host, port, login, timeout_s=5.0, tls_ca=tls_ca).close()
         for topic in own_topics(spec, new.username):

@@ -18,7 +18,7 @@ from typing import Any
 
 from wsnav.console.event_log import Event
 from wsnav.console.site_view import SiteView
-from wsnav.schemas.messages import OPERATOR_CANCEL_REASON
+from wsnav.schemas.messages import OPERATOR_CANCEL_REASON, is_yielding
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +130,8 @@ class AlertBoard:
                 cause = _robot_cause(view, e.subject)
                 if cause[0] != e.kind.removeprefix("robot_") or cause[1] == OPERATOR_CANCEL_REASON:
                     continue  # over already, or the operator's own cancel
+                if is_yielding(*cause):
+                    continue  # giving way to a robot with right of way: waiting on purpose, not stuck
                 kind = "robot_stuck" if cause[0] == "waiting" else "robot_aborted"
                 self._raise(kind, e.subject, e.text, e.t, cause=cause)
 
@@ -142,7 +144,11 @@ class AlertBoard:
             elif alert.kind in ("robot_stuck", "robot_aborted"):
                 now_cause, was = _robot_cause(view, alert.subject), alert.cause or (None, None)
                 # stuck: while it waits, whatever it waits for; given up: until that goal's end is replaced
-                over = now_cause[0] != was[0] or (alert.kind == "robot_aborted" and now_cause != was)
+                over = (
+                    now_cause[0] != was[0]
+                    or (alert.kind == "robot_aborted" and now_cause != was)
+                    or is_yielding(*now_cause)
+                )
             elif alert.kind == "block_expiring":
                 block = view.blocks.get(alert.subject)
                 over = block is None or block.block.expires_at != alert.until

@@ -10,12 +10,14 @@ from dataclasses import dataclass
 
 from wsnav.runtime.cli_support import CliError
 from wsnav.runtime.clock import WallClock
+from wsnav.runtime.login_copies import LoginCopies
 from wsnav.runtime.mqtt_bus import BusError, MqttBus
 from wsnav.schemas.credentials import (
     OPERATOR_TOOLS,
     Credentials,
     CredentialsError,
     credentials_for,
+    tool_copies,
     tool_login,
 )
 from wsnav.schemas.site import Site, SiteError, load_site
@@ -42,8 +44,9 @@ def load_operator(args: argparse.Namespace) -> tuple[Site, Credentials]:
 
 
 def connect(args: argparse.Namespace, purpose: str) -> OperatorLink:
-    """Connected as the tool's own login (`operator.watch`; every verb is `operator.command`) with a client id of
-    its own: on Mosquitto, where a client id is its login, the console, watch and status no longer take each
+    """Connected as the tool's own login (`operator.watch`; every verb is `operator.command`), and as a copy of
+    it no other copy on this host holds (`operator.watch.2`...), with a client id of its own: on Mosquitto, where
+    a client id is its login, the console, watch and status, and two copies of one of them, no longer take each
     other over; on amqtt several consoles may run."""
     site, creds = load_operator(args)
     login = tool_login(creds, purpose if purpose in OPERATOR_TOOLS else "command")
@@ -60,6 +63,7 @@ def connect(args: argparse.Namespace, purpose: str) -> OperatorLink:
             password=login.password,
             clock=clock,
             tls_ca=args.tls_ca,
+            logins=LoginCopies(tool_copies(login)),
         ).connect(timeout_s=args.connect_timeout)
     except BusError as exc:
         raise CliError(str(exc)) from None

@@ -23,6 +23,7 @@ from wsnav.schemas.messages import (
     PayloadError,
     RobotStatus,
     ZoneState,
+    is_yielding,
     parse_payload,
 )
 from wsnav.schemas.site import Site
@@ -198,6 +199,11 @@ class SiteView:
         # a new goal cancelled again for another reason (the operator's cancel, then a goal in a blocked zone) is
         # another event, though the state word did not change
         again = msg.state == before == "cancelled" and msg.reason != before_reason
+        # a robot that gave way to another and then finds no way on (or the reverse) waits anew, for another cause
+        again = again or (
+            msg.state == before == "waiting"
+            and is_yielding(msg.state, msg.reason) != is_yielding(before, before_reason)
+        )
         if (
             not retained
             and (msg.state != before or again)

@@ -20,7 +20,8 @@ from paho.mqtt.reasoncodes import ReasonCode
 
 from wsnav.runtime.bus import Message, Will
 from wsnav.runtime.clock import Clock, WallClock
-from wsnav.schemas.credentials import Credentials
+from wsnav.runtime.login_copies import LoginCopies
+from wsnav.schemas.credentials import Credentials, tool_copies
 
 log = logging.getLogger(__name__)
 
@@ -48,12 +49,15 @@ class MqttBus:
         max_queue: int = 100_000,
         max_payload_bytes: int = MAX_PAYLOAD_BYTES,
         tls_ca: Path | None = None,
+        logins: LoginCopies | None = None,
     ) -> None:
         """`birth` is published at every (re)connect, the counterpart of `will` (e.g. `online` / `offline`).
 
         Payloads over `max_payload_bytes` are dropped on arrival and counted (`dropped_oversize`), before they
         are copied or queued. With `tls_ca` the link is TLS, the broker's certificate checked against that CA
-        and its address (the password never crosses the network in clear)."""
+        and its address (the password never crosses the network in clear). With `logins` (an operator tool's
+        copies) the bus logs in as the one they give, not `username`, and moves on to the next after a lost
+        connection (runtime.login_copies)."""
         self._clock = clock or WallClock()
         self._host, self._port, self._keepalive = host, port, keepalive_s
         self._birth = birth
@@ -77,6 +81,9 @@ class MqttBus:
         """Publishes paho did not take (QoS 0 while disconnected, its own queue full)."""
         self.refused_subscriptions: list[str] = []
         self.connects = 0
+        self._logins, self._password, self._closing = logins, password, False
+        if logins is not None:
+            username = logins.take()
         self._client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=True)
         self._client.username_pw_set(username, password)
         self._tls = tls_ca is not None
@@ -125,6 +132,8 @@ class MqttBus:
             sock = self._client.socket()
             if sock is not None:  # a failed connect leaves nothing open behind it
                 sock.close()
+            if self._logins is not None:
+                self._logins.release()
             where = f"MQTT broker {self._host}:{self._port}"
             if self._refused is not None:
                 raise BusError(
@@ -162,6 +171,8 @@ class MqttBus:
 
     def _on_disconnect(self, _c: object, _u: object, _f: object, reason: ReasonCode, _p: object) -> None:
         self._connected.clear()
+        if self._logins is not None and not self._closing:  # perhaps taken over by a copy on another host
+            self._client.username_pw_set(self._logins.move_on(), self._password)
 
     def _on_message(self, _c: object, _u: object, msg: mqtt.MQTTMessage) -> None:
         if len(msg.payload) > self._max_payload:
@@ -239,15 +250,21 @@ class MqttBus:
 
     def close(self) -> None:
         """A clean disconnect: the broker does not publish the will."""
+        self._closing = True
         self._client.disconnect()
         self._client.loop_stop()
+        if self._logins is not None:
+            self._logins.release()
 
     def abort(self) -> None:
         """Drop the link without DISCONNECT, as a power cut would: the broker publishes the will."""
+        self._closing = True
         self._client.loop_stop()
         sock = self._client.socket()
         if sock is not None:
             sock.close()
+        if self._logins is not None:
+            self._logins.release()
 
 
 def _is_power_of_ten(n: int) -> bool:
@@ -268,9 +285,11 @@ def connect_with_credentials(
     timeout_s: float = 30.0,
     wait: bool = True,
     tls_ca: Path | None = None,
+    copies: bool = False,
 ) -> MqttBus:
     """A connected bus that logs in with one id's credentials (client id: its username unless given); with
-    `wait=False`, a bus still connecting in the background (MqttBus.start).
+    `wait=False`, a bus still connecting in the background (MqttBus.start). With `copies`, an operator tool's
+    credentials (`tool_login`) log in as a copy of that tool no other copy on this host holds (LoginCopies).
 
     Takes the loaded credentials, not their file: the loader is broker.credentials', which runtime does not
     import (callers: `load_credentials(path)` or BrokerThread.credentials(ident)).
@@ -285,5 +304,6 @@ def connect_with_credentials(
         will=will,
         birth=birth,
         tls_ca=tls_ca,
+        logins=LoginCopies(tool_copies(credentials)) if copies else None,
     )
     return bus.connect(timeout_s=timeout_s) if wait else bus.start()

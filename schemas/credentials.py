@@ -98,16 +98,33 @@ operator's password and rights: Mosquitto binds a client id to its username (`us
 one shared username let them knock each other off. `command` is every short-lived verb (block, goal, ...)."""
 
 
-def tool_login_name(username: str, tool: str) -> str:
-    """The login of one operator tool: site ids hold no '.', so it can never be another identity's name."""
+TOOL_COPIES = 8
+"""How many copies of one operator tool may be logged in at once (two consoles, two `wsnav watch`), each under a
+login of its own: `operator.watch`, then `operator.watch.2` ... `operator.watch.8` (runtime.login_copies picks
+one); under one login the second copy took the first over on Mosquitto."""
+
+
+def tool_login_name(username: str, tool: str, copy: int = 1) -> str:
+    """The login of one copy of an operator tool: site ids hold no '.', so it can never be another identity's."""
     if tool not in OPERATOR_TOOLS:
         raise ValueError(f"not an operator tool: {tool!r}")
-    return f"{username}.{tool}"
+    if not 1 <= copy <= TOOL_COPIES:
+        raise ValueError(f"copy {copy} of {tool}: 1 to {TOOL_COPIES}")
+    return f"{username}.{tool}" + ("" if copy == 1 else f".{copy}")
+
+
+def tool_copies(creds: Credentials) -> list[str]:
+    """The logins of every copy of the tool whose credentials `tool_login` made; a non-tool login alone."""
+    user, _, tool = creds.username.partition(".")
+    if creds.role != "operator" or tool not in OPERATOR_TOOLS:
+        return [creds.username]
+    return [tool_login_name(user, tool, copy) for copy in range(1, TOOL_COPIES + 1)]
 
 
 def operator_logins(username: str) -> list[str]:
-    """Every name the operator's password logs in under: its own and one per tool (password file, ACL)."""
-    return [username, *(tool_login_name(username, t) for t in OPERATOR_TOOLS)]
+    """Every name the operator's password logs in under: its own and each copy of each tool's (password file, ACL)."""
+    tools = (tool_login_name(username, t, c) for t in OPERATOR_TOOLS for c in range(1, TOOL_COPIES + 1))
+    return [username, *tools]
 
 
 def tool_login(creds: Credentials, tool: str) -> Credentials:

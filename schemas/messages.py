@@ -264,6 +264,16 @@ OPERATOR_CANCEL_REASON = "cancelled by the operator"
 robot giving up: the console raises an alert for those)."""
 
 
+YIELD_REASON_PREFIX = "yielding to "
+"""How a `waiting` status's `reason` begins while the robot gives way to a robot of the fleet with right of way
+(navigation.behaviors.right_of_way): a wait on purpose, which the console must not take for a stuck robot."""
+
+
+def is_yielding(state: str | None, reason: str | None) -> bool:
+    """Whether a robot status (its state and reason) says the robot waits only to give another robot way."""
+    return state == "waiting" and reason is not None and reason.startswith(YIELD_REASON_PREFIX)
+
+
 class RobotGoal(_Message):
     """`robots/<robot>/goal`: a named point of the site or an [x, y, yaw] pose; `cancel` stops the robot."""
 

@@ -14,6 +14,8 @@ from wsnav.console import operator_commands as commands
 from wsnav.console.alerts import EXPIRING_S, AckStore, AlertBoard
 from wsnav.console.operator_commands import CommandError
 from wsnav.console.site_view import SiteView
+from wsnav.navigation.behaviors.right_of_way import yield_reason
+from wsnav.navigation.costmap.layers import OtherRobot
 from wsnav.schemas import topics
 from wsnav.schemas.messages import OPERATOR_CANCEL_REASON, NodeStatus, OperatorBlock, RobotStatus
 from wsnav.schemas.site import Site, load_site
@@ -80,6 +82,21 @@ def test_a_robot_stuck_or_giving_up_is_an_alert_an_operators_cancel_is_not(site:
     [aborted] = console.robot("cancelled", 6.0, "z1")
     assert aborted["kind"] == "robot_aborted" and "z1" in str(aborted["text"])
     assert console.robot("navigating", 7.0) == []
+
+
+def test_a_robot_giving_way_to_another_robot_is_not_stuck_until_it_finds_no_way_on(site: Site) -> None:
+    """A fleet robot waits on purpose while a robot with right of way passes (its status says so): the "robot
+    stuck" alert fired on every such wait. The reason is the agent's own text (`yield_reason`)."""
+    console = Console(site)
+    gives_way = yield_reason(OtherRobot("robot2", (2.0, 1.0, 3.14), 0.2, "navigating", 0, 10.0))
+    console.robot("navigating", 1.0)
+    assert console.robot("waiting", 2.0, gives_way) == [], "giving way raised a 'stuck' alert"
+    assert console.robot("waiting", 3.0, gives_way) == []
+    # released, then no way on while still waiting: stuck now, though the state word did not change
+    [stuck] = console.robot("waiting", 4.0, "no way to the goal")
+    assert stuck["kind"] == "robot_stuck"
+    assert console.robot("waiting", 5.0, gives_way) == [], "the alert outlived its cause"
+    assert console.robot("navigating", 6.0) == []
 
 
 def test_a_block_near_its_expiry_is_an_alert_that_an_extension_ends(site: Site) -> None:

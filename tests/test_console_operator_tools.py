@@ -22,12 +22,15 @@ from tests.conftest import require_tool
 from tests.console_fixtures import chromium, start_console, until
 from tests.stack_fixtures import SITE, WSNAV, Stack, make_site, stack_on
 from wsnav.broker.mosquitto.config import CONF, MosquittoOptions, write_mosquitto_config
+from wsnav.runtime.login_copies import LoginCopies
 from wsnav.schemas import topics
+from wsnav.schemas.credentials import TOOL_COPIES, Credentials, tool_copies, tool_login
 from wsnav.schemas.site import load_site
 
 pytestmark = pytest.mark.timeout(180)
 
 RUN_S = 8.0
+COPIES_RUN_S = 3.0
 TAKEOVER = "already connected, closing old connection"
 """What Mosquitto 2.0 logs when a connection takes an open client id over."""
 
@@ -118,6 +121,48 @@ def test_console_watch_status_zone_sim_and_health_check_run_together_without_tak
         assert "OPERATOR BLOCKS" in shown, shown[-2000:]
         assert "not reachable" not in shown, "wsnav watch lost the broker"
         assert f"site {SITE}" in shown or SITE in shown
+
+
+@pytest.mark.parametrize("kind", ["amqtt", "mosquitto"])
+def test_two_copies_of_one_tool_run_together_without_taking_each_other_over(
+    kind: str, tmp_path: Path
+) -> None:
+    """Two `wsnav watch` logged in as the same `operator.watch`: on Mosquitto each took the other's connection
+    over (a client id is its login). A second copy now logs in as `operator.watch.2`."""
+    with stack_on(make_site(tmp_path / "site"), tmp_path) as stack, broker(kind, stack) as broker_log:
+        watches = [
+            stack.start(f"watch{i}", [*WSNAV, "watch", *operator_args(stack), "--every", "0.3"])
+            for i in (1, 2)
+        ]
+        until("both copies drawn", lambda: all("OPERATOR BLOCKS" in w.output() for w in watches))
+        time.sleep(COPIES_RUN_S)
+        assert all(w.alive() for w in watches), stack.dump()
+        if kind == "mosquitto":
+            takeovers = [line for line in broker_log.read_text().splitlines() if TAKEOVER in line]
+            assert not takeovers, takeovers[:5]
+        for w in watches:
+            shown = w.output()
+            assert "OPERATOR BLOCKS" in shown, shown[-2000:]
+            assert "not reachable" not in shown, "a copy of wsnav watch lost the broker"
+
+
+def test_copies_of_a_tool_on_one_host_hold_different_logins_and_free_them(tmp_path: Path) -> None:
+    """Which login each copy takes (runtime.login_copies): never one another copy of this host holds, also after
+    moving on from a lost connection; a copy that ends frees its login."""
+    creds = Credentials(username="operator", password="p" * 32, role="operator", site=SITE)
+    logins = tool_copies(tool_login(creds, "watch"))
+    assert logins[:2] == ["operator.watch", "operator.watch.2"] and len(logins) == TOOL_COPIES
+    first, second = LoginCopies(logins, tmp_path), LoginCopies(logins, tmp_path)
+    a, b = first.take(), second.take()
+    assert a != b
+    first.move_on()  # a lost connection: on to a login no copy holds
+    second.move_on()
+    assert len({a, b, first.current, second.current}) == 4
+    third, fourth = LoginCopies(logins, tmp_path), LoginCopies(logins, tmp_path)
+    assert [third.take(), fourth.take()] == [a, b], "the logins moved away from are free again"
+    held = first.current
+    first.release()
+    assert LoginCopies(logins, tmp_path).take() == held
 
 
 def test_an_identity_cannot_take_over_an_operator_tools_client_id_on_mosquitto(tmp_path: Path) -> None:

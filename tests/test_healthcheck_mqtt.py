@@ -5,17 +5,22 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from pathlib import Path
 
 import pytest
 
+from tests.broker_fixtures import mosquitto_on
 from tests.site_fixtures import tiny_site
 from wsnav.broker.amqtt.embedded import BrokerThread
+from wsnav.broker.credentials import write_credentials
 from wsnav.healthcheck import main
 from wsnav.runtime.bus import Will
-from wsnav.runtime.mqtt_bus import MqttBus
+from wsnav.runtime.mqtt_bus import MqttBus, connect_with_credentials
 from wsnav.schemas import topics
+from wsnav.schemas.credentials import load_credentials
 from wsnav.schemas.messages import NodeStatus, RobotStatus
+from wsnav.schemas.site import load_site
 
 
 def check(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
@@ -78,7 +83,7 @@ def test_robot_check_wants_a_live_status_not_a_retained_one(
     site = tiny_site(tmp_path / "site")
     with BrokerThread(site) as broker:
         args = ["robot", "--site", str(site), "--robot", "robot1", "--broker", f"{broker.host}:{broker.port}"]
-        args += ["--credentials", str(broker.credentials_dir / "robot1.json"), "--timeout", "2"]
+        args += ["--credentials", str(broker.credentials_dir / "operator.json"), "--timeout", "2"]
         robot = connect(broker, "robot1")
         status = RobotStatus(robot="robot1", state="idle", pose=(1.0, 4.0, 0.0)).to_payload()
         robot.publish(topics.robot_status("tiny", "robot1"), status, retain=True)
@@ -143,3 +148,49 @@ def test_mosquitto_that_cannot_save_its_store_is_unhealthy(
         assert code == 0 and "saved" in line, line
     else:
         assert code == 1 and "has not saved its store" in line and "--user" in line, line
+
+
+def test_the_robot_check_never_logs_in_as_the_robot_so_the_running_robot_keeps_its_connection(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """On Mosquitto a client id is its login: docker-compose's robot check, logged in as robot1 every 10 s, took
+    the running agent's connection over. A robot's (or any but the operator's) file is refused in one line; with
+    the operator's the check reads the status and the robot stays connected."""
+    site = tiny_site(tmp_path / "site")
+    creds = tmp_path / "creds"
+    write_credentials(load_site(site).spec, creds)
+    with mosquitto_on(site, creds, tmp_path / "mq", tmp_path / "data") as (endpoint, _proc):
+        robot = connect_with_credentials(
+            endpoint.host, endpoint.port, load_credentials(creds / "robot1.json")
+        )
+        stop = threading.Event()
+        status = RobotStatus(robot="robot1", state="idle", pose=(1.0, 4.0, 0.0)).to_payload()
+
+        def report() -> None:
+            while not stop.wait(0.2):
+                robot.publish(topics.robot_status("tiny", "robot1"), status)
+
+        reporter = threading.Thread(target=report, daemon=True)
+        reporter.start()
+        try:
+            args = [
+                "robot",
+                "--site",
+                str(site),
+                "--robot",
+                "robot1",
+                "--broker",
+                f"{endpoint.host}:{endpoint.port}",
+            ]
+            code, text = check(capsys, *args, "--credentials", str(creds / "robot1.json"), "--timeout", "2")
+            assert code == 1 and "\n" not in text and "operator" in text, text
+            assert check(capsys, *args, "--credentials", str(creds / "operator.json"), "--timeout", "2") == (
+                0,
+                "robot1 reports idle",
+            )
+            time.sleep(0.3)
+            assert robot.connected and robot.connects == 1, "the check took the robot's connection over"
+        finally:
+            stop.set()
+            reporter.join()
+            robot.close()

@@ -2,11 +2,13 @@
 
 A live process is not a healthy service: the broker must accept a login, the zone simulator's nodes must be
 `online`, the robot agent must be reporting. Each check connects with real credentials, prints one line, and
-exits 0 (healthy) or 1 (not):
+exits 0 (healthy) or 1 (not). The MQTT checks log in with the operator's file only, as its `health` tool: on
+Mosquitto a client id is its login, so a check logged in as the robot took the running robot's connection over
+(and one as a node, or as the dashboard, would take theirs):
 
-    python -m wsnav.healthcheck broker --broker HOST:PORT --credentials FILE
-    python -m wsnav.healthcheck nodes --site DIR --broker HOST:PORT --credentials FILE   # operator's file
-    python -m wsnav.healthcheck robot --site DIR --robot ID --broker HOST:PORT --credentials FILE
+    python -m wsnav.healthcheck broker --broker HOST:PORT --credentials OPERATOR_FILE
+    python -m wsnav.healthcheck nodes --site DIR --broker HOST:PORT --credentials OPERATOR_FILE
+    python -m wsnav.healthcheck robot --site DIR --robot ID --broker HOST:PORT --credentials OPERATOR_FILE
     python -m wsnav.healthcheck mosquitto-store --data DIR [--autosave 2]
 """
 
@@ -38,11 +40,22 @@ def _bus(args: argparse.Namespace) -> MqttBus:
         creds = load_credentials(args.credentials)
     except CredentialsError as exc:
         raise Unhealthy(str(exc)) from None
+    if creds.role != "operator":
+        raise Unhealthy(
+            f"{args.credentials}: {creds.username}'s credentials; a health check logs in with the operator's "
+            f"(operator.json): logged in as {creds.username} it would take {creds.username}'s own connection "
+            "over on Mosquitto"
+        )
     host, port = args.broker
     try:
         login = tool_login(creds, "health")  # the operator's: beside its console and watch on Mosquitto
         return connect_with_credentials(
-            host, port, login, client_id=f"health-{login.username}-{os.getpid()}", timeout_s=args.timeout
+            host,
+            port,
+            login,
+            client_id=f"health-{login.username}-{os.getpid()}",
+            timeout_s=args.timeout,
+            copies=True,  # the nodes' and the robot's checks may run at the same moment
         )
     except BusError as exc:
         raise Unhealthy(str(exc)) from None
@@ -174,7 +187,9 @@ def build_parser() -> Parser:
     for name, (func, text) in checks.items():
         p = sub.add_parser(name, help=text)
         p.add_argument("--broker", type=host_port, default=("127.0.0.1", 1883), help="HOST:PORT")
-        p.add_argument("--credentials", type=Path, required=True, help="an <id>.json credentials file")
+        p.add_argument(
+            "--credentials", type=Path, required=True, help="the operator's credentials file (operator.json)"
+        )
         p.add_argument("--timeout", type=float, default=5.0, help="seconds (default 5)")
         if name != "broker":
             p.add_argument("--site", type=Path, required=True, help="site directory or site.yaml")

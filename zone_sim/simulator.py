@@ -163,6 +163,7 @@ class ZoneSimulator:
                 tool_login(creds, "zone-sim"),  # beside the console and `wsnav watch` on Mosquitto
                 clock=self.clock,
                 timeout_s=OPERATOR_CONNECT_TIMEOUT_S,
+                copies=True,
             )
         except BusError as exc:
             raise SimulatorError(str(exc)) from None

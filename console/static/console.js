@@ -27,6 +27,15 @@ function placeMarker(g, x, y) {
   }
   g.setAttribute("transform", `translate(${g.dataset.x} ${-g.dataset.y}) scale(${1 / zoom})`);
 }
+// The numerous fixed markers (nodes, named points, zone labels) are placed by their own attributes, with no
+// transform each: 1500 transforms were 1500 paint chunks, which Chromium layerized again on every frame a robot
+// moved. Their sizes follow the zoom: [element, attribute, value at zoom 1].
+const sized = [];
+function size(node, attr, value) {
+  sized.push([node, attr, value]);
+  node.setAttribute(attr, value / zoom);
+  return node;
+}
 const $ = (id) => document.getElementById(id);
 
 function el(tag, attrs, parent) {
@@ -106,20 +115,20 @@ function drawSite() {
     el("polygon", { points: pts(z.polygon), class: "zone unknown", id: `zone-${z.id}`, "data-state": "unknown" }, zl);
     const cx = z.polygon.reduce((a, p) => a + p[0], 0) / z.polygon.length;
     const cy = z.polygon.reduce((a, p) => a + p[1], 0) / z.polygon.length;
-    el("text", { class: "zone-label", "font-size": fs, "text-anchor": "middle" }, marker(zl, cx, cy)).textContent = z.id;
+    size(el("text", { class: "zone-label", x: cx, y: -cy, "text-anchor": "middle" }, zl), "font-size", fs).textContent = z.id;
     const opt = document.createElement("option");
     opt.value = opt.textContent = z.id;
     select.appendChild(opt);
   }
   const pl = $("layer-points");
   for (const [name, [x, y]] of Object.entries(geo.points)) {
-    const m = marker(pl, x, y);
-    el("circle", { r: fs / 3, class: "point" }, m);
-    el("text", { x: fs / 2, class: "point-label", "font-size": fs }, m).textContent = name;
+    size(el("circle", { cx: x, cy: -y, class: "point" }, pl), "r", fs / 3);
+    const label = size(size(el("text", { x, y: -y, class: "point-label" }, pl), "dx", fs / 2), "font-size", fs);
+    label.textContent = name;
   }
   const nl = $("layer-nodes");
   for (const n of geo.nodes) {
-    el("circle", { r: fs / 4, class: "node silent", id: `node-${n.id}` }, marker(nl, n.position[0], n.position[1]));
+    size(el("circle", { cx: n.position[0], cy: -n.position[1], class: "node silent", id: `node-${n.id}` }, nl), "r", fs / 4);
   }
 }
 
@@ -376,14 +385,25 @@ function zoneRow(z) {
   setText(tr.cells[2], z.nodes.join(" "));
 }
 
-// Node rows in view: the clock redraws only their ages (a thousand rows rewritten every second cost Chromium a
-// layout of the whole list); rows scrolled into view get theirs at once. One observer watches the list (one per
-// row cost a thousand intersections each frame); the rows shown are found by their offsets.
+// The zones and nodes lists are written only while they are in view: a changed row of a list below the fold
+// cost Chromium a layout of its whole table (up to 50 ms with 500 zones); a list scrolled into view is brought up
+// to date in the next frame. Node rows in view: the clock redraws only their ages (a thousand rows rewritten
+// every second cost Chromium a layout of the whole list); rows scrolled into view get theirs at once. One
+// observer watches the lists (one per row cost a thousand intersections each frame); the rows shown are found by
+// their offsets.
+const listInView = { "zones-list": false, "nodes-list": false };
 let nodesListInView = false;
-new IntersectionObserver((entries) => {
-  nodesListInView = entries[entries.length - 1].isIntersecting;
+const listObserver = new IntersectionObserver((entries) => {
+  for (const e of entries) listInView[e.target.id] = e.isIntersecting;
+  nodesListInView = listInView["nodes-list"];
   if (nodesListInView) scheduleAges();
-}).observe($("nodes-list"));
+  if (entries.some((e) => e.isIntersecting)) {
+    tablesReady = true;
+    scheduleFrame();
+  }
+});
+listObserver.observe($("zones-list"));
+listObserver.observe($("nodes-list"));
 $("nodes-list").addEventListener("scroll", () => scheduleAges(), { passive: true });
 let agesDue = false;
 function scheduleAges() {
@@ -433,9 +453,16 @@ function renderTables() {
     if (state.blocks[id]) blockRow(state.blocks[id]);
     else document.getElementById(`block-row-${id}`)?.remove();
   }
-  for (const id of dirty.zones) if (state.zones[id]) zoneRow(state.zones[id]);
-  for (const id of dirty.nodes) if (state.nodes[id]) nodeRow(state.nodes[id]);
-  for (const set of Object.values(dirty)) set.clear();
+  dirty.robots.clear();
+  dirty.blocks.clear();
+  if (listInView["zones-list"]) {
+    for (const id of dirty.zones) if (state.zones[id]) zoneRow(state.zones[id]);
+    dirty.zones.clear();
+  }
+  if (listInView["nodes-list"]) {
+    for (const id of dirty.nodes) if (state.nodes[id]) nodeRow(state.nodes[id]);
+    dirty.nodes.clear();
+  }
 }
 
 function renderClock() {
@@ -576,7 +603,10 @@ function setView(v) {
   const was = zoom;
   zoom = hw / w;
   $("map").dataset.zoom = zoom.toFixed(3);
-  if (zoom !== was) for (const g of document.querySelectorAll("#world .marker")) placeMarker(g);
+  if (zoom !== was) {
+    for (const g of document.querySelectorAll("#world .marker")) placeMarker(g);
+    for (const [node, attr, value] of sized) node.setAttribute(attr, value / zoom);
+  }
   $("zoom-level").textContent = `${zoom < 10 ? zoom.toFixed(1) : zoom.toFixed(0)}x`;
 }
 

@@ -16,6 +16,7 @@ from collections.abc import Iterable
 
 from wsnav.navigation.backend import Pose
 from wsnav.navigation.costmap.layers import OtherRobot
+from wsnav.schemas.messages import YIELD_REASON_PREFIX
 
 YIELD_DISTANCE_M = 1.5
 """Centre to centre: at the TurtleBot3's 0.22 m/s, seven seconds before the two footprints would meet."""
@@ -49,4 +50,4 @@ def must_yield_to(
 
 def yield_reason(other: OtherRobot) -> str:
     """The status reason of a yielding robot: whom it waits for and why (constant while it waits)."""
-    return f"yielding to {other.robot}: it has right of way (earlier in the site's robot list) and is coming this way"
+    return f"{YIELD_REASON_PREFIX}{other.robot}: it has right of way (earlier in the site's robot list) and is coming this way"
