@@ -71,6 +71,13 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     status = sub.add_parser("status", help="one table of the site's nodes, zones, robots and operator blocks")
     operator_arguments(status)
     status.add_argument("--json", action="store_true", help="the same as JSON (what GET /api/state returns)")
+    status.add_argument(
+        "--wait",
+        type=float,
+        default=5.0,
+        metavar="S",
+        help="the longest wait for the broker's retained replay (default 5 s; it answers once the replay is over)",
+    )
     status.set_defaults(func=_run("terminal", "status_command"))
 
     watch = sub.add_parser("watch", help="the status table, redrawn live")

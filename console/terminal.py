@@ -25,7 +25,6 @@ from wsnav.schemas.site import SiteError, load_site
 
 SETTLE_QUIET_S = 0.5
 """`wsnav status` answers once no retained message came for this long (the broker's replay is over)."""
-SETTLE_MAX_S = 5.0
 UNBLOCK_LOOKUP_S = 2.0
 """How long `wsnav unblock` waits for the broker's retained copy of the block before calling the id unknown."""
 
@@ -170,9 +169,11 @@ def fit(text: str, rows: int, columns: int) -> str:
 
 
 def status_command(args: argparse.Namespace) -> int:
+    if not (math.isfinite(args.wait) and args.wait > 0):
+        raise CliError(f"--wait {args.wait:g}: expected a positive number of seconds")
     link, view = _subscribed(args, "status")
     try:
-        _gather(link, view, SETTLE_QUIET_S, SETTLE_MAX_S, replay=True)
+        _gather(link, view, SETTLE_QUIET_S, args.wait, replay=True)
         view.expire(link.clock.now())
         snapshot = view.snapshot(link.clock.now())
     finally:
