@@ -2,6 +2,7 @@
 
     ./.venv/bin/python -m bench.attack_latency                 # both brokers, writes BENCHMARKS.md
     ./.venv/bin/python -m bench.attack_latency --broker amqtt --seconds 5 --no-write
+    ./.venv/bin/python -m bench.attack_latency --attack flood --attack "none, again" --no-write   # some rows
     ./.venv/bin/python -m bench.attack_latency --quick         # both brokers: baseline and flood, 3 s windows
 
 The broker runs as its own process, as a site runs it: `wsnav broker run` with its default limits on loopback,
@@ -363,6 +364,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = quick_parser(__doc__)
     parser.add_argument("--broker", choices=(*BROKERS, "both"), default="both")
     parser.add_argument("--seconds", type=float, default=8.0, help="each window (default 8)")
+    parser.add_argument(
+        "--attack",
+        action="append",
+        choices=ATTACKS,
+        help="only this attack's window after the baseline (again for more; default every one)",
+    )
     args = parse_quick_args(parser, argv)
     kinds = BROKERS if args.broker == "both" else (args.broker,)
     if args.quick:
@@ -376,10 +383,11 @@ def main(argv: list[str] | None = None) -> int:
                 lost = float(r["lost"]) / max(float(r["sent"]), 1.0)  # type: ignore[arg-type]
                 check_ratio(f"{r['broker']}: probe states lost during the flood / sent", lost, 0.1)
         finish_quick()
-    rows = [row for kind in kinds for row in measure(kind, args.seconds)]
+    attacks = tuple(a for a in ATTACKS if a in args.attack) if args.attack else ATTACKS
+    rows = [row for kind in kinds for row in measure(kind, args.seconds, attacks)]
     text = table(rows)
     print(text)
-    if not args.no_write:
+    if not args.no_write and attacks == ATTACKS:
         write_section(
             SECTION,
             f"```sh\n{COMMAND}\n```\n\n{DESCRIPTION}\n\nMeasured at commit {_commit()} with {machine_note()}"
