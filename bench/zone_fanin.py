@@ -84,11 +84,23 @@ def fanin_site(directory: Path, nodes: int, per_zone: int = 4, probe: bool = Tru
 
 
 def simulate(
-    site_dir: str, creds: str, host: str, port: int, seconds: float, out: str, ready: Any, go: Any
+    site_dir: str,
+    creds: str,
+    host: str,
+    port: int,
+    seconds: float,
+    out: str,
+    ready: Any,
+    go: Any,
+    sim_nice: int | None = None,
 ) -> None:
     """The simulator process: connect every node, say so, run the window, then dump (node, seq, sent_at).
 
+    `sim_nice`: this process at that nice (the load generator yields to the subscriber, which shares its
+    scheduling group; lag is taken from each send's socket write, so a late send does not count as lag).
     With WSNAV_FANIN_PROFILE=FILE set, the window runs under cProfile and the stats go to FILE."""
+    if sim_nice is not None:
+        os.nice(sim_nice)
     from wsnav.runtime.clock import WallClock
     from wsnav.zone_sim.emulated_node import Sent
     from wsnav.zone_sim.simulator import SimulatorError, ZoneSimulator
@@ -214,6 +226,7 @@ def measure(
     nice: int | None = None,
     alone_s: float = 5.0,
     grace_s: float = 5.0,
+    sim_nice: int | None = None,
 ) -> dict[str, Any]:
     """One point: `nodes` emulated nodes for a `seconds` window through `broker` (pinned to `cpus`);
     `profile_dir`: py-spy samples each process (broker, simulator, this one: subscriber and probe) over the
@@ -241,7 +254,17 @@ def measure(
             out = str(root / "sent.npy")
             child = ctx.Process(
                 target=simulate,
-                args=(str(site_dir), str(creds), running.host, running.port, seconds, out, ready, go),
+                args=(
+                    str(site_dir),
+                    str(creds),
+                    running.host,
+                    running.port,
+                    seconds,
+                    out,
+                    ready,
+                    go,
+                    sim_nice,
+                ),
             )
             child.start()
             online, connect_s = ready.get(timeout=400)
@@ -447,6 +470,12 @@ def main(argv: list[str] | None = None) -> int:
         help="the broker in a scheduling group of its own with nice N (negative, as root: its core as good as its own on a shared machine)",
     )
     parser.add_argument(
+        "--sim-nice",
+        type=int,
+        help="the simulator (the load generator) at nice N, 0..19: the robot's subscriber, in the same "
+        "scheduling group, goes first (at a site the nodes and the robot are machines of their own)",
+    )
+    parser.add_argument(
         "--sub-qos", type=int, choices=(0, 1), default=1, help="the subscriber's QoS (default 1)"
     )
     parser.add_argument(
@@ -465,6 +494,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_quick_args(parser, argv)
     if not -20 <= (args.broker_nice or 0) <= 19:
         parser.error("--broker-nice must be -20..19")
+    if not 0 <= (args.sim_nice or 0) <= 19:
+        parser.error("--sim-nice must be 0..19")
     if args.quick:
         return quick(args.broker_cpus or None, args.broker_nice)
     amqtt_args = None if args.amqtt_gc_freeze is None else ["--gc-freeze", args.amqtt_gc_freeze]
@@ -492,6 +523,7 @@ def main(argv: list[str] | None = None) -> int:
                     amqtt_args,
                     args.profile,
                     args.broker_nice,
+                    sim_nice=args.sim_nice,
                 )
                 for _ in range(args.repeat)
             ]
@@ -526,6 +558,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.broker_nice is not None
         else ""
     )
+    if args.sim_nice is not None:
+        priority += (
+            f"The simulator ran at nice {args.sim_nice} (`--sim-nice`): the robot's subscriber, in its scheduling "
+            "group, went first (at a site the nodes and the robot are machines of their own; lag is taken from "
+            "each send's socket write, so a send the simulator made late does not count as lag).\n"
+        )
     body = (
         f"```\n{command}\n```\n\n"
         "N emulated nodes (firmware NodeLogic, one paho link each, all on one thread of one process) publish\n"

@@ -157,8 +157,8 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
 
     firewall = bsub.add_parser(
         "firewall",
-        help="an nftables file capping each node address's bytes a second to the MQTT port (Mosquitto's only "
-        "defence against a flooding node)",
+        help="an nftables file resetting the connections of a node address that sends the MQTT port more "
+        "bytes a second than its rate (Mosquitto's only defence against a flooding node)",
     )
     firewall.add_argument("--nodes-subnet", required=True, help="the nodes' network, e.g. 192.168.10.0/24")
     firewall.add_argument("--port", type=int, default=1883, help="the nodes' MQTT port (default 1883)")

@@ -4,7 +4,8 @@
 - `probe HOST USER PASS COUNT BIND`: COUNT QoS 1 zone states of node USER, one every 0.1 s, from address BIND;
 - `watch HOST USER PASS SECONDS`: subscribe to every zone state, say `subscribed` once subscribed, then count
   for SECONDS.
-Each prints one JSON line: what it sent, or how many messages it received per topic.
+Each prints one JSON line: what it sent (the flood also when it stopped), or how many messages it received per
+topic and when the last one of each arrived (`last`; time.monotonic(), one clock for every namespace).
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ def main() -> None:
         while time.monotonic() < end:
             client.publish(topic, b'{"v":1,"zone":"z1","node":"n1","state":"blocked","seq":%d}' % sent, qos=0)
             sent += 1
-        print(json.dumps({"sent": sent}), flush=True)
+        print(json.dumps({"sent": sent, "ended": time.monotonic()}), flush=True)
         os._exit(0)  # as a flooder that is killed: paho would first send all it queued, at the capped rate
     elif mode == "probe":
         client = _client(host, user, password, bind=sys.argv[6])
@@ -55,8 +56,14 @@ def main() -> None:
         )
     else:
         got: Counter[str] = Counter()
+        last: dict[str, float] = {}
+
+        def on_message(_c: object, _u: object, msg: mqtt.MQTTMessage) -> None:
+            got.update([msg.topic])
+            last[msg.topic] = time.monotonic()
+
         client = _client(host, user, password)
-        client.on_message = lambda _c, _u, msg: got.update([msg.topic])
+        client.on_message = on_message
         subscribed = threading.Event()
         client.on_subscribe = lambda *_a: subscribed.set()
         client.subscribe(f"wsn/{SITE}/zones/#", 1)
@@ -64,7 +71,7 @@ def main() -> None:
             sys.exit("watch: no SUBACK within 60 s")
         print("subscribed", flush=True)  # the test starts the senders only now: nothing is sent unwatched
         time.sleep(float(amount))
-        print(json.dumps(dict(got)), flush=True)
+        print(json.dumps({"got": dict(got), "last": last}), flush=True)
     client.disconnect()
     client.loop_stop()
 

@@ -1,11 +1,16 @@
 """Mosquitto's defence against one node's flood: a per-source byte rate in nftables, generated here.
 
 Mosquitto 2.0 has no publish rate of its own: one node's QoS 0 flood delayed every other node's states to the
-robots by seconds (p50 2.7 s against 0.4 ms, bench.attack_latency's flood row). The rule drops what a node's
-address sends over `rate_kbytes` a second (bursts of `burst_kbytes`) to the MQTT port; TCP then slows the
-sender down as it would on a congested link, and the node's own messages still arrive, late. A node sends well
-under 1 kB/s (a ~100-byte state per heartbeat, its info every few minutes), so the default 4 kB/s leaves room
-for a boot's burst and acknowledgements while capping a flood at a few dozen messages a second.
+robots by seconds (p50 2.7 s against 0.4 ms, bench.attack_latency's flood row). The rule resets the
+connection of a node's address that sends the MQTT port more than `rate_kbytes` a second (bursts of
+`burst_kbytes`), as amqtt closes a connection that runs far over its rate: a flood ends with its connection,
+and what its sender had queued goes with it. Dropping the excess instead (the rule before) left the flood in
+the sender's kernel, which went on sending it at the rate after the flooder had gone (an orphaned socket in
+FIN-WAIT-1 with 108 kB unsent: forged states reached the robot for seconds, 339 in one 8 s window). A node
+sends well under 1 kB/s (a ~100-byte state per heartbeat, its info every few minutes; an update over the air
+of 18 kB sends about 9 kB of requests and acknowledgements), so the default 4 kB/s and 16 kB bursts leave it
+room while capping a flood at a few dozen messages a second; packets over the rate, a new connection's SYN
+among them, take no tokens, so a flooder that reconnects at once gets no more than the rate through.
 """
 
 from __future__ import annotations
@@ -42,7 +47,7 @@ def nft_rules(
         "    chain input {\n"
         "        type filter hook input priority 0; policy accept;\n"
         f"        tcp dport {port} ip saddr {subnet} meter node_bytes {{ ip saddr limit rate over "
-        f"{rate_kbytes} kbytes/second burst {burst_kbytes} kbytes }} drop\n"
+        f"{rate_kbytes} kbytes/second burst {burst_kbytes} kbytes }} reject with tcp reset\n"
         "    }\n"
         "}\n"
     )
