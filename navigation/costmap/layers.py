@@ -134,6 +134,22 @@ class ObstacleLayer:
         """The marks are this layer's own record of the scans: kept; only the pending windows go."""
         self._pending = []
 
+    def move(self, frame: GridFrame) -> None:
+        """Re-home the layer on `frame` (a rolling window: same resolution and size, its origin whole cells
+        away): marks inside both windows stay, the rest are forgotten (costmap_2d's updateOrigin), and the last
+        scan may be applied again, over the cells the window gained."""
+        res = self.frame.resolution
+        d_row = round((frame.origin_y - self.frame.origin_y) / res)
+        d_col = round((frame.origin_x - self.frame.origin_x) / res)
+        old = Bounds(d_row, d_col, d_row + frame.height, d_col + frame.width)
+        kept = old.grow(0, self.frame)
+        marked = np.zeros((frame.height, frame.width), dtype=bool)
+        if not kept.empty:
+            marked[kept.within(old)] = self.marked[kept.rows, kept.cols]
+        self.marked, self.frame = marked, frame
+        self._last_scan = None
+        self._pending = []
+
     def add_scan(self, scan: LaserScan, known: Sequence[tuple[float, float, float]] = ()) -> bool:
         """Clear and mark along the scan's beams; True if a cell changed (its window is then pending).
 
