@@ -108,11 +108,22 @@ def test_each_configuration_drives_the_route_on_the_move_base_it_is_given(tmp_pa
     assert ((distance > ROUTE_M - 0.2) & (distance < ROUTE_M + 0.5)).all(), shown
     assert ((time_s >= distance / 0.22) & (time_s < 60)).all(), shown
     assert (col["collisions"] == 0).all(), shown
+    # Replans counted from the plans the stand-in published (at its planner_frequency: 5 Hz in default and
+    # zones, none in full); recoveries missing, since it publishes no /move_base/recovery_status: never a 0.
+    replans = dict(zip(col["config"], col["replans"].astype(float), strict=True))
+    for config in ("default", "zones"):
+        seconds = float(table.loc[table["config"] == config, "time_s"].iloc[0])
+        assert 0.5 * 5.0 * seconds < replans[config] < 1.5 * 5.0 * seconds + 2, shown
+    assert replans["full"] < 3, shown  # only re-sent goals are planned again
+    assert table["recoveries"].isna().all() and table["agent_cpu_s"].isna().all(), shown
     assert (col["process_cpu_s"].astype(float) > 0).all(), shown
     assert (col["peak_mem_mb"].astype(float) > 10).all(), shown
     assert "- Backend: ROS 1: move_base" in header
     report = (out / "report.md").read_text()
     assert "move_base's process CPU" in report
+    assert "agent-step CPU" not in report.split("## By route")[1], "a column no run measured has no figure"
+    row = next(line for line in report.splitlines() if line.startswith("| A->S | default |"))
+    assert row.split(" | ")[10] == "n/a", row  # recoveries: not measured
 
     # The same plan from the other backend: the report compares them run by run.
     other = table.copy()
