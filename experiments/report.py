@@ -51,8 +51,9 @@ STOCK_DIFFERENCES = (
     "Burger's rectangular footprint; aggressive reset keeps move_base's 4 x 0.148 m square",
     "lidar: beams with no return (+inf) clear up to the raytrace range (costmap_2d's `inf_is_valid`), which "
     "stock LaserScan handling drops",
-    "costmaps: one global costmap; the controller reads a rolling window of it instead of a separate local "
-    "costmap with its own obstacle layer",
+    "costmaps: as move_base's, a global costmap for the planner and a local one for the controller (a rolling "
+    "window with its own obstacle and inflation layers, 3 x 3 m at 10 Hz); the robots layer of a site with "
+    "several robots is in both",
     "recoveries: move_base's default behaviours with ROBOTIS' parameters, rotate_recovery without its "
     "footprint collision check (a round robot turning in place touches nothing new)",
     "simulation: a kinematic TurtleBot3 with velocity noise and the LDS-01's range noise, no Gazebo physics",
@@ -524,8 +525,9 @@ DEVIATIONS = (
     "time on a TurtleBot3, so its CPU is a process's share of a core over wall time, these are CPU seconds "
     "per simulated second (the same ratio had the run been paced in real time, without the idle costs a "
     "paced process has).",
-    "Local costmap: the controller reads a window of the global costmap; the paper's smaller local costmap "
-    "in `full` is its `local_costmap_size_m` window, not a separate costmap with its own update rate.",
+    "Local costmap: the controller's own rolling window (obstacle and inflation layers, as ROBOTIS' "
+    "local_costmap_params), 3 x 3 m updated at 10 Hz in `default` and `zones`, the paper's reduced 2 x 2 m at "
+    "5 Hz in `full`; its obstacle layer takes the same lidar sweeps as the global costmap's.",
 )
 """What differs between this experiment and the paper's, for the report's deviations section."""
 

@@ -108,7 +108,7 @@ def _yaml(name: str) -> dict[str, Any]:
 def move_base_params(config: str) -> dict[str, Any]:
     """move_base's parameters for an agent configuration: ROBOTIS' Burger set (move_base, DWA) and the shipped
     costmap files, with the configuration's own rates and sizes (planner_frequency, the global costmap's
-    update rate, the local costmap's size, the controller's rate, inflation); the zone layer only where the
+    update rate, the local costmap's size and update rate, the controller's rate, inflation); the zone layer only where the
     configuration has one."""
     agent = load_agent_config(config)
     common = _yaml("costmap_common_params_burger.yaml")
@@ -120,6 +120,7 @@ def move_base_params(config: str) -> dict[str, Any]:
         glob.pop(ZONE_LAYER, None)
     glob["update_frequency"] = agent.global_costmap_rate_hz
     local["width"] = local["height"] = agent.local_costmap_size_m
+    local["update_frequency"] = agent.local_costmap_rate_hz
     for costmap in (glob, local):
         costmap["inflation_layer"] = {
             "inflation_radius": agent.inflation.inflation_radius,

@@ -227,7 +227,8 @@ def _trace_beams(
     """Clear, then mark, the obstacle layer's cells along a scan's beams from `at`, heading along `direction`.
 
     Clearing: each usable beam's points every half cell, while short of a cell before its end (its range, or
-    the raytrace range for a beam with no return). Marking: the cell of each `hit`. Compiled (numba): the
+    the raytrace range for a beam with no return), and no further than the grid's edge (a local costmap's
+    window is much smaller than the raytrace range). Marking: the cell of each `hit`. Compiled (numba): the
     (beams, samples) points this replaced were mostly beyond their beam's end; each point is computed with the
     same float64 operations in the same order, so the same cells change."""
     origin_x, origin_y, res = frame_at
@@ -239,6 +240,7 @@ def _trace_beams(
     for i in range(cos.shape[0]):
         clear_len = min(ranges[i] if math.isfinite(ranges[i]) else np.inf, raytrace_range)
         end = (clear_len if usable[i] else 0.0) - res
+        inside = False
         for k in range(samples):
             s = k * step
             if not s < end:
@@ -247,6 +249,9 @@ def _trace_beams(
             row = math.floor((y + sin[i] * s - origin_y) / res)
             if 0 <= row < height and 0 <= col < width:
                 marked[row, col] = False
+                inside = True
+            elif inside:
+                break  # a ray that left the grid (a rectangle) never comes back: the rest is off it
     for i in range(cos.shape[0]):
         if hit[i]:
             col = math.floor((x + cos[i] * ranges[i] - origin_x) / res)
