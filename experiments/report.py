@@ -34,7 +34,7 @@ does not have, in grey between them."""
 CONFIG_ORDER = ("default", "zones", "full")
 STEPS = {
     ("default", "zones"): "the sensor network (zone layer + Algorithm 3)",
-    ("zones", "full"): "event-driven replanning + coarser planning",
+    ("zones", "full"): "event-driven replanning + coarser planning + a smaller, slower local costmap",
     ("default", "full"): "everything wsnav changes",
 }
 """What each paired comparison isolates (the configurations differ in exactly that)."""

@@ -2,7 +2,8 @@
 
 Three files ship in robot_agent/configs/: `default` (TurtleBot3's stock move_base behaviour, the paper's
 baseline), `zones` (default's timings and planner with the zone layer and Algorithm 3: what the sensor network
-alone brings) and `full` (zones with event-driven replanning and coarser planning). The experiment compares them on
+alone brings) and `full` (zones with event-driven replanning, coarser planning and a smaller, slower local
+costmap). The experiment compares them on
 the agent's CPU, so each rate here is honoured tick by tick: work not due is not done.
 """
 
