@@ -2,11 +2,12 @@
 <= 10 min, >= 100x real time), by configuration, on this machine's cores with one embedded broker per worker.
 
     ./.venv/bin/python -m bench.experiment_wall [--runs N] [--workers K] [--run-broker amqtt|mosquitto]
-                                                [--no-write] [--out DIR]
+                                                [--configs default,full] [--no-write] [--out DIR]
 
 With a smaller `--runs` the full experiment's wall time is extrapolated (runs scale linearly) and says so.
 With `--out` it also writes the experiment's table, report and figures there (what `wsnav experiment` writes),
-so one run of the whole experiment gives both its results and its speed. Each run starts its own broker:
+so one run of the whole experiment gives both its results and its speed (`--configs default,zones,full` for the
+published report's three configurations; the timing is `default` and `full` by default). Each run starts its own broker:
 Mosquitto by default here (the rows are the same as with amqtt, the wall time lower), `--run-broker amqtt` for
 the embedded amqtt broker that `wsnav experiment` uses by default. `--quick`: one run of A -> B per configuration;
 `full`'s agent CPU per simulated second over `default`'s at most 1 (measured 0.24-0.28), and `default`'s over a
@@ -27,6 +28,7 @@ from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parse
 from wsnav.experiments.run_plan import plan_runs
 from wsnav.experiments.runner import progress_line, report_header, run_experiment, write_outputs
 from wsnav.experiments.worker import RUN_BROKERS
+from wsnav.robot_agent.agent_config import BUILTIN
 from wsnav.schemas.site import load_site
 
 REPO = Path(__file__).resolve().parent.parent
@@ -44,11 +46,20 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--run-broker", choices=RUN_BROKERS, default="mosquitto")
     parser.add_argument("--out", type=Path, default=None, help="also write the experiment's report here")
+    parser.add_argument(
+        "--configs",
+        default=",".join(CONFIGS),
+        help=f"built-in configurations, comma-separated ({','.join(BUILTIN)})",
+    )
     args = parse_quick_args(parser)
+    configs = [c for c in args.configs.split(",") if c]
+    if not {"default", "full"} <= set(configs) or not set(configs) <= set(BUILTIN):
+        parser.error(f"--configs: built-in configurations including default and full ({','.join(BUILTIN)})")
     if args.quick:
         args.runs = 1
+        configs = CONFIGS
     site = load_site(REPO / "sites" / "school")
-    specs = plan_runs(site.spec, CONFIGS, args.runs, args.seed)
+    specs = plan_runs(site.spec, configs, args.runs, args.seed)
     if args.quick:
         specs = [s for s in specs if s.route == specs[0].route]
     load = os.getloadavg()[0]
@@ -65,7 +76,7 @@ def main() -> None:
         f"{int(t['collisions'].to_numpy(dtype=np.int64).sum())} collisions, "
         f"{int(t['success'].to_numpy(dtype=bool).sum())}/{len(t)} arrived",
     ]
-    for config in CONFIGS:
+    for config in configs:
         part = t.loc[t["config"] == config]
         cpu = float(part["agent_cpu_s"].to_numpy(dtype=np.float64).sum())
         sim = float(part["time_s"].to_numpy(dtype=np.float64).sum())
@@ -84,11 +95,13 @@ def main() -> None:
         cmd += f" --seed {args.seed}"
     if args.run_broker != "mosquitto":
         cmd += f" --run-broker {args.run_broker}"
+    if configs != CONFIGS:
+        cmd += f" --configs {','.join(configs)}"
     if args.out is not None:
         cmd += f" --out {args.out}"
         where = f"{'a Mosquitto process' if args.run_broker == 'mosquitto' else 'an embedded amqtt broker'} of each run's own"
         header = report_header(
-            site.name, CONFIGS, args.runs, args.seed, args.workers, where, outcome, cmd, args.run_broker
+            site.name, configs, args.runs, args.seed, args.workers, where, outcome, cmd, args.run_broker
         )
         lines.append(f"report: {write_outputs(site, outcome, args.out, header)}")
     if args.runs != FULL_RUNS:

@@ -34,7 +34,7 @@ does not have, in grey between them."""
 CONFIG_ORDER = ("default", "zones", "full")
 STEPS = {
     ("default", "zones"): "the sensor network (zone layer + Algorithm 3)",
-    ("zones", "full"): "event-driven replanning + coarser planning",
+    ("zones", "full"): "event-driven replanning + coarser planning + a smaller, slower local costmap",
     ("default", "full"): "everything wsnav changes",
 }
 """What each paired comparison isolates (the configurations differ in exactly that)."""
@@ -51,8 +51,9 @@ STOCK_DIFFERENCES = (
     "Burger's rectangular footprint; aggressive reset keeps move_base's 4 x 0.148 m square",
     "lidar: beams with no return (+inf) clear up to the raytrace range (costmap_2d's `inf_is_valid`), which "
     "stock LaserScan handling drops",
-    "costmaps: one global costmap; the controller reads a rolling window of it instead of a separate local "
-    "costmap with its own obstacle layer",
+    "costmaps: as move_base's, a global costmap for the planner and a local one for the controller (a rolling "
+    "window with its own obstacle and inflation layers, 3 x 3 m at 10 Hz); the robots layer of a site with "
+    "several robots is in both",
     "recoveries: move_base's default behaviours with ROBOTIS' parameters, rotate_recovery without its "
     "footprint collision check (a round robot turning in place touches nothing new)",
     "simulation: a kinematic TurtleBot3 with velocity noise and the LDS-01's range noise, no Gazebo physics",
@@ -80,8 +81,13 @@ SOURCE_COLUMN = {"cpu_per_sim_s": "agent_cpu_s", "process_cpu_per_sim_s": "proce
 
 
 def metrics_of(table: pd.DataFrame) -> tuple[Metric, ...]:
-    """The metrics this runs table can give (a column the code that wrote it did not measure is left out)."""
-    return tuple(m for m in METRICS if SOURCE_COLUMN.get(m.column, m.column) in table.columns)
+    """The metrics this runs table can give (a column the code that wrote it did not measure, or left empty in
+    every run as the ROS backend leaves the agent's CPU, is left out)."""
+    return tuple(m for m in METRICS if _measured(table, SOURCE_COLUMN.get(m.column, m.column)))
+
+
+def _measured(table: pd.DataFrame, column: str) -> bool:
+    return column in table.columns and bool(np.isfinite(table[column].to_numpy(dtype=np.float64)).any())
 
 
 def wilson(successes: int, runs: int, level: float = LEVEL) -> tuple[float, float]:
@@ -156,9 +162,7 @@ def summarise(table: pd.DataFrame, by: Sequence[str] = ("route",)) -> pd.DataFra
             "aborted": _outcomes(group)[0],
             "timeouts": _outcomes(group)[1],
             "collisions": int(group["collisions"].to_numpy(dtype=np.int64).sum()),
-            "replans_mean": float(ok["replans"].to_numpy(dtype=np.float64).mean())
-            if len(ok)
-            else float("nan"),
+            "replans_mean": _finite_mean(ok["replans"].to_numpy(dtype=np.float64)),
             "stalled_s_mean": _mean_of(group, "stalled_s"),
             "recoveries_mean": _mean_of(group, "recoveries"),
         }
@@ -187,9 +191,16 @@ def _in_config_order(summary: pd.DataFrame, by: list[str]) -> pd.DataFrame:
 
 def _mean_of(group: pd.DataFrame, column: str) -> float:
     """Mean over every run of a column older tables may lack (NaN then)."""
-    if column not in group.columns or len(group) == 0:
+    if column not in group.columns:
         return float("nan")
-    return float(group[column].to_numpy(dtype=np.float64).mean())
+    return _finite_mean(group[column].to_numpy(dtype=np.float64))
+
+
+def _finite_mean(values: NDArray[np.float64]) -> float:
+    """The mean over the runs that measured it (an empty cell is a run that did not: the ROS backend's move_base
+    publishing no plan or recovery topic); NaN when none did."""
+    measured = values[np.isfinite(values)]
+    return float(measured.mean()) if measured.size else float("nan")
 
 
 def summary_metrics(summary: pd.DataFrame) -> tuple[Metric, ...]:
@@ -472,8 +483,14 @@ ROS_MEASURES = (
     "Run-process CPU per simulated second: move_base's process CPU (user + system, psutil, its children "
     "included) over the run, per second of /clock, which advanced in real time: move_base's share of a core "
     "in real time, as the paper measured it. Peak memory is move_base's resident set, sampled during the run.",
-    "Not measured on ROS (0 in runs.csv): agent-step CPU (no wsnav agent runs), replans, recoveries and "
-    "planning time (move_base does not report them to the experiment).",
+    "Replans: the plans move_base's global planner published during the run (navfn publishes one on "
+    "/move_base/NavfnROS/plan for every makePlan call, an empty one when it finds no path) less the goal's "
+    "first; with the zone layer, each goal the bridge re-sends is planned and counted too. Recoveries: the "
+    "messages on /move_base/recovery_status (noetic's move_base publishes one per recovery behaviour), named "
+    "in the recovery log. A move_base that publishes neither topic leaves those cells empty in runs.csv (n/a "
+    "here), never 0.",
+    "Not measured on ROS (empty in runs.csv): agent-step CPU (no wsnav agent runs) and planning time "
+    "(move_base does not report it).",
 )
 """What the runs table's columns mean when the ROS backend wrote it."""
 
@@ -508,8 +525,9 @@ DEVIATIONS = (
     "time on a TurtleBot3, so its CPU is a process's share of a core over wall time, these are CPU seconds "
     "per simulated second (the same ratio had the run been paced in real time, without the idle costs a "
     "paced process has).",
-    "Local costmap: the controller reads a window of the global costmap; the paper's smaller local costmap "
-    "in `full` is its `local_costmap_size_m` window, not a separate costmap with its own update rate.",
+    "Local costmap: the controller's own rolling window (obstacle and inflation layers, as ROBOTIS' "
+    "local_costmap_params), 3 x 3 m updated at 10 Hz in `default` and `zones`, the paper's reduced 2 x 2 m at "
+    "5 Hz in `full`; its obstacle layer takes the same lidar sweeps as the global costmap's.",
 )
 """What differs between this experiment and the paper's, for the report's deviations section."""
 
@@ -747,8 +765,8 @@ def read_runs(out: Path) -> tuple[pd.DataFrame, str]:
     except ValueError:
         raise ReportError(f"{runs_csv}: column success holds a value that is not True or False") from None
     for column in [c for c in (*NEEDED, *NUMERIC) if c in table and c != "success"]:
-        try:
-            table[column] = pd.to_numeric(table[column])
+        try:  # an empty cell: a column the backend did not measure in that run (NaN, never 0)
+            table[column] = pd.to_numeric(table[column].replace("", np.nan))
         except ValueError:
             raise ReportError(f"{runs_csv}: column {column} holds a value that is not a number") from None
     return table, header

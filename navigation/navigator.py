@@ -109,6 +109,14 @@ class Costmap(PlanningCostmap, Protocol):
     ) -> tuple[NDArray[np.uint8], GridFrame]: ...
 
 
+class LocalCostmap(Protocol):
+    """What the navigator reads of wsnav.navigation.costmap.local_costmap.LocalCostmap: the controller's own
+    rolling window, updated by its owner at its own rate."""
+
+    def window(self) -> tuple[NDArray[np.uint8], GridFrame]: ...
+    def clear_except_region(self, x: float, y: float, size_m: float) -> None: ...
+
+
 class Escape(Protocol):
     """What the navigator needs of wsnav.navigation.behaviors.escape.ZoneEscape."""
 
@@ -189,10 +197,13 @@ class Navigator:
         params: NavigatorParams | None = None,
         blocked_zones: Callable[[], list[str]] | None = None,
         escape: Escape | None = None,
+        local_costmap: LocalCostmap | None = None,
     ) -> None:
         """`blocked_zones` tells which zones the zone layer holds lethal now (none without a zone layer);
-        `escape` finds the blocked areas the robot stands in and the way out (none without a zone layer)."""
+        `escape` finds the blocked areas the robot stands in and the way out (none without a zone layer);
+        `local_costmap`: what the controller reads (None: a window of `costmap` around the robot)."""
         self.costmap = costmap
+        self.local_costmap = local_costmap
         self.escape: Escape = escape or NoEscape()
         self.planner = planner
         self.controller = controller
@@ -361,8 +372,13 @@ class Navigator:
                     self._plan(now, "zone")
                     if self.state != "navigating":
                         return
-        overlay = view.overlay if view is not None else None
-        costs, frame = self.costmap.local_window(pose, self.params.local_costmap_size_m, overlay)
+        if (
+            self.local_costmap is not None
+        ):  # its own layers hold no zone: nothing to let the robot out through
+            costs, frame = self.local_costmap.window()
+        else:
+            overlay = view.overlay if view is not None else None
+            costs, frame = self.costmap.local_window(pose, self.params.local_costmap_size_m, overlay)
         result = self.controller.compute(pose, self.backend.velocity(), costs, frame)
         if result.status == "arrived" and self.leaving is not None and not self.leaving.onward:
             # At the end of the way out with no route on (normally `_left` got here first): plan from here
@@ -407,6 +423,8 @@ class Navigator:
             return
         x, y, _ = self.backend.pose()
         self.costmap.clear_except_region(x, y, side)
+        if self.local_costmap is not None:
+            self.local_costmap.clear_except_region(x, y, side)
         self._after_behaviour(now)
 
     def _rotate_tick(self, now: float) -> None:

@@ -31,6 +31,7 @@ from wsnav.navigation.behaviors.right_of_way import must_yield_to, yield_reason
 from wsnav.navigation.control.controller import ControllerParams, PathFollower
 from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
 from wsnav.navigation.costmap.layers import OtherRobot, RobotsLayer
+from wsnav.navigation.costmap.local_costmap import LocalCostmap
 from wsnav.navigation.navigator import GoalLabel, Navigator, NavigatorParams
 from wsnav.navigation.planning.global_planner import GlobalPlanner
 from wsnav.robot_agent.agent_config import AgentConfig
@@ -156,6 +157,12 @@ class RobotAgent:
             robots_layer=self.robots_layer,
             plugins=plugins,
         )
+        self.local_costmap: LocalCostmap | None = None
+        """The controller's own rolling-window costmap, when the configuration names its layers."""
+        if config.local_plugins is not None:
+            self.local_costmap = LocalCostmap(
+                self.costmap, config.local_costmap_size_m, inflation, config.local_plugins
+            )
         controller = PathFollower(
             ControllerParams(
                 inscribed_radius=radius,
@@ -179,6 +186,7 @@ class RobotAgent:
             ),
             blocked_zones=self.blocked_zones,
             escape=ZoneEscape(self.costmap) if self.zone_layer is not None else None,
+            local_costmap=self.local_costmap,
         )
         self.sim_world = sim_world
         self.on_status = on_status
@@ -199,6 +207,7 @@ class RobotAgent:
         self.sim_world_topic = topics.sim_world(site.name)
         self.fleet_topics = {topics.robot_status(site.name, r): r for r in self.fleet}
         self._costmap_timer = Every(config.global_costmap_rate_hz)
+        self._local_timer = Every(config.local_costmap_rate_hz)
         self._zone_timer = Every(config.zone_refresh_rate_hz)
         self._status_timer = Every(config.status_rate_hz)
         self._last_status: tuple[object, ...] | None = None
@@ -309,6 +318,8 @@ class RobotAgent:
                 self.costmap.update_scan(scan)
         if self.robots_layer is not None:
             self._update_fleet(now)
+        if self.local_costmap is not None and self._local_timer.due(now):
+            self.local_costmap.update(self.backend.pose(), self.backend.scan())
         self.navigator.step(now)
         self._publish_status(now)
         self.stats.cpu_s += time.thread_time() - t0
@@ -331,6 +342,8 @@ class RobotAgent:
         due = min(self.navigator.next_due(), self._status_timer.next)
         if self.config.obstacle_layer:
             due = min(due, self._costmap_timer.next)
+        if self.local_costmap is not None:
+            due = min(due, self._local_timer.next)
         if self.zone_layer is not None:
             due = min(due, self._zone_timer.next)
         return due

@@ -2,7 +2,8 @@
 
 Three files ship in robot_agent/configs/: `default` (TurtleBot3's stock move_base behaviour, the paper's
 baseline), `zones` (default's timings and planner with the zone layer and Algorithm 3: what the sensor network
-alone brings) and `full` (zones with event-driven replanning and coarser planning). The experiment compares them on
+alone brings) and `full` (zones with event-driven replanning, coarser planning and a smaller, slower local
+costmap). The experiment compares them on
 the agent's CPU, so each rate here is honoured tick by tick: work not due is not done.
 """
 
@@ -16,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from wsnav.navigation.behaviors.recovery import RecoveryParams
 from wsnav.navigation.costmap.inflation import InflationParams
 from wsnav.navigation.costmap.layered_costmap import LAYER_PLUGINS, check_plugins
+from wsnav.navigation.costmap.local_costmap import check_local_plugins
 from wsnav.navigation.planning.astar import PlannerParams
 from wsnav.schemas.yaml_file import read_yaml_mapping
 
@@ -116,7 +118,14 @@ class AgentConfig(_Strict):
     zone_refresh_rate_hz: PositiveRate = 1.0
     """How often zone freshness is re-judged (a node gone silent turns stale without any message)."""
     local_costmap_size_m: Annotated[float, Field(gt=0.5, le=20)] = 3.0
-    """Side of the square window of the costmap the controller looks at (stock: 3 x 3 m)."""
+    """Side of the square window the controller looks at (stock local_costmap width/height: 3 x 3 m)."""
+    local_costmap_rate_hz: PositiveRate = 10.0
+    """How often the local costmap is updated (local_costmap update_frequency; stock 10)."""
+    local_plugins: list[str] | None = None
+    """The local costmap's layers by name, in order (move_base's local_costmap `plugins`; the names:
+    navigation.costmap.local_costmap.LOCAL_PLUGINS): a rolling window of `local_costmap_size_m` with its own
+    obstacle layer, updated at `local_costmap_rate_hz`. Unset: no local costmap of its own, the controller reads
+    a window of the global costmap at every control tick."""
     controller_rate_hz: PositiveRate = 10.0
     status_rate_hz: PositiveRate = 2.0
     waiting_retry_s: Annotated[float, Field(ge=0)] = 2.0
@@ -162,6 +171,13 @@ class AgentConfig(_Strict):
     def _known_plugins(cls, plugins: list[str] | None) -> list[str] | None:
         if plugins is not None:
             check_plugins(plugins)
+        return plugins
+
+    @field_validator("local_plugins")
+    @classmethod
+    def _known_local_plugins(cls, plugins: list[str] | None) -> list[str] | None:
+        if plugins is not None:
+            check_local_plugins(plugins)
         return plugins
 
     def layer_plugins(self) -> list[str]:

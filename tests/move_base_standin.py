@@ -4,10 +4,12 @@
 `FakeMoveBase`: the one tests/test_ros_bridge_move_base.py runs in its own process (see there what it leaves out).
 `python -m tests.move_base_standin`: the same server as a process named move_base that drives, the command
 `wsnav experiment --backend ros --move-base-cmd` starts in CI (tests/test_experiment_ros.py). What it adds is a
-drive: it publishes a straight plan from where /odom says the robot is to the goal and steers /cmd_vel
-along it (turn toward the goal, then go at the Burger's 0.22 m/s), and ends SUCCEEDED within 0.1 m. What it
-leaves out: navfn's plan round walls, DWA, the costmaps' use and every recovery, so a run on it says that the
-experiment's ROS backend starts, drives, times and measures a move_base, not where move_base would go.
+drive: it publishes a straight plan from where /odom says the robot is to the goal, and again at its
+`~planner_frequency` in /clock time as move_base replans (none at 0), and steers /cmd_vel along it (turn toward
+the goal, then go at the Burger's 0.22 m/s), and ends SUCCEEDED within 0.1 m. What it leaves out: navfn's plan
+round walls, DWA, the costmaps' use and every recovery (it publishes no /move_base/recovery_status), so a run on
+it says that the experiment's ROS backend starts, drives, times and measures a move_base, not where move_base
+would go.
 """
 
 from __future__ import annotations
@@ -181,7 +183,12 @@ class DrivingMoveBase(FakeMoveBase):
             pose.pose.position.y = self.pose[1] + (gy - self.pose[1]) * i / 20
             path.poses.append(pose)
         self._plan_pub.publish(path)
+        frequency = float(rospy.get_param("~planner_frequency", 0.0))
+        planned = rospy.get_time()
         while not rospy.is_shutdown():
+            if frequency > 0 and rospy.get_time() - planned >= 1.0 / frequency:
+                planned = rospy.get_time()
+                self._plan_pub.publish(path)  # move_base's planner thread making its plan again
             if self.server.is_preempt_requested():
                 self._drive(0.0, 0.0)
                 self.server.set_preempted()

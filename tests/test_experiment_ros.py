@@ -53,17 +53,22 @@ def short_route_school(directory: Path) -> Path:
 
 def test_each_configuration_gets_robotis_parameters_with_its_own_numbers() -> None:
     """`default` is ROBOTIS' stock Burger set without the zone layer; `full` the paper's reduced set (no periodic
-    replanning, 5 Hz global costmap, 2 m local costmap) with a zone layer the bridge accepts."""
+    replanning, 5 Hz global costmap, 2 m local costmap at 5 Hz) with a zone layer the bridge accepts."""
     default, zones, full = (move_base_params(c) for c in ("default", "zones", "full"))
     assert check_global_costmap(default["global_costmap"], "/wsn/zone_grid").zone_layer is None
     for params in (zones, full):
         check = check_global_costmap(params["global_costmap"], "/wsn/zone_grid")
         assert check.errors == [] and check.zone_layer == "wsn_zone_layer"
     rates = [
-        (p["planner_frequency"], p["global_costmap"]["update_frequency"], p["local_costmap"]["width"])
+        (
+            p["planner_frequency"],
+            p["global_costmap"]["update_frequency"],
+            p["local_costmap"]["width"],
+            p["local_costmap"]["update_frequency"],
+        )
         for p in (default, zones, full)
     ]
-    assert rates == [(5.0, 10.0, 3.0), (5.0, 10.0, 3.0), (0.0, 5.0, 2.0)]
+    assert rates == [(5.0, 10.0, 3.0, 10.0), (5.0, 10.0, 3.0, 10.0), (0.0, 5.0, 2.0, 5.0)]
     assert default["base_local_planner"] == "dwa_local_planner/DWAPlannerROS"
     assert default["DWAPlannerROS"]["max_vel_x"] == 0.22
 
@@ -108,11 +113,22 @@ def test_each_configuration_drives_the_route_on_the_move_base_it_is_given(tmp_pa
     assert ((distance > ROUTE_M - 0.2) & (distance < ROUTE_M + 0.5)).all(), shown
     assert ((time_s >= distance / 0.22) & (time_s < 60)).all(), shown
     assert (col["collisions"] == 0).all(), shown
+    # Replans counted from the plans the stand-in published (at its planner_frequency: 5 Hz in default and
+    # zones, none in full); recoveries missing, since it publishes no /move_base/recovery_status: never a 0.
+    replans = dict(zip(col["config"], col["replans"].astype(float), strict=True))
+    for config in ("default", "zones"):
+        seconds = float(table.loc[table["config"] == config, "time_s"].iloc[0])
+        assert 0.5 * 5.0 * seconds < replans[config] < 1.5 * 5.0 * seconds + 2, shown
+    assert replans["full"] < 3, shown  # only re-sent goals are planned again
+    assert bool(table["recoveries"].isna().all()) and bool(table["agent_cpu_s"].isna().all()), shown
     assert (col["process_cpu_s"].astype(float) > 0).all(), shown
     assert (col["peak_mem_mb"].astype(float) > 10).all(), shown
     assert "- Backend: ROS 1: move_base" in header
     report = (out / "report.md").read_text()
     assert "move_base's process CPU" in report
+    assert "agent-step CPU" not in report.split("## By route")[1], "a column no run measured has no figure"
+    row = next(line for line in report.splitlines() if line.startswith("| A->S | default |"))
+    assert row.split(" | ")[10] == "n/a", row  # recoveries: not measured
 
     # The same plan from the other backend: the report compares them run by run.
     other = table.copy()

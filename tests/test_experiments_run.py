@@ -219,7 +219,8 @@ def test_an_earlier_runs_garbage_in_reference_cycles_is_not_counted_in_the_next_
 
 def test_each_step_of_the_ablation_changes_only_what_the_report_attributes_to_it() -> None:
     """default -> zones: the sensor network only (zone layer, Algorithm 3's waiting instead of planner
-    patience); zones -> full: event-driven replanning and coarser, less frequent work only."""
+    patience); zones -> full: event-driven replanning and coarser, less frequent work only (a smaller local
+    costmap updated less often among it)."""
     from wsnav.robot_agent.agent_config import load_agent_config
 
     def settings(name: str) -> dict[str, object]:
@@ -238,6 +239,7 @@ def test_each_step_of_the_ablation_changes_only_what_the_report_attributes_to_it
         "replan_rate_hz",
         "global_costmap_rate_hz",
         "local_costmap_size_m",
+        "local_costmap_rate_hz",
         "planner.downsample",
     }
     assert default["recovery.enabled"] and zones["recovery.enabled"] and full["recovery.enabled"]

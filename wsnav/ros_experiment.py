@@ -8,7 +8,10 @@ from the zone simulator over MQTT, simulated time on /clock), move_base with the
 for a configuration with the zone layer, `wsnav ros bridge --robot` (the zone grid and Algorithm 3; the goal goes
 through its relay so the bridge's re-sends do not end it). This process is a ROS node too: it publishes the
 site's map, sends the goal and reads /clock and /odom. move_base's CPU is its process's (user + system, psutil)
-over the run, as the paper measured it.
+over the run, as the paper measured it. Replans and recoveries are counted from what move_base publishes: its
+global planner's plan (navfn publishes one per makePlan call, an empty one when it finds none) and noetic's
+/move_base/recovery_status (one per recovery behaviour); a move_base that publishes one of them not, or whose
+topic this node could not connect to before the goal, has that column written as missing, never as 0.
 """
 
 from __future__ import annotations
@@ -55,6 +58,10 @@ from wsnav.zone_sim.simulator import ZoneSimulator
 
 MOVE_BASE_CMD = "rosrun move_base move_base"
 """The navigation process each run starts (`--move-base-cmd`); its node must be named move_base."""
+RECOVERY_STATUS = "/move_base/recovery_status"
+"""move_base_msgs/RecoveryStatus, one per recovery behaviour move_base runs (noetic's move_base)."""
+CONNECT_TIMEOUT_S = 5.0
+"""Real seconds to wait for this node's subscription to reach move_base's plan or recovery publisher."""
 RELAY = "/wsnav/move_base"
 """The bridge's relay of move_base's action interface (`wsnav ros bridge --relay`)."""
 CONFIG_DIR = Path(wsnav.ros_bridge.__file__).resolve().parent / "catkin" / "wsnav_ros" / "config"
@@ -62,6 +69,8 @@ ZONE_LAYER = "wsn_zone_layer"
 START_TIMEOUT_S = 60.0
 """Real seconds for a run's processes to come up (the robot's clock, move_base's action server, the bridge)."""
 SIM_DONE = re.compile(r"sim done: .* distance=(?P<distance>[0-9.]+)m collisions=(?P<collisions>\d+)")
+MISSING = math.nan
+"""A column this backend does not measure: an empty cell in runs.csv, n/a in the report, never a 0."""
 BACKEND_LINE = (
     "ROS 1: move_base (`{cmd}`) with navfn, DWA and costmap_2d; `wsnav sim --ros --clock` as the robot"
 )
@@ -99,7 +108,7 @@ def _yaml(name: str) -> dict[str, Any]:
 def move_base_params(config: str) -> dict[str, Any]:
     """move_base's parameters for an agent configuration: ROBOTIS' Burger set (move_base, DWA) and the shipped
     costmap files, with the configuration's own rates and sizes (planner_frequency, the global costmap's
-    update rate, the local costmap's size, the controller's rate, inflation); the zone layer only where the
+    update rate, the local costmap's size and update rate, the controller's rate, inflation); the zone layer only where the
     configuration has one."""
     agent = load_agent_config(config)
     common = _yaml("costmap_common_params_burger.yaml")
@@ -111,6 +120,7 @@ def move_base_params(config: str) -> dict[str, Any]:
         glob.pop(ZONE_LAYER, None)
     glob["update_frequency"] = agent.global_costmap_rate_hz
     local["width"] = local["height"] = agent.local_costmap_size_m
+    local["update_frequency"] = agent.local_costmap_rate_hz
     for costmap in (glob, local):
         costmap["inflation_layer"] = {
             "inflation_radius": agent.inflation.inflation_radius,
@@ -120,6 +130,41 @@ def move_base_params(config: str) -> dict[str, Any]:
     params["controller_frequency"] = agent.controller_rate_hz
     params["DWAPlannerROS"]["controller_frequency"] = agent.controller_rate_hz
     return {**params, "global_costmap": glob, "local_costmap": local}
+
+
+def plan_topic(params: dict[str, Any]) -> str:
+    """The topic move_base's global planner publishes each plan on: `/move_base/<planner>/plan`
+    (base_global_planner `navfn/NavfnROS` -> /move_base/NavfnROS/plan)."""
+    return f"/move_base/{str(params['base_global_planner']).rsplit('/', 1)[-1]}/plan"
+
+
+class Heard:
+    """Messages of one topic as they come (rospy's thread), kept with their /clock time."""
+
+    def __init__(self, ros: RosSide, topic: str, msg_type: Any, describe: Callable[[Any], str]) -> None:
+        self.topic = topic
+        self.times: list[tuple[float, str]] = []
+        self._ros = ros
+        self._describe = describe
+        self.sub = ros.subscriber(topic, msg_type, self._on_message)
+
+    def _on_message(self, msg: Any) -> None:
+        self.times.append((self._ros.sim_t if self._ros.sim_t is not None else math.nan, self._describe(msg)))
+
+    def connected(self, waiting: Callable[[], None]) -> bool:
+        """Whether this node's subscription reached a publisher of the topic (waited for a while, `waiting`
+        meanwhile, if the master names one): only then does a count of 0 mean none were sent."""
+        if self.topic not in self._ros.published_topics():
+            return False
+        deadline = time.monotonic() + CONNECT_TIMEOUT_S
+        while self.sub.get_num_connections() == 0:
+            if time.monotonic() > deadline:
+                return False
+            waiting()
+        return True
+
+    def since(self, mark: int) -> list[tuple[float, str]]:
+        return list(self.times[mark:])
 
 
 class RosSide:
@@ -147,6 +192,19 @@ class RosSide:
         self.clients = {
             name: actionlib.SimpleActionClient(name, MoveBaseAction) for name in ("/move_base", RELAY)
         }
+        self._heard: dict[str, Heard] = {}
+
+    def heard(self, topic: str, msg_type: Any, describe: Callable[[Any], str]) -> Heard:
+        """The one subscription of this node to `topic`, kept for the whole experiment."""
+        if topic not in self._heard:
+            self._heard[topic] = Heard(self, topic, msg_type, describe)
+        return self._heard[topic]
+
+    def subscriber(self, topic: str, msg_type: Any, callback: Callable[[Any], None]) -> Any:
+        return self._rospy.Subscriber(topic, msg_type, callback, queue_size=100)
+
+    def published_topics(self) -> set[str]:
+        return {name for name, _ in self._rospy.get_published_topics()}
 
     def forget_robot(self) -> None:
         """Before a run's robot starts: the last run's /clock and pose must not pass for this one's (its clock
@@ -369,8 +427,19 @@ def _drive(
     site: Site, spec: RunSpec, ros: RosSide, action: str, nav: Child, sim: Child, step: Callable[[], None]
 ) -> RunResult:
     from actionlib_msgs.msg import GoalStatus
+    from move_base_msgs.msg import RecoveryStatus
+    from nav_msgs.msg import Path as PlanPath
 
     client = ros.clients[action]
+    plans = ros.heard(plan_topic(move_base_params(spec.config)), PlanPath, lambda msg: "")
+    recoveries = ros.heard(RECOVERY_STATUS, RecoveryStatus, lambda msg: str(msg.recovery_behavior_name))
+
+    def waiting() -> None:
+        nav.alive()
+        step()
+
+    counted = {heard.topic: heard.connected(waiting) for heard in (plans, recoveries)}
+    marks = (len(plans.times), len(recoveries.times))
     cpu = CpuMeter(nav.proc.pid)
     assert ros.sim_t is not None and ros.pose is not None
     t0 = ros.sim_t
@@ -406,6 +475,8 @@ def _drive(
     client.wait_for_result(ros.duration(2.0))  # done on both sides: no late transition from the next server
     elapsed = ros.sim_t - t0
     cpu_s = cpu.cpu_s() - cpu.start
+    planned = plans.since(marks[0])
+    recovered = recoveries.since(marks[1])
     stalls.close(ros.sim_t)
     trajectory.append(ros.pose)
     sim.stop()
@@ -424,13 +495,17 @@ def _drive(
         "collisions": int(summary["collisions"]),
         "time_s": round(elapsed, 3),
         "distance_m": round(float(summary["distance"]), 3),
-        "replans": 0,
-        "recoveries": 0,
+        # The first plan is the goal's, not a replan (as the sim backend counts them); not heard: missing.
+        "replans": max(len(planned) - 1, 0) if counted[plans.topic] else MISSING,
+        "recoveries": len(recovered) if counted[recoveries.topic] else MISSING,
         "stalled_s": round(stalls.stalled_s, 3),
         "outcome": ended,
-        "recovery_log": "" if nav.proc.poll() is None else "move_base exited",
-        "planning_ms": 0.0,
-        "agent_cpu_s": 0.0,
+        "recovery_log": "; ".join(
+            [f"{t - t0:.1f} {name}" for t, name in recovered]
+            + ([] if nav.proc.poll() is None else ["move_base exited"])
+        ),
+        "planning_ms": MISSING,  # move_base does not say how long its planner took
+        "agent_cpu_s": MISSING,  # no wsnav agent runs: move_base's CPU is process_cpu_s
         "process_cpu_s": round(cpu_s, 6),
         "peak_mem_mb": round(cpu.peak_mb, 1),
     }

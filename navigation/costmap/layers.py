@@ -134,6 +134,22 @@ class ObstacleLayer:
         """The marks are this layer's own record of the scans: kept; only the pending windows go."""
         self._pending = []
 
+    def move(self, frame: GridFrame) -> None:
+        """Re-home the layer on `frame` (a rolling window: same resolution and size, its origin whole cells
+        away): marks inside both windows stay, the rest are forgotten (costmap_2d's updateOrigin), and the last
+        scan may be applied again, over the cells the window gained."""
+        res = self.frame.resolution
+        d_row = round((frame.origin_y - self.frame.origin_y) / res)
+        d_col = round((frame.origin_x - self.frame.origin_x) / res)
+        old = Bounds(d_row, d_col, d_row + frame.height, d_col + frame.width)
+        kept = old.grow(0, self.frame)
+        marked = np.zeros((frame.height, frame.width), dtype=bool)
+        if not kept.empty:
+            marked[kept.within(old)] = self.marked[kept.rows, kept.cols]
+        self.marked, self.frame = marked, frame
+        self._last_scan = None
+        self._pending = []
+
     def add_scan(self, scan: LaserScan, known: Sequence[tuple[float, float, float]] = ()) -> bool:
         """Clear and mark along the scan's beams; True if a cell changed (its window is then pending).
 
@@ -211,7 +227,8 @@ def _trace_beams(
     """Clear, then mark, the obstacle layer's cells along a scan's beams from `at`, heading along `direction`.
 
     Clearing: each usable beam's points every half cell, while short of a cell before its end (its range, or
-    the raytrace range for a beam with no return). Marking: the cell of each `hit`. Compiled (numba): the
+    the raytrace range for a beam with no return), and no further than the grid's edge (a local costmap's
+    window is much smaller than the raytrace range). Marking: the cell of each `hit`. Compiled (numba): the
     (beams, samples) points this replaced were mostly beyond their beam's end; each point is computed with the
     same float64 operations in the same order, so the same cells change."""
     origin_x, origin_y, res = frame_at
@@ -223,6 +240,7 @@ def _trace_beams(
     for i in range(cos.shape[0]):
         clear_len = min(ranges[i] if math.isfinite(ranges[i]) else np.inf, raytrace_range)
         end = (clear_len if usable[i] else 0.0) - res
+        inside = False
         for k in range(samples):
             s = k * step
             if not s < end:
@@ -231,6 +249,9 @@ def _trace_beams(
             row = math.floor((y + sin[i] * s - origin_y) / res)
             if 0 <= row < height and 0 <= col < width:
                 marked[row, col] = False
+                inside = True
+            elif inside:
+                break  # a ray that left the grid (a rectangle) never comes back: the rest is off it
     for i in range(cos.shape[0]):
         if hit[i]:
             col = math.floor((x + cos[i] * ranges[i] - origin_x) / res)
