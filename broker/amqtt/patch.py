@@ -19,7 +19,6 @@ is pinned to amqtt==0.12.1 (pyproject.toml) and to a test; docs/broker-amqtt.md 
 | `WsnavBroker._gated` (the gate's `peer_left`, `backlog`, `closed_by_us`) | a flood held to its rate outlived its sender: megabytes unread in the socket kept its messages coming for minutes after the flooder left or was revoked | tests/test_broker_limits.py |
 | `WsnavProtocolHandler._acknowledge_once_stored`, `WsnavBroker.retain_message` | an operator block acknowledged 0.01 s before a kill -9 was lost (PUBACK when queued, on disk within 0.2 s) | tests/test_broker_process.py |
 | `handle_read_timeout` on each handler | keepalive never enforced: a silent client is never dropped and its will never fires | tests/test_broker_embedded.py |
-| `asyncio.wait_for` as amqtt's protocol handler sees it (`_TimeoutInPlace`) | Python 3.11's wait_for runs a coroutine in a task of its own: the reader loop made one (and a turn of the loop) for every packet it read (bench.zone_fanin) | tests/test_broker_embedded.py, tests/test_broker_protocol.py |
 """
 
 from __future__ import annotations
@@ -33,7 +32,6 @@ import select
 import struct
 import termios
 import time
-import types
 from collections.abc import Awaitable, Callable
 from functools import partial
 from pathlib import Path
@@ -50,7 +48,6 @@ from amqtt.adapters import (
 from amqtt.broker import Broker
 from amqtt.contexts import Action, ListenerConfig
 from amqtt.errors import AMQTTError, MQTTError, NoDataError
-from amqtt.mqtt.protocol import handler as amqtt_handler
 from amqtt.mqtt.protocol.broker_handler import BrokerProtocolHandler
 from amqtt.mqtt.puback import PubackPacket
 from amqtt.session import INCOMING, OUTGOING, IncomingApplicationMessage, OutgoingApplicationMessage, Session
@@ -99,30 +96,6 @@ def _is_puback_timeout(error: BaseException | None) -> bool:
 
 
 logging.getLogger("amqtt.broker").addFilter(_QuietAmqttNoise())
-
-
-async def wait_in_place(awaitable: Awaitable[Any], timeout: float | None) -> Any:
-    """`asyncio.wait_for` as Python 3.12 has it: the awaitable runs in the calling task under a timeout, where
-    3.11's wraps a coroutine in a task of its own (one more task and turn of the loop per call)."""
-    if timeout is None:
-        return await awaitable
-    async with asyncio.timeout(timeout):
-        return await awaitable
-
-
-class _TimeoutInPlace(types.ModuleType):
-    """The `asyncio` amqtt's protocol handler module sees: asyncio itself, but `wait_for` is `wait_in_place`.
-    Its reader loop reads every packet under `wait_for(..., keepalive)`: on 3.11 a task per packet read. The
-    broker's CPU per QoS 1 message relayed (one publisher, one subscriber, 15,000 messages, load 13-17): 163-178
-    us against 191-238 us with 3.11's wait_for, same sitting."""
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(asyncio, name)
-
-    wait_for = staticmethod(wait_in_place)
-
-
-amqtt_handler.asyncio = _TimeoutInPlace("asyncio")  # type: ignore[attr-defined]
 
 
 def session_key(username: str, client_id: str) -> str:
@@ -188,7 +161,7 @@ class WsnavProtocolHandler(BrokerProtocolHandler):
         try:
             await self._send_packet(publish_packet)
             app_message.publish_packet = publish_packet
-            app_message.puback_packet = await wait_in_place(waiter, 5)
+            app_message.puback_packet = await asyncio.wait_for(waiter, timeout=5)
         except TimeoutError:
             msg = f"Timeout waiting for PUBACK for packet ID {packet_id}"
             self.logger.warning(msg)
