@@ -127,7 +127,7 @@ def test_a_nodes_qos0_burst_reaches_the_robot(kind: str, tmp_path: Path) -> None
     with running(kind, tmp_path) as (host, port, creds_of):
         got: list[bytes] = []
         robot = client(host, port, creds_of("robot1"), "robot1")
-        robot.on_message = lambda _c, _u, msg: got.append(msg.payload)
+        robot.on_message = lambda _c, _u, msg: got.append(bytes(msg.payload))
         robot.subscribe(topic, qos=1)
         time.sleep(0.5)
         node = client(host, port, creds_of("n1"), "n1")
