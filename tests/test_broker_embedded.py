@@ -93,7 +93,8 @@ def test_a_subscriber_that_never_acknowledges_costs_one_warning_line_not_a_trace
     site = tiny_site(tmp_path / "site")
     state = topics.zone_state(SITE, "z1", "n1")
     caplog.set_level(logging.WARNING)
-    caplog.set_level(logging.WARNING, logger="amqtt")  # an experiment worker run earlier in-process quiets amqtt
+    # An experiment worker run earlier in this process sets amqtt's level to CRITICAL (experiments/worker.py).
+    caplog.set_level(logging.WARNING, logger="amqtt")
     with BrokerThread(site) as broker:
         ep = Endpoint("amqtt", broker.host, broker.port, broker.credentials_dir)
         silent = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="robot1", manual_ack=True)
