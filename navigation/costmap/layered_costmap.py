@@ -282,14 +282,20 @@ class LayeredCostmap:
         self._log.append((self.version, b))
 
 
-def check_plugins(plugins: Sequence[str]) -> None:
-    """Refuse, in one line, a `plugins` list that names an unknown layer, one twice, or lacks a required one."""
-    unknown = [p for p in plugins if p not in LAYER_PLUGINS]
+def check_plugins(
+    plugins: Sequence[str],
+    known: Sequence[str] = LAYER_PLUGINS,
+    required: Sequence[str] = ("static_layer", "inflation_layer"),
+    what: str = "costmap",
+) -> None:
+    """Refuse, in one line, a `plugins` list that names an unknown layer, one twice, or lacks a required one (the
+    global costmap's by default; the local costmap passes its own)."""
+    unknown = [p for p in plugins if p not in known]
     if unknown:
-        raise ValueError(f"unknown costmap plugin {unknown[0]!r} (known: {', '.join(LAYER_PLUGINS)})")
-    twice = [p for p in LAYER_PLUGINS if list(plugins).count(p) > 1]
+        raise ValueError(f"unknown {what} plugin {unknown[0]!r} (known: {', '.join(known)})")
+    twice = [p for p in known if list(plugins).count(p) > 1]
     if twice:
-        raise ValueError(f"costmap plugin {twice[0]!r} named twice")
-    for required in ("static_layer", "inflation_layer"):
-        if required not in plugins:
-            raise ValueError(f"costmap plugins lack {required!r}")
+        raise ValueError(f"{what} plugin {twice[0]!r} named twice")
+    for layer in required:
+        if layer not in plugins:
+            raise ValueError(f"{what} plugins lack {layer!r}")

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from wsnav.navigation.backend import LaserScan, Pose
 from wsnav.navigation.costmap.inflation import InflationParams, inflate
-from wsnav.navigation.costmap.layered_costmap import LayeredCostmap
+from wsnav.navigation.costmap.layered_costmap import LayeredCostmap, check_plugins
 from wsnav.navigation.costmap.layers import ObstacleLayer
 from wsnav.zones.cost_values import FREE_SPACE, NO_INFORMATION
 from wsnav.zones.geometry import Bounds, GridFrame
@@ -38,14 +38,7 @@ def check_local_plugins(plugins: Sequence[str]) -> None:
         raise ValueError(
             "the local costmap takes no zone_layer: a blocked zone reaches the controller through the global plan"
         )
-    unknown = [p for p in plugins if p not in LOCAL_PLUGINS]
-    if unknown:
-        raise ValueError(f"unknown local costmap plugin {unknown[0]!r} (known: {', '.join(LOCAL_PLUGINS)})")
-    twice = [p for p in LOCAL_PLUGINS if list(plugins).count(p) > 1]
-    if twice:
-        raise ValueError(f"local costmap plugin {twice[0]!r} named twice")
-    if "inflation_layer" not in plugins:
-        raise ValueError("local costmap plugins lack 'inflation_layer'")
+    check_plugins(plugins, LOCAL_PLUGINS, ("inflation_layer",), "local costmap")
 
 
 class LocalCostmap:
