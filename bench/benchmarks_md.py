@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import subprocess
 import time
 from pathlib import Path
 
@@ -30,6 +31,14 @@ def bench_parser(doc: str | None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=doc.splitlines()[0] if doc else None)
     parser.add_argument("--no-write", action="store_true", help="print only; leave BENCHMARKS.md alone")
     return parser
+
+
+def commit() -> str:
+    """The commit measured (with `+dirty` when the tree has changes): a section names the code it measured."""
+    here = Path(__file__).resolve().parent
+    rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True, text=True)
+    dirty = subprocess.run(["git", "status", "--porcelain"], cwd=here, capture_output=True, text=True)
+    return (rev.stdout.strip() or "unknown") + ("+dirty" if dirty.stdout.strip() else "")
 
 
 def machine_note() -> str:

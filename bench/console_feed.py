@@ -42,7 +42,7 @@ import psutil
 import yaml
 
 from bench.bench_broker import mosquitto_broker
-from bench.benchmarks_md import bench_parser, machine_note, write_section
+from bench.benchmarks_md import bench_parser, commit, machine_note, write_section
 from bench.zone_fanin import PROBE, cpu_s, fanin_site, simulate, subscribe_all
 from wsnav.broker.credentials import write_credentials
 from wsnav.broker.mosquitto.process import free_port
@@ -175,14 +175,6 @@ def trace_summary(trace: dict[str, Any], top: int = 30) -> str:
         f"{sum(d):9.0f} ms {len(d):6d}x max {max(d):6.0f} ms  {thread:22.22s} {name}\n"
         for (thread, name), d in rows
     )
-
-
-def commit() -> str:
-    """The commit measured (with `+dirty` when the tree has changes), for BENCHMARKS.md."""
-    here = Path(__file__).resolve().parent
-    rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True, text=True)
-    dirty = subprocess.run(["git", "status", "--porcelain"], cwd=here, capture_output=True, text=True)
-    return rev.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
 
 
 def measure(nodes: int, robots: int, seconds: float, quick: bool = False) -> dict[str, float]:
