@@ -474,7 +474,8 @@ def test_safe_mode_reports_the_error_and_takes_an_update(fw, creds, broker, info
 def test_update_mode_and_the_trial_boot_fit_the_boards_38_kib_heap(
     fw, creds, broker, infos, tmp_path
 ) -> None:
-    """main.py itself on `micropython -X heapsize=38k` (the board's heap; 64-bit objects, so a bound), from an
+    """main.py itself on `micropython -X heapsize=HEAP` (testing.HEAP: the 64-bit heap that leaves the board's free
+    bytes after setup), from an
     `update` command's ota.json: update mode fetches and swaps, then the trial boot runs the new app."""
     update = make_update(tmp_path / "build", fw[NEW])
     b = Board(fw, OLD, creds, broker, tmp_path)
