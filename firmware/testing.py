@@ -157,9 +157,13 @@ def build_for_host(out: Path) -> tuple[Path, Path]:
     return device, stubs
 
 
-def versioned_sources(out: Path, version: str, append: dict[str, str] | None = None) -> Path:
+def versioned_sources(
+    out: Path, version: str, append: dict[str, str] | None = None, consts: dict[str, int] | None = None
+) -> Path:
     """A copy of firmware/device in `out` whose FIRMWARE_VERSION is `version` (what `info` reports, so an update's
-    arrival shows), with text appended to modules named in `append` (e.g. an app.py that raises)."""
+    arrival shows), with text appended to modules named in `append` (e.g. an app.py that raises), and each
+    `NAME = const(N)` named in `consts` given its value there (SHORT_TRIAL: a test's trial in seconds, not
+    minutes; the board's build is never changed)."""
     import re
 
     out.mkdir(parents=True)
@@ -167,8 +171,15 @@ def versioned_sources(out: Path, version: str, append: dict[str, str] | None = N
         text = py.read_text()
         if py.name == "diagnostics.py":
             text = re.sub(r'^FIRMWARE_VERSION = ".*"$', f'FIRMWARE_VERSION = "{version}"', text, flags=re.M)
+        for name, value in (consts or {}).items():
+            text = re.sub(rf"^{name} = const\(\d+\)$", f"{name} = const({value})", text, flags=re.M)
         (out / py.name).write_text(text + (append or {}).get(py.name, ""))
     return out
+
+
+SHORT_TRIAL = {"_HEALTHY_S": 8, "_OFFLINE_S": 12}
+"""versioned_sources' `consts` for a quick trial: healthy 8 s after boot (app.py; the board: 30 s), rolled back
+when not online 12 s after boot (health.py; the board: 120 s)."""
 
 
 def parse_stats(output: str) -> dict[str, int]:

@@ -27,6 +27,7 @@ from wsnav.firmware.deploy import firmware_files
 from wsnav.firmware.ota import OtaServer, Update, make_update
 from wsnav.firmware.testing import (
     HEAP,
+    SHORT_TRIAL,
     NodeProcess,
     SiteBroker,
     build_for_host,
@@ -46,6 +47,8 @@ pytestmark = pytest.mark.slow
 SITE_DIR = REPO / "sites" / "school"
 SITE, NODE = "school", "n1"
 OLD, NEW, BROKEN, LOOPING, LATE = "1.0.0-old", "1.0.0-new", "1.0.0-bad", "1.0.0-loop", "1.0.0-late"
+QUICK = "1.0.0-quick"
+"""The firmware with a trial of seconds (testing.SHORT_TRIAL), for the configuration tests."""
 LATE_FAILURE = """
 _iteration = Node.iteration
 _connected = None
@@ -77,8 +80,9 @@ def fw(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """Source folders by version, their builds (`<version>-build`), and the host stubs (`stubs`)."""
     root = tmp_path_factory.mktemp("ota-fw")
     out: dict[str, Path] = {"stubs": build_for_host(root / "host")[1]}
-    for version in (OLD, NEW, BROKEN, LOOPING, LATE):
-        out[version] = versioned_sources(root / f"src-{version}", version, APPENDED.get(version))
+    for version in (OLD, NEW, BROKEN, LOOPING, LATE, QUICK):
+        consts = SHORT_TRIAL if version == QUICK else None
+        out[version] = versioned_sources(root / f"src-{version}", version, APPENDED.get(version), consts)
         build(root / f"{version}-build", out[version])
         out[f"{version}-build"] = root / f"{version}-build"
     return out
@@ -125,17 +129,30 @@ def infos(broker: SiteBroker, creds: Path) -> Iterator[Infos]:
 class Board:
     """The node on the unix port, its filesystem `fs` holding `version`'s build and its real config."""
 
-    def __init__(self, fw: dict[str, Path], version: str, creds: Path, broker: SiteBroker, tmp: Path) -> None:
+    def __init__(
+        self,
+        fw: dict[str, Path],
+        version: str,
+        creds: Path,
+        broker: SiteBroker,
+        tmp: Path,
+        networks: dict[str, str] | None = None,
+    ) -> None:
+        """`networks`: the Wi-Fi networks in reach, SSID -> key (the fake radio's, host_stubs/network.py); the node
+        is configured for the first. None: its config leaves Wi-Fi to what the board joined before."""
         data = json.loads((creds / f"{NODE}.json").read_text())
         data["broker"] = {"host": broker.host, "port": broker.port}
         data["sensor"]["warmup_s"] = 0
+        (tmp / "pins").mkdir()
+        for ssid, key in (networks or {}).items():
+            (tmp / "pins" / f"wifi_{ssid}").write_text(key)
+            data["wifi"] = data["wifi"] if data["wifi"]["ssid"] else {"ssid": ssid, "password": key}
         config = tmp / "config.json"
         config.write_text(NodeConfig.model_validate(data).model_dump_json())
         self.fs = tmp / "fs"
         self.fs.mkdir()
         for name, path in firmware_files(fw[f"{version}-build"], config).items():
             shutil.copyfile(path, self.fs / name)
-        (tmp / "pins").mkdir()
         self.log = tmp / "serial.log"
         self.unix = UnixBoard(self.fs, fw["stubs"], self.log, tmp / "pins")
 
@@ -180,8 +197,8 @@ def board_of(
 ) -> Iterator[Callable[[str], Board]]:
     made: list[Board] = []
 
-    def make(version: str) -> Board:
-        b = Board(fw, version, creds, broker, tmp_path)
+    def make(version: str, networks: dict[str, str] | None = None) -> Board:
+        b = Board(fw, version, creds, broker, tmp_path, networks)
         b.unix.power_on()
         made.append(b)
         return b
@@ -200,6 +217,16 @@ def ota_cli(fw: dict[str, Path], creds: Path, broker: SiteBroker, version: str, 
         *("--source", str(fw[version]), "--timeout", str(timeout_s)),
     ]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def config_cli(creds: Path, broker: SiteBroker, stdin: str) -> subprocess.CompletedProcess[str]:
+    """`wsnav firmware config --wifi` as an operator runs it, the SSID and key on stdin."""
+    cmd = [
+        *(sys.executable, "-m", "wsnav.cli", "firmware", "config"),
+        *("--site", str(SITE_DIR), "--broker", f"{broker.host}:{broker.port}"),
+        *("--credentials", str(creds / "operator.json"), "--nodes", NODE, "--wifi", "--timeout", str(WAIT)),
+    ]
+    return subprocess.run(cmd, input=stdin, capture_output=True, text=True, timeout=WAIT * 2)
 
 
 def finish(proc: subprocess.Popen[str]) -> tuple[int, str, str]:
@@ -501,3 +528,39 @@ def test_update_mode_and_the_trial_boot_fit_the_boards_38_kib_heap(
     finally:
         node.stop()
     assert b.unfinished() == []
+
+
+NETWORKS = {"school-old": "old-key-1234", "school-new": "new-key-5678"}
+"""The site's Wi-Fi networks in the configuration tests: the node starts on the first."""
+
+
+def test_a_new_wifi_network_sent_over_the_air_is_tried_and_kept(fw, creds, broker, infos, board_of) -> None:
+    """The operator moves a node to another network with `wsnav firmware config`: the node fetches the sealed
+    settings, boots with them on trial, joins the new network with its key (the fake radio refuses any other) and
+    confirms; the command exits 0 and the board's config.json has the new network, everything else kept."""
+    board = board_of(QUICK, NETWORKS)
+    infos.wait(lambda i: i.fw == QUICK)
+    before = json.loads((board.fs / "config.json").read_text())
+    proc = config_cli(creds, broker, "school-new\nnew-key-5678\n")
+    assert proc.returncode == 0, (proc.stdout, proc.stderr, board.serial()[-3000:])
+    assert f"{NODE}: new configuration confirmed" in proc.stdout
+    after = json.loads((board.fs / "config.json").read_text())
+    assert after["wifi"] == {"ssid": "school-new", "password": "new-key-5678"}
+    assert {k: v for k, v in after.items() if k != "wifi"} == {k: v for k, v in before.items() if k != "wifi"}
+    assert "new-key-5678" not in board.serial()
+
+
+def test_a_wrong_wifi_key_sent_over_the_air_is_rolled_back(fw, creds, broker, infos, board_of) -> None:
+    """A key the network refuses: the node cannot join with it, goes back to its old configuration after the
+    trial's bound (testing.SHORT_TRIAL), comes back online with it and says so; the command exits 1 naming it."""
+    board = board_of(QUICK, NETWORKS)
+    infos.wait(lambda i: i.fw == QUICK)
+    before = (board.fs / "config.json").read_bytes()
+    proc = config_cli(creds, broker, "school-old\nwrong-key-0000\n")
+    assert proc.returncode == 1, (proc.stdout, proc.stderr, board.serial()[-3000:])
+    assert f"{NODE}: rolled back to its old configuration" in proc.stderr, proc.stderr
+    assert "0 of 1 nodes kept the new configuration" in proc.stdout
+    assert "ota: not online" in board.serial() and "ota: rollback" in board.serial()
+    assert (board.fs / "config.json").read_bytes() == before
+    assert not (board.fs / "config.json.bak").exists()
+    assert infos.wait(lambda i: i.error == "config: rolled back").fw == QUICK

@@ -110,7 +110,7 @@ class Node:
         self.errors = 0
         self.connects = 0
         self.reset_cause = reset_cause
-        self.last_error = None  # why the broker link last went down, for the diagnostics
+        self.last_error = cfg.get("error")  # why the broker link last went down, for the diagnostics
         self.info_due_ms = 0
         self.command_id = 0  # the last command applied (command.py): QoS 1 may deliver it again
         self.bad_commands = 0
@@ -305,7 +305,7 @@ def setup(cfg) -> Node:
     node = Node(
         cfg,
         sensor,
-        wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"]),
+        wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"], "trial" in cfg or "error" in cfg),
         wdt,
         None,
         machine.reset_cause(),

@@ -4,18 +4,32 @@ small so that it loads on a fragmented heap."""
 
 import os
 
+from micropython import const
+
+_OFFLINE_S = const(120)
+"""A trial (an update's, a configuration's) that has not once been online this long after boot is rolled back:
+a new Wi-Fi key or broker address that does not work, an app that never connects. Wi-Fi joins time out after
+20 s and back off up to 60 s, so this is several tries."""
+
 
 def apply(node) -> None:
     """The boot-loop count goes (otaboot.LOOPS) and an update on trial is confirmed (its state renamed `ota.ok`:
     otaboot.py removes the backups at the next boot; `info` says so at once, which `wsnav firmware ota` waits
     for), but only online with two states (heartbeats, changes) sent after the first connect's: until then the
-    node calls this each pass. `node.trial` then says 0: done."""
+    node calls this each pass, and a trial never online within _OFFLINE_S is ended (otaboot rolls it back at
+    the reset). `node.trial` then says 0: done."""
     if node.trial == 2 and (node.phase != 3 or node.logic.publications < 3):  # 3: app._ONLINE
+        if node.connects == 0 and node.uptime_s >= _OFFLINE_S:
+            with open("ota.fail", "w") as f:  # otaboot.OFFLINE: the next boot rolls the trial back
+                f.write("1")
+            print("ota: not online")
+            __import__("machine").reset()
         return
-    try:
-        os.remove("otaboot.loops")
-    except OSError:
-        pass  # no resets counted (the usual case)
+    for name in ("otaboot.loops", "config.rb"):  # otaboot's LOOPS and CONFIG_RB
+        try:
+            os.remove(name)
+        except OSError:
+            pass  # no resets counted, no configuration rolled back (the usual case)
     if node.trial == 2:
         try:
             os.rename("ota.json", "ota.ok")
