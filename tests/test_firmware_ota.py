@@ -24,7 +24,8 @@ from tests.conftest import REPO
 from tests.firmware_fixtures import Subscriber, info_of
 from wsnav.firmware.build import build
 from wsnav.firmware.deploy import firmware_files
-from wsnav.firmware.ota import OtaServer, Update, make_update
+from wsnav.firmware.ota import NodeTransfer, OtaServer, Update, make_update
+from wsnav.firmware.ota_config import ConfigServer, Settings, seal_for
 from wsnav.firmware.testing import (
     HEAP,
     SHORT_TRIAL,
@@ -498,6 +499,68 @@ def test_safe_mode_reports_the_error_and_takes_an_update(fw, creds, broker, info
     assert board.unfinished() == []
 
 
+def follow(broker: SiteBroker, creds: Path, server_of: Callable[[MqttBus], NodeTransfer]) -> list[str]:
+    """A firmware.ota server (`server_of` the operator's connection) in this process until its node is done;
+    the failures. No command: the test wrote the node's ota.json."""
+    op = Credentials.model_validate_json((creds / "operator.json").read_text())
+    bus = MqttBus(
+        broker.host, broker.port, client_id="ota-test", username=op.username, password=op.password
+    ).connect(30)
+    try:
+        server = server_of(bus)
+        server.subscribe()
+        return server.run(WAIT)
+    finally:
+        bus.close()
+
+
+def main_on_the_boards_heap(board: Board, stubs: Path, tmp_path: Path) -> tuple[list[str], dict[str, str]]:
+    """(command, environment) of main.py itself on `micropython -X heapsize=HEAP` in the board's folder, where
+    machine.reset ends the process (exit 75) as the ROM's ends a boot."""
+    boot = "import machine, sys\nmachine.reset = lambda: sys.exit(75)\nimport main"
+    cmd = [micropython_exe(), "-X", f"heapsize={HEAP}", "-c", boot]
+    return cmd, micropython_env(board.fs, stubs, tmp_path / "pins")
+
+
+def update_mode_then_trial(board: Board, stubs: Path, tmp_path: Path) -> NodeProcess:
+    """main.py on the board's heap from an ota.json in update mode: asserted to fetch and swap without running
+    out of heap and to reset; then the trial boot, running (the caller stops it)."""
+    cmd, env = main_on_the_boards_heap(board, stubs, tmp_path)
+    with (tmp_path / "update.log").open("wb") as log:
+        first = subprocess.run(cmd, cwd=board.fs, env=env, stdout=log, stderr=subprocess.STDOUT, timeout=WAIT)
+    out = (tmp_path / "update.log").read_text()
+    assert first.returncode == 75 and "ota: swapped" in out and "MemoryError" not in out, out
+    return NodeProcess(cmd, env, tmp_path / "trial.log", cwd=board.fs)
+
+
+def test_a_configuration_is_fetched_and_tried_on_the_boards_heap(fw, creds, broker, infos, tmp_path) -> None:
+    """main.py itself at testing.HEAP from a `config` command's ota.json: update mode fetches, opens and checks
+    the configuration (nodeconfig loaded there too) and swaps it in; the trial boot joins the new network and
+    confirms."""
+    b = Board(fw, QUICK, creds, broker, tmp_path, NETWORKS)
+    sealed, signature = seal_for(
+        node_key(creds), Settings(wifi=("school-new", NETWORKS["school-new"])).payload()
+    )
+    (b.fs / "ota.json").write_text(json.dumps({"stage": "config", "manifest": signature, "boots": 0}))
+    failures: list[list[str]] = []
+    server = threading.Thread(
+        target=lambda: failures.append(
+            follow(broker, creds, lambda bus: ConfigServer(bus, SITE, {NODE: sealed}))
+        )
+    )
+    server.start()
+    time.sleep(1)  # the server subscribed before the node asks
+    node = update_mode_then_trial(b, fw["stubs"], tmp_path)
+    try:
+        server.join(WAIT)
+        assert failures == [[]], node.output()
+        b.wait_confirmed()
+    finally:
+        node.stop()
+    assert json.loads((b.fs / "config.json").read_text())["wifi"]["ssid"] == "school-new"
+    assert "MemoryError" not in node.output()
+
+
 def test_update_mode_and_the_trial_boot_fit_the_boards_38_kib_heap(
     fw, creds, broker, infos, tmp_path
 ) -> None:
@@ -512,14 +575,7 @@ def test_update_mode_and_the_trial_boot_fit_the_boards_38_kib_heap(
     server = threading.Thread(target=lambda: failures.append(serve(broker, creds, update, command=False)))
     server.start()
     time.sleep(1)  # the server subscribed before the node asks
-    boot = "import machine, sys\nmachine.reset = lambda: sys.exit(75)\nimport main"  # as the ROM's: the process ends
-    env = micropython_env(b.fs, fw["stubs"], tmp_path / "pins")
-    cmd = [micropython_exe(), "-X", f"heapsize={HEAP}", "-c", boot]
-    with (tmp_path / "update.log").open("wb") as log:
-        first = subprocess.run(cmd, cwd=b.fs, env=env, stdout=log, stderr=subprocess.STDOUT, timeout=WAIT)
-    out = (tmp_path / "update.log").read_text()
-    assert first.returncode == 75 and "ota: swapped" in out and "MemoryError" not in out, out
-    node = NodeProcess(cmd, env, tmp_path / "trial.log", cwd=b.fs)
+    node = update_mode_then_trial(b, fw["stubs"], tmp_path)
     try:
         server.join(WAIT)
         assert failures == [[]], node.output()

@@ -1,6 +1,8 @@
 """The node has run healthy (app.Node.run: app._HEALTHY_S after boot, its last pass without an error): loaded
 for that and dropped once done (it removes itself from sys.modules), as command.py is for a command, and kept
-small so that it loads on a fragmented heap."""
+small so that it loads on a fragmented heap. Its names and strings are the firmware's already or longer than
+10 characters: a new qstr of the loop can take a new qstr pool (diagnostics.py), which a connected node on the
+tests' heap could not allocate."""
 
 import os
 
@@ -20,16 +22,14 @@ def apply(node) -> None:
     the reset). `node.trial` then says 0: done."""
     if node.trial == 2 and (node.phase != 3 or node.logic.publications < 3):  # 3: app._ONLINE
         if node.connects == 0 and node.uptime_s >= _OFFLINE_S:
-            with open("ota.fail", "w") as f:  # otaboot.OFFLINE: the next boot rolls the trial back
-                f.write("1")
+            os.rename("ota.json", "ota.offline")  # the next boot rolls the trial back (otaboot.boot)
             print("ota: not online")
             __import__("machine").reset()
         return
-    for name in ("otaboot.loops", "config.rb"):  # otaboot's LOOPS and CONFIG_RB
-        try:
-            os.remove(name)
-        except OSError:
-            pass  # no resets counted, no configuration rolled back (the usual case)
+    try:
+        os.remove("otaboot.loops")
+    except OSError:
+        pass  # no resets counted (the usual case)
     if node.trial == 2:
         try:
             os.rename("ota.json", "ota.ok")

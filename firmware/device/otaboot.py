@@ -10,7 +10,7 @@ cut leaves the old state or the new one, never half of one):
 - `trial`: the new files are in, the old ones kept as `<name>.bak`; the app confirms the update once it has
   run healthy for a while, connected (health.apply renames the state `ota.ok`; the next boot removes the
   backups). A trial that boots MAX_BOOTS times without confirming (a reset before connecting, a loop that fails
-  later and starves the watchdog), that is not online within its bound (health.py writes OFFLINE), or whose
+  later and starves the watchdog), that is not online within its bound (health.py), or whose
   `import app` fails, is rolled back (`rollback`).
 Every boot with a state counts one in it: an update mode that keeps resetting (no broker, no operator tool)
 is abandoned after MAX_BOOTS and the old app runs. The app confirms a trial only once it has run healthy for a
@@ -27,10 +27,10 @@ import os
 
 STATE = "ota.json"
 MAX_BOOTS = 3
-OFFLINE = "ota.fail"
-"""Written by health.py when a trial was not online within its bound: the next boot rolls it back."""
-CONFIG_RB = "config.rb"
-"""A configuration was rolled back: the app's `info` says ROLLED_BACK until it has run healthy (health.py)."""
+# Two more files, named in place and longer than 10 characters, so neither is a new qstr of every boot (as LOOPS;
+# diagnostics.py says why that counts): "ota.offline", the state renamed by health.py when a trial was not online
+# within its bound (the next boot rolls it back); "config.rolled", a configuration was rolled back (the next
+# boot's app says so in its first `info`; lost if that boot never gets online: the old configuration did before).
 LOOPS = "otaboot.loops"
 """Watchdog or exception resets in a row, outside an update (health.apply removes it)."""
 APP_ONLY = "app payloads debounce node_logic backoff sensing diagnostics digital_sensor ultrasonic command health"
@@ -79,8 +79,8 @@ def clear(st, suffix: str, state: str = STATE) -> None:
 
 def rollback(st) -> None:
     """Put each `.bak` back (a file that had none was new with the update and stays, unused); idempotent, so
-    a power cut during it is finished at the next boot. A configuration's: CONFIG_RB says so to the next boot
-    (the app's first `info`), which reads the old config.json again (main.py parsed the new one)."""
+    a power cut during it is finished at the next boot. A configuration's: "config.rolled" tells the next boot
+    (the app's first `info`), and a reset, as main.py parsed the new config.json."""
     print("ota: rollback")
     files = st.get("files", ())
     for name in files:
@@ -88,9 +88,8 @@ def rollback(st) -> None:
             remove(name)
             os.rename(name + ".bak", name)
     clear(st, ".tmp")
-    remove(OFFLINE)
     if "config.json" in files:
-        with open(CONFIG_RB, "w") as f:
+        with open("config.rolled", "w") as f:
             f.write("1")
         import machine
 
@@ -126,14 +125,18 @@ def boot(cfg) -> None:
     if st is not None:
         clear(st, ".bak", "ota.ok")
         print("ota: backups removed")
-    if exists(CONFIG_RB):
-        cfg["error"] = "config: rolled back"  # app.Node's first last_error
+    if exists("config.rolled"):
+        cfg["last_error"] = "config: rolled back"  # app.Node's first
+        remove("config.rolled")
+    late = exists("ota.offline")
+    if late:  # a trial not online in time (health.py): rolled back now
+        os.rename("ota.offline", STATE)
     st = load()
     if st is None:
         loops(cfg)
         return
     stage = st.get("stage")
-    boots = MAX_BOOTS + 1 if exists(OFFLINE) else st.get("boots", 0) + 1
+    boots = MAX_BOOTS + 1 if late else st.get("boots", 0) + 1
     st["boots"] = boots
     if boots > MAX_BOOTS:
         if stage == "fetch" or stage == "config":

@@ -4,8 +4,9 @@
 The configuration is fetched as an update's manifest is (file 0, written to `config.new`, its HMAC-SHA256 under
 the node's update key checked against the command's), then opened: a 16-byte nonce, then JSON XORed with SHA-256
 in counter mode under the same key (schemas.credentials.seal_config: the Wi-Fi key never crosses the bus in
-clear). Only `wifi` and `broker` may change (schemas.credentials.CONFIG_KEYS); the merged config must pass
-nodeconfig's checks. It becomes `config.json.tmp`, the one file of an update: otaboot.swap keeps the old one as
+clear). Only `wifi` and `broker` may change (schemas.credentials.CONFIG_KEYS), each with its two keys of the
+right types (a non-empty SSID or host): checked here, not by nodeconfig, whose code does not fit beside update
+mode's link on the board's heap. It becomes `config.json.tmp`, the one file of an update: otaboot.swap keeps the old one as
 `config.json.bak` and the next boot tries the new one (otaboot's trial), rolled back if the node is not online
 with it in time (health.py). Anything wrong: OtaAbort("config"), the old config untouched.
 """
@@ -33,19 +34,29 @@ def fetch(link, st, key) -> None:
         body[i] ^= block[i % 32]
     try:
         new = json.loads(body)
+        del body
+        for name in new:
+            v = new[name]
+            if name == "wifi":
+                v = v["ssid"], v["password"]
+            elif name == "broker":
+                v = v["host"], v["port"]
+            else:
+                raise ValueError
+            if type(v[0]) is not str or not v[0] or type(v[1]) is not (str if name == "wifi" else int):
+                raise ValueError
         with open("config.json") as f:
             d = json.load(f)
         for name in new:
-            if name != "wifi" and name != "broker":
-                raise ValueError
             d[name] = new[name]
-        import nodeconfig
-
-        nodeconfig.parse(d)  # ConfigError is a ValueError
     except (ValueError, TypeError, KeyError):
         raise OtaAbort("config")
     with open("config.json.tmp", "w") as f:
         json.dump(d, f)
+    if "wifi" in new:  # into the radio's flash too: the trial must join with the new key, not a saved old one
+        import network
+
+        network.WLAN(network.STA_IF).connect(new["wifi"]["ssid"], new["wifi"]["password"])
     st["files"] = ["config.json"]
     st["version"] = "config"
     st["stage"] = "swap"

@@ -3,8 +3,7 @@
 `start()` asks the radio to join (modem sleep off) and returns at once, with the access point the SDK saved in
 flash when it can: `connect(ssid, password)` writes the SDK's settings to flash on every call, and a node that
 retries through an access-point outage would wear the flash out. Credentials go in only when the saved SSID is
-not the configured one, or the last join was refused on the password (a changed Wi-Fi key), or the config is
-new or just rolled back (over the air: the saved key may be another), at most once a boot.
+not the configured one, or the last join was refused on the password (a changed Wi-Fi key), at most once a boot.
  the main loop calls `connected()` every iteration and
 gives up on an attempt after its own timeout (then backs off and calls `start()` again). That keeps the
 watchdog-fed main loop the only loop on the board.
@@ -14,11 +13,10 @@ import network
 
 
 class Wifi:
-    def __init__(self, ssid: str, password: str, fresh: bool = False) -> None:
+    def __init__(self, ssid: str, password: str) -> None:
         self.ssid = ssid
         self.password = password
         self._saved = False  # credentials written (to flash, by the SDK) since boot
-        self._fresh = fresh  # a configuration tried or just rolled back: the SDK's saved key may not be config's
         self._sta = network.WLAN(network.STA_IF)
         ap = network.WLAN(network.AP_IF)
         if ap.active():
@@ -37,7 +35,7 @@ class Wifi:
             except OSError:
                 pass
             if not self._saved and (
-                self._fresh or sta.config("ssid") != self.ssid or sta.status() == network.STAT_WRONG_PASSWORD
+                sta.config("ssid") != self.ssid or sta.status() == network.STAT_WRONG_PASSWORD
             ):
                 self._saved = True
                 sta.connect(self.ssid, self.password)
