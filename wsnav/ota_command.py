@@ -83,13 +83,18 @@ def _key_and_timeout(p: argparse.ArgumentParser, what: str) -> None:
     )
 
 
-def _nodes_and_key(args: argparse.Namespace) -> tuple[list[str], str]:
-    """--nodes as a list, checked; the site's update key from --update-key (or beside --credentials)."""
+def _nodes(args: argparse.Namespace) -> list[str]:
+    """--nodes as a list, checked, and --timeout checked."""
     nodes = [n.strip() for n in args.nodes.split(",") if n.strip()]
     if not nodes or len(set(nodes)) != len(nodes):
         raise CliError(f"--nodes {args.nodes!r}: give node ids, each once, separated by commas")
     if not (math.isfinite(args.timeout) and args.timeout > 0):
         raise CliError(f"--timeout {args.timeout:g}: expected a positive number of seconds")
+    return nodes
+
+
+def _site_key(args: argparse.Namespace) -> str:
+    """The site's update key from --update-key (or update.key beside --credentials)."""
     key_file = args.update_key or args.credentials.parent / UPDATE_KEY_FILE
     try:
         site_key = key_file.read_text().strip()
@@ -99,7 +104,7 @@ def _nodes_and_key(args: argparse.Namespace) -> tuple[list[str], str]:
         ) from None
     if len(site_key) != 64 or any(c not in "0123456789abcdef" for c in site_key):
         raise CliError(f"{key_file}: not an update key (64 hex digits)")
-    return nodes, site_key
+    return site_key
 
 
 def _send_and_follow(
@@ -131,12 +136,13 @@ def ota_command(args: argparse.Namespace) -> int:
     from wsnav.console.operator_link import connect
     from wsnav.firmware.ota import OtaError, OtaServer, make_update
 
+    nodes = _nodes(args)
     with tempfile.TemporaryDirectory(prefix="wsnav-ota-") as tmp:
         try:
             update = make_update(Path(tmp), args.source)
         except (BuildError, OtaError) as exc:
             raise CliError(str(exc)) from None
-    nodes, site_key = _nodes_and_key(args)
+    site_key = _site_key(args)
     m = update.manifest
     print(f"update {m.version}: {len(m.files)} files, {update.total} B (manifest {update.digest[:12]})")
     link = connect(args, "ota")
@@ -159,17 +165,18 @@ def config_command(args: argparse.Namespace) -> int:
     from wsnav.console.operator_link import connect
     from wsnav.firmware.ota_config import ConfigError, ConfigServer, Settings, seal_for
 
+    nodes = _nodes(args)
     wifi = None
     if args.wifi:
         lines = sys.stdin.read().split("\n")
         if len(lines) < 2 or not lines[0]:
             raise CliError("--wifi: give the SSID on the first line of stdin and the key on the second")
-        wifi = (lines[0], lines[1].rstrip("\r"))
+        wifi = (lines[0].rstrip("\r"), lines[1].rstrip("\r"))
     try:
         settings = Settings(wifi=wifi, broker=args.node_broker).payload()
     except ConfigError as exc:
         raise CliError(str(exc)) from None
-    nodes, site_key = _nodes_and_key(args)
+    site_key = _site_key(args)
     sealed: dict[str, bytes] = {}
     signatures: dict[str, str] = {}
     for n in nodes:
