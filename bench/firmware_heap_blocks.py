@@ -1,4 +1,5 @@
-"""Node firmware: free GC heap and its largest free block after setup (unix port, the ESP8266's 38 KiB heap).
+"""Node firmware: free GC heap and its largest free block after setup (unix port at testing.HEAP, the 64-bit heap
+that corresponds to the ESP8266's 38 KiB).
 
 Runs the test driver `run_node` (the board's main.py sequence: config parsed and dropped, app.Node built) with a
 PIR and an HC-SR04 config, and reads the `heap free` line it prints after `gc.collect()`, before any broker
@@ -21,7 +22,7 @@ from pathlib import Path
 
 from bench.benchmarks_md import machine_note, write_section
 from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser
-from wsnav.firmware.testing import build_for_host, micropython_cmd, micropython_env
+from wsnav.firmware.testing import HEAP, build_for_host, micropython_cmd, micropython_env
 
 SECTION = "## Node firmware: largest free block after setup (38 KiB, unix port; issue 19 diagnostics)"
 COMMAND = "./.venv/bin/python -m bench.firmware_heap_blocks [--base REV]"
@@ -164,8 +165,8 @@ def main() -> None:
             )
         finish_quick()
     write_note = (
-        f"```\n{COMMAND}\n```\n\nThe board's main.py sequence under `micropython -X heapsize=38k` (64-bit objects and "
-        f"the fake machine/network in the heap: a conservative bound; bench.firmware_heap has 32-bit figures; both "
+        f"```\n{COMMAND}\n```\n\nThe board's main.py sequence under `micropython -X heapsize={HEAP}` (testing.HEAP: the 64-bit heap that corresponds to the board's 38 KiB; 64-bit objects and "
+        f"the fake machine/network in the heap: a bound, not the board; bench.firmware_heap has 32-bit figures; both "
         f"revisions built with this tree's mpy-cross flags), {machine_note()} (heap sizes do not "
         f"depend on load):\n\n{table}\n\n{FINDINGS}"
     )

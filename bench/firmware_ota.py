@@ -10,8 +10,9 @@ idle and loaded, updating the node back and forth between two builds of the same
 Heap (32-bit: MicroPython's WebAssembly port with a 38 KiB heap, bench/wasm_port/setup_heap.mjs): the node after
 setup for this tree and the baseline revision, update mode after setup and at the transfer's peak.
 Writes its section of BENCHMARKS.md unless --no-write.
-`--quick`: one idle and one loaded update, no heap rows (about 75 s: each update waits out the node's 30 s healthy
-period, which the node's configuration does not shorten yet); the loaded transfer over the idle one at most 5.
+`--quick`: one idle and one loaded update, no heap rows, the firmware built with a trial of seconds
+(testing.SHORT_TRIAL: each update waits out an 8 s healthy period, not 30 s); the loaded transfer over the idle
+one at most 5.
 """
 
 from __future__ import annotations
@@ -34,7 +35,13 @@ from wsnav.console.operator_commands import node_command
 from wsnav.firmware.build import build
 from wsnav.firmware.deploy import firmware_files
 from wsnav.firmware.ota import OtaServer, Update, make_update
-from wsnav.firmware.testing import SiteBroker, build_for_host, versioned_sources, write_credentials
+from wsnav.firmware.testing import (
+    SHORT_TRIAL,
+    SiteBroker,
+    build_for_host,
+    versioned_sources,
+    write_credentials,
+)
 from wsnav.firmware.unix_board import UnixBoard
 from wsnav.runtime.mqtt_bus import MqttBus
 from wsnav.schemas import topics
@@ -149,7 +156,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="wsnav-fw-ota-") as tmp_name:
         tmp = Path(tmp_name)
         stubs = build_for_host(tmp / "host")[1]
-        updates = [make_update(tmp / f"build-{v}", versioned_sources(tmp / f"src-{v}", v)) for v in VERSIONS]
+        consts = SHORT_TRIAL if args.quick else None
+        updates = [
+            make_update(tmp / f"build-{v}", versioned_sources(tmp / f"src-{v}", v, None, consts))
+            for v in VERSIONS
+        ]
         creds = tmp / "creds"
         write_credentials(SITE, creds)
         heap = [] if args.quick else heap_rows(tmp, creds, updates[0], args.baseline)

@@ -15,7 +15,7 @@ from __future__ import annotations
 import re
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from pydantic import ValidationError
@@ -135,23 +135,27 @@ class NodeProgress:
     """time.monotonic() of its first request and of the chunk that completed the update's last byte."""
 
 
-@dataclass
-class OtaServer:
-    """Serves one update to `nodes` over an operator's connection and follows each to its end."""
+class NodeTransfer:
+    """Serves what `nodes` fetch over an operator's connection (`payloads`, chunk by chunk on their
+    `ota/request`) and follows each to its end in their `info` (`_info`): an update (OtaServer) or a
+    configuration (firmware/ota_config.py)."""
 
-    bus: MqttBus
-    site: str
-    update: Update
-    nodes: list[str]
-    say: Callable[[str], None] = print
-    progress: dict[str, NodeProgress] = field(default_factory=dict)
+    what = "update"
 
-    def __post_init__(self) -> None:
-        self.progress = {n: NodeProgress(n) for n in self.nodes}
-        offsets = [0]
-        for p in self.update.payloads:
-            offsets.append(offsets[-1] + len(p))
-        self._starts = offsets
+    def __init__(self, bus: MqttBus, site: str, nodes: list[str], say: Callable[[str], None] = print) -> None:
+        self.bus = bus
+        self.site = site
+        self.nodes = nodes
+        self.say = say
+        self.progress = {n: NodeProgress(n) for n in nodes}
+
+    def payloads(self, node: str) -> list[bytes]:
+        """What `node` fetches: index 0 first (a manifest, a sealed configuration), then any files."""
+        raise NotImplementedError
+
+    def _info(self, prog: NodeProgress, payload: bytes) -> None:
+        """One `info` of a node that asked for something: done, failed, or on its way."""
+        raise NotImplementedError
 
     def subscribe(self) -> None:
         for n in self.nodes:
@@ -178,7 +182,7 @@ class OtaServer:
         except PayloadError as exc:
             self.say(f"{prog.node}: bad request ignored: {exc}")
             return
-        payloads = self.update.payloads
+        payloads = self.payloads(prog.node)
         if req.file >= len(payloads):
             self.say(f"{prog.node}: asked for file {req.file}, the update has {len(payloads) - 1}")
             return
@@ -195,14 +199,47 @@ class OtaServer:
         if prog.first_at is None:
             prog.first_at = now
         prog.chunks += 1
-        prog.served = self._starts[req.file] + req.offset + len(part)
-        if prog.served == self.update.total:
+        total = sum(len(p) for p in payloads)
+        prog.served = sum(len(p) for p in payloads[: req.file]) + req.offset + len(part)
+        if prog.served == total:
             prog.last_at = now
-        step = prog.served * 10 // self.update.total
+        step = prog.served * 10 // total
         if step != prog.shown:
             prog.shown = step
-            pct = prog.served * 100 // self.update.total
-            self.say(f"{prog.node}: {prog.served}/{self.update.total} B ({pct}%)")
+            self.say(f"{prog.node}: {prog.served}/{total} B ({prog.served * 100 // total}%)")
+
+    def run(self, timeout_s: float) -> list[str]:
+        """Serve until every node is done or failed, or `timeout_s`; the failures, one line each."""
+        deadline = time.monotonic() + timeout_s
+        while self.pending() and time.monotonic() < deadline:
+            if self.bus.wait(min(0.5, max(0.0, deadline - time.monotonic()))):
+                for msg in self.bus.poll():
+                    self.handle(msg)
+        failures = [p.error for p in self.progress.values() if p.error is not None]
+        for p in self.pending():
+            where = (
+                "running it on trial, never confirmed"
+                if p.trial
+                else f"stopped at {p.served}/{sum(len(x) for x in self.payloads(p.node))} B"
+                if p.started
+                else f"never asked for the {self.what}"
+            )
+            failures.append(f"{p.node}: not confirmed within {timeout_s:g} s ({where})")
+        return failures
+
+
+class OtaServer(NodeTransfer):
+    """Serves one update to `nodes` over an operator's connection and follows each to its end."""
+
+    def __init__(
+        self, bus: MqttBus, site: str, update: Update, nodes: list[str], say: Callable[[str], None] = print
+    ) -> None:
+        super().__init__(bus, site, nodes, say)
+        self.update = update
+
+    def payloads(self, node: str) -> list[bytes]:
+        del node  # the same update for every node
+        return self.update.payloads
 
     def _info(self, prog: NodeProgress, payload: bytes) -> None:
         try:
@@ -228,22 +265,3 @@ class OtaServer:
             prog.error = f"{prog.node}: came back on {info.fw}, not {version} (the update was abandoned or rolled back)"
         if prog.error is not None:
             self.say(prog.error)
-
-    def run(self, timeout_s: float) -> list[str]:
-        """Serve until every node is done or failed, or `timeout_s`; the failures, one line each."""
-        deadline = time.monotonic() + timeout_s
-        while self.pending() and time.monotonic() < deadline:
-            if self.bus.wait(min(0.5, max(0.0, deadline - time.monotonic()))):
-                for msg in self.bus.poll():
-                    self.handle(msg)
-        failures = [p.error for p in self.progress.values() if p.error is not None]
-        for p in self.pending():
-            where = (
-                "running it on trial, never confirmed"
-                if p.trial
-                else f"stopped at {p.served}/{self.update.total} B"
-                if p.started
-                else "never asked for the update"
-            )
-            failures.append(f"{p.node}: not confirmed within {timeout_s:g} s ({where})")
-        return failures

@@ -92,6 +92,41 @@ def sign_manifest(node_key: str, manifest: bytes) -> str:
     return hmac.new(node_key.encode(), manifest, hashlib.sha256).hexdigest()
 
 
+CONFIG_KEYS = ("wifi", "broker")
+"""What a configuration over the air may change in a node's config.json (`wsnav firmware config`): its Wi-Fi and
+its broker's address; the node refuses any other key (firmware/device/otaconfig.py)."""
+CONFIG_NONCE_BYTES = 16
+CONFIG_MAX_BYTES = 512
+"""A sealed configuration's size limit: one OTA chunk, what the node fetches in one piece."""
+
+
+def config_keystream(node_key: str, nonce: bytes, n: int) -> bytes:
+    """`n` bytes of SHA-256 in counter mode under the node's key: block i is sha256(key, "wsnav-config", nonce,
+    i). What the board has (hashlib) and nothing more; the node computes the same (device/otaconfig.py)."""
+    import hashlib
+
+    out = b""
+    for i in range((n + 31) // 32):
+        out += hashlib.sha256(node_key.encode() + b"wsnav-config" + nonce + bytes([i])).digest()
+    return out[:n]
+
+
+def seal_config(node_key: str, settings: bytes, nonce: bytes) -> bytes:
+    """A configuration for one node (`wsnav firmware config`): `nonce` then `settings` (JSON) XORed with
+    config_keystream, so the Wi-Fi key and broker address are unreadable on the bus (every reader of nodes/#
+    sees the chunk); the `config` command carries its HMAC (sign_manifest), so only the site's operator tool can
+    make one. A fresh random nonce per configuration: the same keystream is never used twice."""
+    stream = config_keystream(node_key, nonce, len(settings))
+    return nonce + bytes(a ^ b for a, b in zip(settings, stream, strict=True))
+
+
+def open_config(node_key: str, sealed: bytes) -> bytes:
+    """seal_config's settings back (the node's side, for tests and tools)."""
+    nonce, body = sealed[:CONFIG_NONCE_BYTES], sealed[CONFIG_NONCE_BYTES:]
+    stream = config_keystream(node_key, nonce, len(body))
+    return bytes(a ^ b for a, b in zip(body, stream, strict=True))
+
+
 OPERATOR_TOOLS = ("console", "watch", "status", "command", "zone-sim", "health", "ota", "ha-discovery")
 """The operator's tools that may run at once. Each logs in under a name of its own (`operator.watch`), with the
 operator's password and rights: Mosquitto binds a client id to its username (`use_username_as_clientid`), so

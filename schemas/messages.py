@@ -132,7 +132,7 @@ class NodeInfo(_Message):
     gone from the next `info`) once the node has run healthy for a while, connected, sending states."""
 
 
-NodeCommandName = Literal["restart", "send_info", "set_heartbeat", "update"]
+NodeCommandName = Literal["restart", "send_info", "set_heartbeat", "update", "config"]
 Sha256Hex = Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]
 MAX_COMMAND_ID = 2**30 - 1
 """Command ids stay below 2**30: a small int (no heap) on the ESP8266, as ZoneState's seq on the node."""
@@ -146,7 +146,9 @@ class NodeCommand(_Message):
     once; `set_heartbeat`: its heartbeat period becomes `heartbeat_s` until it restarts (reported in `info`);
     `update`: it reboots into update mode and fetches the OtaManifest whose HMAC-SHA256 under the node's update key
     (schemas.credentials.sign_manifest) is `manifest`, then its files
-    (over-the-air update, docs/firmware-esp8266.md). `id` is the sender's, random per command: the node applies a
+    (over-the-air update, docs/firmware-esp8266.md); `config`: the same way, it fetches a sealed configuration
+    (schemas.credentials.seal_config: new Wi-Fi, broker address) whose HMAC is `manifest`, then tries it as a
+    trial and goes back to its old one if it cannot get online with it. `id` is the sender's, random per command: the node applies a
     command once even if QoS 1 delivers it again. The whole payload stays under 128 bytes, what the node's MQTT
     client hands over (an `update` takes 120 at most)."""
 
@@ -155,14 +157,15 @@ class NodeCommand(_Message):
     heartbeat_s: Annotated[float, Field(gt=0, le=MAX_HEARTBEAT_S)] | None = None
     """Only with `set_heartbeat`, bounded as the site file's heartbeat."""
     manifest: Sha256Hex | None = None
-    """Only with `update`: the sha256 (hex) of the manifest's payload, which the node checks before trusting it."""
+    """Only with `update` and `config`: the HMAC-SHA256 (hex) under the node's update key of the manifest's (or the
+    sealed configuration's) payload, which the node checks before trusting it."""
 
     @model_validator(mode="after")
     def _heartbeat_with_set_heartbeat(self) -> NodeCommand:
         if (self.heartbeat_s is None) == (self.command == "set_heartbeat"):
             raise ValueError("heartbeat_s goes with set_heartbeat, and only with it")
-        if (self.manifest is None) == (self.command == "update"):
-            raise ValueError("manifest goes with update, and only with it")
+        if (self.manifest is None) == (self.command in ("update", "config")):
+            raise ValueError("manifest goes with update and config, and only with them")
         return self
 
 

@@ -188,3 +188,31 @@ def test_ota_refuses_bad_arguments_in_one_line(tmp_path: Path) -> None:
     one_line_error(wsnav("ota", *common, "--nodes", "n1", "--source", source), "not the firmware's sources")
     (tmp_path / "update.key").write_text("the operator's password\n")  # beside --credentials: the default
     one_line_error(wsnav("ota", *common, "--nodes", "n1"), "update.key: not an update key (64 hex digits)")
+
+
+def test_config_refuses_bad_settings_in_one_line(tmp_path: Path) -> None:
+    """Refused before it connects (no broker here): nothing to change, no SSID on stdin, a key WPA2 refuses, a
+    bad broker address."""
+    site = Path(__file__).resolve().parent.parent / "sites" / "school"
+    common = (
+        "config",
+        "--site",
+        site,
+        "--broker",
+        "127.0.0.1:1",
+        "--credentials",
+        tmp_path / "operator.json",
+    )
+
+    def config(*args: str, stdin: str = "") -> subprocess.CompletedProcess[str]:
+        cmd = [sys.executable, "-m", "wsnav.cli", "firmware", *map(str, common), *args]
+        return subprocess.run(cmd, input=stdin, capture_output=True, text=True, timeout=300)
+
+    one_line_error(config("--nodes", "n1"), "nothing to change")
+    one_line_error(config("--nodes", "n1", "--wifi"), "SSID on the first line")
+    one_line_error(config("--nodes", "n1", "--wifi", stdin="net\nshort\n"), "Wi-Fi key: 8 to 63")
+    one_line_error(config("--nodes", "n1", "--node-broker", "pi:0"), "expected HOST:PORT")
+    one_line_error(config("--nodes", "n1,n1", "--wifi", stdin="net\nlong-enough\n"), "each once")
+    one_line_error(
+        config("--nodes", "n1", "--wifi", stdin="net\nlong-enough\n"), "cannot read the site's update key"
+    )

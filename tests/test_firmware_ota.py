@@ -24,9 +24,11 @@ from tests.conftest import REPO
 from tests.firmware_fixtures import Subscriber, info_of
 from wsnav.firmware.build import build
 from wsnav.firmware.deploy import firmware_files
-from wsnav.firmware.ota import OtaServer, Update, make_update
+from wsnav.firmware.ota import NodeTransfer, OtaServer, Update, make_update
+from wsnav.firmware.ota_config import ConfigServer, Settings, seal_for
 from wsnav.firmware.testing import (
     HEAP,
+    SHORT_TRIAL,
     NodeProcess,
     SiteBroker,
     build_for_host,
@@ -46,6 +48,8 @@ pytestmark = pytest.mark.slow
 SITE_DIR = REPO / "sites" / "school"
 SITE, NODE = "school", "n1"
 OLD, NEW, BROKEN, LOOPING, LATE = "1.0.0-old", "1.0.0-new", "1.0.0-bad", "1.0.0-loop", "1.0.0-late"
+QUICK = "1.0.0-quick"
+"""The firmware with a trial of seconds (testing.SHORT_TRIAL), for the configuration tests."""
 LATE_FAILURE = """
 _iteration = Node.iteration
 _connected = None
@@ -77,8 +81,9 @@ def fw(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """Source folders by version, their builds (`<version>-build`), and the host stubs (`stubs`)."""
     root = tmp_path_factory.mktemp("ota-fw")
     out: dict[str, Path] = {"stubs": build_for_host(root / "host")[1]}
-    for version in (OLD, NEW, BROKEN, LOOPING, LATE):
-        out[version] = versioned_sources(root / f"src-{version}", version, APPENDED.get(version))
+    for version in (OLD, NEW, BROKEN, LOOPING, LATE, QUICK):
+        consts = SHORT_TRIAL if version == QUICK else None
+        out[version] = versioned_sources(root / f"src-{version}", version, APPENDED.get(version), consts)
         build(root / f"{version}-build", out[version])
         out[f"{version}-build"] = root / f"{version}-build"
     return out
@@ -125,17 +130,30 @@ def infos(broker: SiteBroker, creds: Path) -> Iterator[Infos]:
 class Board:
     """The node on the unix port, its filesystem `fs` holding `version`'s build and its real config."""
 
-    def __init__(self, fw: dict[str, Path], version: str, creds: Path, broker: SiteBroker, tmp: Path) -> None:
+    def __init__(
+        self,
+        fw: dict[str, Path],
+        version: str,
+        creds: Path,
+        broker: SiteBroker,
+        tmp: Path,
+        networks: dict[str, str] | None = None,
+    ) -> None:
+        """`networks`: the Wi-Fi networks in reach, SSID -> key (the fake radio's, host_stubs/network.py); the node
+        is configured for the first. None: its config leaves Wi-Fi to what the board joined before."""
         data = json.loads((creds / f"{NODE}.json").read_text())
         data["broker"] = {"host": broker.host, "port": broker.port}
         data["sensor"]["warmup_s"] = 0
+        (tmp / "pins").mkdir()
+        for ssid, key in (networks or {}).items():
+            (tmp / "pins" / f"wifi_{ssid}").write_text(key)
+            data["wifi"] = data["wifi"] if data["wifi"]["ssid"] else {"ssid": ssid, "password": key}
         config = tmp / "config.json"
         config.write_text(NodeConfig.model_validate(data).model_dump_json())
         self.fs = tmp / "fs"
         self.fs.mkdir()
         for name, path in firmware_files(fw[f"{version}-build"], config).items():
             shutil.copyfile(path, self.fs / name)
-        (tmp / "pins").mkdir()
         self.log = tmp / "serial.log"
         self.unix = UnixBoard(self.fs, fw["stubs"], self.log, tmp / "pins")
 
@@ -180,8 +198,8 @@ def board_of(
 ) -> Iterator[Callable[[str], Board]]:
     made: list[Board] = []
 
-    def make(version: str) -> Board:
-        b = Board(fw, version, creds, broker, tmp_path)
+    def make(version: str, networks: dict[str, str] | None = None) -> Board:
+        b = Board(fw, version, creds, broker, tmp_path, networks)
         b.unix.power_on()
         made.append(b)
         return b
@@ -200,6 +218,16 @@ def ota_cli(fw: dict[str, Path], creds: Path, broker: SiteBroker, version: str, 
         *("--source", str(fw[version]), "--timeout", str(timeout_s)),
     ]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def config_cli(creds: Path, broker: SiteBroker, stdin: str) -> subprocess.CompletedProcess[str]:
+    """`wsnav firmware config --wifi` as an operator runs it, the SSID and key on stdin."""
+    cmd = [
+        *(sys.executable, "-m", "wsnav.cli", "firmware", "config"),
+        *("--site", str(SITE_DIR), "--broker", f"{broker.host}:{broker.port}"),
+        *("--credentials", str(creds / "operator.json"), "--nodes", NODE, "--wifi", "--timeout", str(WAIT)),
+    ]
+    return subprocess.run(cmd, input=stdin, capture_output=True, text=True, timeout=WAIT * 2)
 
 
 def finish(proc: subprocess.Popen[str]) -> tuple[int, str, str]:
@@ -471,10 +499,73 @@ def test_safe_mode_reports_the_error_and_takes_an_update(fw, creds, broker, info
     assert board.unfinished() == []
 
 
+def follow(broker: SiteBroker, creds: Path, server_of: Callable[[MqttBus], NodeTransfer]) -> list[str]:
+    """A firmware.ota server (`server_of` the operator's connection) in this process until its node is done;
+    the failures. No command: the test wrote the node's ota.json."""
+    op = Credentials.model_validate_json((creds / "operator.json").read_text())
+    bus = MqttBus(
+        broker.host, broker.port, client_id="ota-test", username=op.username, password=op.password
+    ).connect(30)
+    try:
+        server = server_of(bus)
+        server.subscribe()
+        return server.run(WAIT)
+    finally:
+        bus.close()
+
+
+def main_on_the_boards_heap(board: Board, stubs: Path, tmp_path: Path) -> tuple[list[str], dict[str, str]]:
+    """(command, environment) of main.py itself on `micropython -X heapsize=HEAP` in the board's folder, where
+    machine.reset ends the process (exit 75) as the ROM's ends a boot."""
+    boot = "import machine, sys\nmachine.reset = lambda: sys.exit(75)\nimport main"
+    cmd = [micropython_exe(), "-X", f"heapsize={HEAP}", "-c", boot]
+    return cmd, micropython_env(board.fs, stubs, tmp_path / "pins")
+
+
+def update_mode_then_trial(board: Board, stubs: Path, tmp_path: Path) -> NodeProcess:
+    """main.py on the board's heap from an ota.json in update mode: asserted to fetch and swap without running
+    out of heap and to reset; then the trial boot, running (the caller stops it)."""
+    cmd, env = main_on_the_boards_heap(board, stubs, tmp_path)
+    with (tmp_path / "update.log").open("wb") as log:
+        first = subprocess.run(cmd, cwd=board.fs, env=env, stdout=log, stderr=subprocess.STDOUT, timeout=WAIT)
+    out = (tmp_path / "update.log").read_text()
+    assert first.returncode == 75 and "ota: swapped" in out and "MemoryError" not in out, out
+    return NodeProcess(cmd, env, tmp_path / "trial.log", cwd=board.fs)
+
+
+def test_a_configuration_is_fetched_and_tried_on_the_boards_heap(fw, creds, broker, infos, tmp_path) -> None:
+    """main.py itself at testing.HEAP from a `config` command's ota.json: update mode fetches, opens and checks
+    the configuration (nodeconfig loaded there too) and swaps it in; the trial boot joins the new network and
+    confirms."""
+    b = Board(fw, QUICK, creds, broker, tmp_path, NETWORKS)
+    sealed, signature = seal_for(
+        node_key(creds), Settings(wifi=("school-new", NETWORKS["school-new"])).payload()
+    )
+    (b.fs / "ota.json").write_text(json.dumps({"stage": "config", "manifest": signature, "boots": 0}))
+    failures: list[list[str]] = []
+    server = threading.Thread(
+        target=lambda: failures.append(
+            follow(broker, creds, lambda bus: ConfigServer(bus, SITE, {NODE: sealed}))
+        )
+    )
+    server.start()
+    time.sleep(1)  # the server subscribed before the node asks
+    node = update_mode_then_trial(b, fw["stubs"], tmp_path)
+    try:
+        server.join(WAIT)
+        assert failures == [[]], node.output()
+        b.wait_confirmed()
+    finally:
+        node.stop()
+    assert json.loads((b.fs / "config.json").read_text())["wifi"]["ssid"] == "school-new"
+    assert "MemoryError" not in node.output()
+
+
 def test_update_mode_and_the_trial_boot_fit_the_boards_38_kib_heap(
     fw, creds, broker, infos, tmp_path
 ) -> None:
-    """main.py itself on `micropython -X heapsize=38k` (the board's heap; 64-bit objects, so a bound), from an
+    """main.py itself on `micropython -X heapsize=HEAP` (testing.HEAP: the 64-bit heap that leaves the board's free
+    bytes after setup), from an
     `update` command's ota.json: update mode fetches and swaps, then the trial boot runs the new app."""
     update = make_update(tmp_path / "build", fw[NEW])
     b = Board(fw, OLD, creds, broker, tmp_path)
@@ -484,14 +575,7 @@ def test_update_mode_and_the_trial_boot_fit_the_boards_38_kib_heap(
     server = threading.Thread(target=lambda: failures.append(serve(broker, creds, update, command=False)))
     server.start()
     time.sleep(1)  # the server subscribed before the node asks
-    boot = "import machine, sys\nmachine.reset = lambda: sys.exit(75)\nimport main"  # as the ROM's: the process ends
-    env = micropython_env(b.fs, fw["stubs"], tmp_path / "pins")
-    cmd = [micropython_exe(), "-X", f"heapsize={HEAP}", "-c", boot]
-    with (tmp_path / "update.log").open("wb") as log:
-        first = subprocess.run(cmd, cwd=b.fs, env=env, stdout=log, stderr=subprocess.STDOUT, timeout=WAIT)
-    out = (tmp_path / "update.log").read_text()
-    assert first.returncode == 75 and "ota: swapped" in out and "MemoryError" not in out, out
-    node = NodeProcess(cmd, env, tmp_path / "trial.log", cwd=b.fs)
+    node = update_mode_then_trial(b, fw["stubs"], tmp_path)
     try:
         server.join(WAIT)
         assert failures == [[]], node.output()
@@ -500,3 +584,39 @@ def test_update_mode_and_the_trial_boot_fit_the_boards_38_kib_heap(
     finally:
         node.stop()
     assert b.unfinished() == []
+
+
+NETWORKS = {"school-old": "old-key-1234", "school-new": "new-key-5678"}
+"""The site's Wi-Fi networks in the configuration tests: the node starts on the first."""
+
+
+def test_a_new_wifi_network_sent_over_the_air_is_tried_and_kept(fw, creds, broker, infos, board_of) -> None:
+    """The operator moves a node to another network with `wsnav firmware config`: the node fetches the sealed
+    settings, boots with them on trial, joins the new network with its key (the fake radio refuses any other) and
+    confirms; the command exits 0 and the board's config.json has the new network, everything else kept."""
+    board = board_of(QUICK, NETWORKS)
+    infos.wait(lambda i: i.fw == QUICK)
+    before = json.loads((board.fs / "config.json").read_text())
+    proc = config_cli(creds, broker, "school-new\nnew-key-5678\n")
+    assert proc.returncode == 0, (proc.stdout, proc.stderr, board.serial()[-3000:])
+    assert f"{NODE}: new configuration confirmed" in proc.stdout
+    after = json.loads((board.fs / "config.json").read_text())
+    assert after["wifi"] == {"ssid": "school-new", "password": "new-key-5678"}
+    assert {k: v for k, v in after.items() if k != "wifi"} == {k: v for k, v in before.items() if k != "wifi"}
+    assert "new-key-5678" not in board.serial()
+
+
+def test_a_wrong_wifi_key_sent_over_the_air_is_rolled_back(fw, creds, broker, infos, board_of) -> None:
+    """A key the network refuses: the node cannot join with it, goes back to its old configuration after the
+    trial's bound (testing.SHORT_TRIAL), comes back online with it and says so; the command exits 1 naming it."""
+    board = board_of(QUICK, NETWORKS)
+    infos.wait(lambda i: i.fw == QUICK)
+    before = (board.fs / "config.json").read_bytes()
+    proc = config_cli(creds, broker, "school-old\nwrong-key-0000\n")
+    assert proc.returncode == 1, (proc.stdout, proc.stderr, board.serial()[-3000:])
+    assert f"{NODE}: rolled back to its old configuration" in proc.stderr, proc.stderr
+    assert "0 of 1 nodes kept the new configuration" in proc.stdout
+    assert "ota: not online" in board.serial() and "ota: rollback" in board.serial()
+    assert (board.fs / "config.json").read_bytes() == before
+    assert not (board.fs / "config.json.bak").exists()
+    assert infos.wait(lambda i: i.error == "config: rolled back").fw == QUICK

@@ -1,8 +1,9 @@
-"""`wsnav firmware ota`: the app of running nodes updated over MQTT, as the site's operator.
+"""`wsnav firmware ota` and `config`: the app, or the configuration (Wi-Fi, broker address), of running nodes
+changed over MQTT, as the site's operator.
 
 Here, not in firmware/cli.py: it logs in as the operator (`wsnav node-command`'s connection and command,
 console/operator_link.py and console/operator_commands.py), and the firmware component does not import the console
-(tests/test_component_imports.py). The transfer itself is firmware/ota.py.
+(tests/test_component_imports.py). The transfers themselves are firmware/ota.py and firmware/ota_config.py.
 """
 
 from __future__ import annotations
@@ -15,11 +16,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from wsnav.firmware.build import DEVICE, BuildError
-from wsnav.runtime.cli_support import CliError
+from wsnav.runtime.cli_support import CliError, host_port
 from wsnav.schemas.credentials import UPDATE_KEY_FILE, node_update_key
 
 if TYPE_CHECKING:
+    from wsnav.console.operator_link import OperatorLink
+    from wsnav.firmware.ota import NodeTransfer
     from wsnav.runtime.cli_support import Parser
+    from wsnav.schemas.messages import NodeCommandName
 
 
 def register(sub: argparse._SubParsersAction[Parser]) -> None:
@@ -37,41 +41,60 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     o.add_argument(
         "--source", type=Path, default=DEVICE, help="the firmware sources to build (default firmware/device)"
     )
-    o.add_argument(
+    _key_and_timeout(o, "signs the update")
+    o.set_defaults(func=ota_command)
+
+    c = fw_sub.add_parser(
+        "config",
+        help="send running nodes a new Wi-Fi network and/or broker address over MQTT; each tries it and goes back "
+        "to its old one if it cannot get online with it",
+    )
+    operator_arguments(c)
+    c.add_argument("--nodes", required=True, metavar="N1,N2", help="the nodes to change, comma-separated")
+    c.add_argument(
+        "--wifi",
+        action="store_true",
+        help="a new Wi-Fi network: its SSID on the first line of stdin, its key on the second (empty: open)",
+    )
+    c.add_argument(
+        "--node-broker",
+        type=host_port,
+        metavar="HOST:PORT",
+        help="the broker the nodes use from now on (its address as the nodes reach it)",
+    )
+    _key_and_timeout(c, "signs and seals the configuration")
+    c.set_defaults(func=config_command)
+
+
+def _key_and_timeout(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument(
         "--update-key",
         type=Path,
         metavar="FILE",
-        help="the site's update key that signs the update (default: update.key beside --credentials, where "
+        help=f"the site's update key that {what} (default: update.key beside --credentials, where "
         "wsnav broker credentials writes it)",
     )
-    o.add_argument(
+    p.add_argument(
         "--timeout",
         type=float,
         default=600.0,
         metavar="S",
         help="give up on nodes not done by then (default 600)",
     )
-    o.set_defaults(func=ota_command)
 
 
-def ota_command(args: argparse.Namespace) -> int:
-    """Build, send each node its `update` signed with its key (derived from the site's update key: a node
-    refuses an unsigned or wrongly signed manifest), serve the chunks with progress; exit 1 unless every node
-    confirmed (ran the new version healthy for a while: firmware/ota.py)."""
-    from wsnav.console.operator_commands import CommandError, node_command
-    from wsnav.console.operator_link import connect
-    from wsnav.firmware.ota import OtaError, OtaServer, make_update
-
+def _nodes(args: argparse.Namespace) -> list[str]:
+    """--nodes as a list, checked, and --timeout checked."""
     nodes = [n.strip() for n in args.nodes.split(",") if n.strip()]
     if not nodes or len(set(nodes)) != len(nodes):
         raise CliError(f"--nodes {args.nodes!r}: give node ids, each once, separated by commas")
     if not (math.isfinite(args.timeout) and args.timeout > 0):
         raise CliError(f"--timeout {args.timeout:g}: expected a positive number of seconds")
-    with tempfile.TemporaryDirectory(prefix="wsnav-ota-") as tmp:
-        try:
-            update = make_update(Path(tmp), args.source)
-        except (BuildError, OtaError) as exc:
-            raise CliError(str(exc)) from None
+    return nodes
+
+
+def _site_key(args: argparse.Namespace) -> str:
+    """The site's update key from --update-key (or update.key beside --credentials)."""
     key_file = args.update_key or args.credentials.parent / UPDATE_KEY_FILE
     try:
         site_key = key_file.read_text().strip()
@@ -81,28 +104,92 @@ def ota_command(args: argparse.Namespace) -> int:
         ) from None
     if len(site_key) != 64 or any(c not in "0123456789abcdef" for c in site_key):
         raise CliError(f"{key_file}: not an update key (64 hex digits)")
+    return site_key
+
+
+def _send_and_follow(
+    args: argparse.Namespace,
+    link: OperatorLink,
+    server: NodeTransfer,
+    signatures: dict[str, str],
+    command: NodeCommandName,
+) -> list[str]:
+    """Each node's `command` with its signature, then `server` (subscribed first) until all are done or failed
+    or --timeout; the failures, one line each."""
+    from wsnav.console.operator_commands import CommandError, node_command
+
+    try:
+        pubs = {n: node_command(link.site, n, command, manifest=sig) for n, sig in signatures.items()}
+    except CommandError as exc:
+        raise CliError(str(exc)) from None
+    server.subscribe()
+    for node, pub in pubs.items():
+        if not link.bus.publish_confirmed(pub.topic, pub.payload):
+            server.progress[node].error = f"{node}: the broker did not confirm the {command} command"
+    return server.run(args.timeout)
+
+
+def ota_command(args: argparse.Namespace) -> int:
+    """Build, send each node its `update` signed with its key (derived from the site's update key: a node
+    refuses an unsigned or wrongly signed manifest), serve the chunks with progress; exit 1 unless every node
+    confirmed (ran the new version healthy for a while: firmware/ota.py)."""
+    from wsnav.console.operator_link import connect
+    from wsnav.firmware.ota import OtaError, OtaServer, make_update
+
+    nodes = _nodes(args)
+    with tempfile.TemporaryDirectory(prefix="wsnav-ota-") as tmp:
+        try:
+            update = make_update(Path(tmp), args.source)
+        except (BuildError, OtaError) as exc:
+            raise CliError(str(exc)) from None
+    site_key = _site_key(args)
     m = update.manifest
     print(f"update {m.version}: {len(m.files)} files, {update.total} B (manifest {update.digest[:12]})")
     link = connect(args, "ota")
     try:
-        try:
-            pubs = [
-                node_command(link.site, n, "update", manifest=update.signature(node_update_key(site_key, n)))
-                for n in nodes
-            ]
-        except CommandError as exc:
-            raise CliError(str(exc)) from None
+        signatures = {n: update.signature(node_update_key(site_key, n)) for n in nodes}
         server = OtaServer(link.bus, link.site.name, update, nodes)
-        server.subscribe()
-        failures: list[str] = []
-        for node, pub in zip(nodes, pubs, strict=True):
-            if not link.bus.publish_confirmed(pub.topic, pub.payload):
-                server.progress[node].error = f"{node}: the broker did not confirm the update command"
-        failures = server.run(args.timeout)
+        failures = _send_and_follow(args, link, server, signatures, "update")
     finally:
         link.bus.close()
     for line in failures:
         print(line, file=sys.stderr)
     done = len(nodes) - len(failures)
     print(f"{done} of {len(nodes)} nodes running {m.version}")
+    return 1 if failures else 0
+
+
+def config_command(args: argparse.Namespace) -> int:
+    """Seal the settings for each node (its own key), send its `config`, serve them, wait until each has kept
+    them or gone back (firmware/ota_config.py); exit 1 naming every node that did not keep them."""
+    from wsnav.console.operator_link import connect
+    from wsnav.firmware.ota_config import ConfigError, ConfigServer, Settings, seal_for
+
+    nodes = _nodes(args)
+    wifi = None
+    if args.wifi:
+        lines = sys.stdin.read().split("\n")
+        if len(lines) < 2 or not lines[0]:
+            raise CliError("--wifi: give the SSID on the first line of stdin and the key on the second")
+        wifi = (lines[0].rstrip("\r"), lines[1].rstrip("\r"))
+    try:
+        settings = Settings(wifi=wifi, broker=args.node_broker).payload()
+    except ConfigError as exc:
+        raise CliError(str(exc)) from None
+    site_key = _site_key(args)
+    sealed: dict[str, bytes] = {}
+    signatures: dict[str, str] = {}
+    for n in nodes:
+        sealed[n], signatures[n] = seal_for(node_update_key(site_key, n), settings)
+    changed = " and ".join(k for k, v in (("Wi-Fi", wifi), ("broker", args.node_broker)) if v is not None)
+    print(f"configuration: new {changed} for {len(nodes)} node(s)")
+    link = connect(args, "config")
+    try:
+        server = ConfigServer(link.bus, link.site.name, sealed)
+        failures = _send_and_follow(args, link, server, signatures, "config")
+    finally:
+        link.bus.close()
+    for line in failures:
+        print(line, file=sys.stderr)
+    print(f"{len(nodes) - len(failures)} of {len(nodes)} nodes kept the new configuration")
     return 1 if failures else 0

@@ -2,7 +2,7 @@
 // as the unix port the tests use), whose objects have the ESP8266's sizes (4-byte pointers, 16-byte GC blocks),
 // where the 64-bit unix port's are larger.
 //
-//     node setup_heap.mjs BUILD_DIR CONFIG_JSON [MANIFEST_JSON]
+//     node setup_heap.mjs BUILD_DIR CONFIG_JSON [MANIFEST_JSON | SCRIPT_PY]
 //
 // machine, network, socket and select are JavaScript modules: like the board's, which are in ROM, they take
 // (almost) nothing from the heap; each object the firmware keeps from them (a Pin, a WLAN) is one small proxy
@@ -10,7 +10,8 @@
 // imports the rest one module at a time), and app.setup builds the node as app.main does. Prints one line,
 // "heap used U free F total T bare B largest L" (bytes, after gc.collect(); bare: used before anything is
 // imported; largest: the largest free block, which bounds the biggest message the node can still build; with a
-// manifest, update mode's instead, and "setup_free S" before the transfer), or
+// manifest, update mode's instead, and "setup_free S" before the transfer; with a .py script, that script run
+// from source instead of the sequence below: bench/firmware_heap.py's main.py up to the node's setup), or
 // "error ..." when the node does not set up. The port's heap would grow by itself past 38 KiB; a total other than the first one is reported as
 // an error, so a number is always what a 38 KiB heap holds.
 import { loadMicroPython } from "@micropython/micropython-webassembly-pyscript/micropython.mjs";
@@ -113,9 +114,10 @@ _used = gc.mem_alloc()
 micropython.mem_info()
 print("heap used", _used, "bare", _bare, "setup", _setup)
 `;
-if (manifestPath) mp.FS.writeFile("/manifest.json", fs.readFileSync(manifestPath));
+const script = manifestPath && manifestPath.endsWith(".py") ? fs.readFileSync(manifestPath, "utf8") : null;
+if (manifestPath && !script) mp.FS.writeFile("/manifest.json", fs.readFileSync(manifestPath));
 try {
-  mp.runPython(manifestPath ? update : node);
+  mp.runPython(script || (manifestPath ? update : node));
 } catch (err) {
   console.log("error " + String(err.message || err).trim().split("\n").pop());
   process.exit(0);

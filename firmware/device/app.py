@@ -110,7 +110,9 @@ class Node:
         self.errors = 0
         self.connects = 0
         self.reset_cause = reset_cause
-        self.last_error = None  # why the broker link last went down, for the diagnostics
+        # Why the broker link last went down, for the diagnostics; at first what otaboot says (a configuration
+        # rolled back), under a key named as this attribute: a new name would be a new qstr (diagnostics.py).
+        self.last_error = cfg.get("last_error")
         self.info_due_ms = 0
         self.command_id = 0  # the last command applied (command.py): QoS 1 may deliver it again
         self.bad_commands = 0

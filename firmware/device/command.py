@@ -12,7 +12,8 @@ import json
 def apply(node, body, now_ms: int) -> None:
     """Apply one NodeCommand payload: `restart`, `send_info`, `set_heartbeat` (RAM only; each applied command
     is confirmed by an info at once), `update` (the update's state written, then a restart into update mode:
-    otaboot.py, updater.py). Anything else, or a heartbeat outside (0, 3600] s, is counted in the
+    otaboot.py, updater.py), `config` (the same, for a configuration: otaconfig.py; not during a trial).
+    Anything else, or a heartbeat outside (0, 3600] s, is counted in the
     info's `bad_commands` and ignored; a command with the last applied id is a QoS 1 redelivery, ignored."""
     try:
         d = json.loads(body)
@@ -28,14 +29,14 @@ def apply(node, body, now_ms: int) -> None:
             node.logic.heartbeat_ms = int(s * 1000 + 0.5)
         elif cmd == "restart":
             restart(node)
-        elif cmd == "update":
+        elif cmd == "update" or cmd == "config":  # a config: fetched and tried the same way (otaconfig.py)
             digest = d["manifest"]
-            if type(digest) is not str or len(digest) != 64:
-                raise ValueError
+            if type(digest) is not str or len(digest) != 64 or (cmd == "config" and node.trial == 2):
+                raise ValueError  # (not during a trial: the old config to go back to is the one tried)
             # Written directly (otaboot's save would load a module on the loop's heap): a write cut short by
             # power is unreadable JSON, which the next boot takes for no update.
             with open("ota.json", "w") as f:
-                f.write('{"stage":"fetch","manifest":"%s","boots":0}' % digest)
+                f.write('{"stage":"%s","manifest":"%s","boots":0}' % ("fetch" if cmd == "update" else cmd, digest))
             print("update", digest[:8])
             restart(node)  # into update mode (otaboot.boot at the next boot)
         elif cmd != "send_info":

@@ -3,12 +3,15 @@
 `ota.json` holds an update's state across resets (every write goes to `ota.jtmp` first, then a rename: a power
 cut leaves the old state or the new one, never half of one):
 - `fetch`: command.py wrote it (an `update` command); boot into update mode (updater.py: nothing else loaded);
+  `config` likewise (a `config` command): update mode fetches a configuration (otaconfig.py), whose one file
+  `config.json` then goes through `swap` and `trial` as an update's files do;
 - `swap`: every new file is whole in `<name>.tmp` and hash-checked; `swap` renames them in (idempotent; here,
   not in the updater, which may be one of the files a power cut left half moved);
 - `trial`: the new files are in, the old ones kept as `<name>.bak`; the app confirms the update once it has
   run healthy for a while, connected (health.apply renames the state `ota.ok`; the next boot removes the
   backups). A trial that boots MAX_BOOTS times without confirming (a reset before connecting, a loop that fails
-  later and starves the watchdog), or whose `import app` fails, is rolled back (`rollback`).
+  later and starves the watchdog), that is not online within its bound (health.py), or whose
+  `import app` fails, is rolled back (`rollback`).
 Every boot with a state counts one in it: an update mode that keeps resetting (no broker, no operator tool)
 is abandoned after MAX_BOOTS and the old app runs. The app confirms a trial only once it has run healthy for a
 while (health.apply: connected, states sent, no loop error), so a version that fails later is rolled back too.
@@ -24,6 +27,10 @@ import os
 
 STATE = "ota.json"
 MAX_BOOTS = 3
+# Two more files, named in place and longer than 10 characters, so neither is a new qstr of every boot (as LOOPS;
+# diagnostics.py says why that counts): "ota.offline", the state renamed by health.py when a trial was not online
+# within its bound (the next boot rolls it back); "config.rolled", a configuration was rolled back (the next
+# boot's app says so in its first `info`; lost if that boot never gets online: the old configuration did before).
 LOOPS = "otaboot.loops"
 """Watchdog or exception resets in a row, outside an update (health.apply removes it)."""
 APP_ONLY = "app payloads debounce node_logic backoff sensing diagnostics digital_sensor ultrasonic command health"
@@ -72,13 +79,21 @@ def clear(st, suffix: str, state: str = STATE) -> None:
 
 def rollback(st) -> None:
     """Put each `.bak` back (a file that had none was new with the update and stays, unused); idempotent, so
-    a power cut during it is finished at the next boot."""
+    a power cut during it is finished at the next boot. A configuration's: "config.rolled" tells the next boot
+    (the app's first `info`), and a reset, as main.py parsed the new config.json."""
     print("ota: rollback")
-    for name in st.get("files", ()):
+    files = st.get("files", ())
+    for name in files:
         if exists(name + ".bak"):
             remove(name)
             os.rename(name + ".bak", name)
     clear(st, ".tmp")
+    if "config.json" in files:
+        with open("config.rolled", "w") as f:
+            f.write("1")
+        import machine
+
+        machine.reset()
 
 
 def swap(st, feed=None) -> None:
@@ -110,21 +125,27 @@ def boot(cfg) -> None:
     if st is not None:
         clear(st, ".bak", "ota.ok")
         print("ota: backups removed")
+    if exists("config.rolled"):
+        cfg["last_error"] = "config: rolled back"  # app.Node's first
+        remove("config.rolled")
+    late = exists("ota.offline")
+    if late:  # a trial not online in time (health.py): rolled back now
+        os.rename("ota.offline", STATE)
     st = load()
     if st is None:
         loops(cfg)
         return
     stage = st.get("stage")
-    boots = st.get("boots", 0) + 1
+    boots = MAX_BOOTS + 1 if late else st.get("boots", 0) + 1
     st["boots"] = boots
     if boots > MAX_BOOTS:
-        if stage == "fetch":
+        if stage == "fetch" or stage == "config":
             print("ota: abandoned")
             clear(st, ".tmp")
         else:
             rollback(st)
         return
-    if stage not in ("fetch", "swap", "trial"):
+    if stage not in ("fetch", "swap", "trial", "config"):
         remove(STATE)
         return
     save(st)
@@ -135,7 +156,7 @@ def boot(cfg) -> None:
         import machine
 
         machine.reset()
-    elif stage == "fetch":
+    elif stage != "trial":  # fetch, config
         import updater
 
         updater.update(cfg, st)

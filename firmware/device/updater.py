@@ -187,6 +187,11 @@ class Fetcher(Link):
         if type(key) is not str or len(key) != 64:
             raise OtaAbort("no update key")
         key = key.encode()
+        if st["stage"] == "config":  # a configuration, not an update (otaconfig.py)
+            import otaconfig
+
+            otaconfig.fetch(self, st, key)
+            return
         with open("ota.man", "wb") as out:  # to the flash, and parsed from there: never whole in the heap
             self.get(0, None, st["manifest"], out, key)
         del key

@@ -1,7 +1,7 @@
 """Test driver: an ESP8266's boot and REPL on the unix port, for firmware/unix_board.py (run with cwd = the board's
 filesystem, which is also first on MICROPYPATH).
 
-    micropython -X heapsize=38k -m board_repl
+    micropython -X heapsize=96k -m board_repl   (unix_board.py says why not the board's heap)
 
 As the board does after a reset: run boot.py, then main.py (a Ctrl-C, SIGINT here, stops it with
 KeyboardInterrupt), then wait at the REPL. The REPL speaks the shape of mpremote's raw REPL on stdin/stdout:

@@ -372,7 +372,7 @@ random.seed(19)
 
 radio = wifi.Wifi("site", "secret")
 radio.start()
-sdk = getattr(network, "sdk")  # the host stub's: [saved SSID, flash writes, joins, access point out]
+sdk = getattr(network, "sdk")  # the host stub's: [saved SSID, flash writes, joins, access point out, ...]
 pm = getattr(network.WLAN, "pm", 2)  # the host stub's record of config(pm=...); the board boots in 2
 
 MONTH = SCENARIO == "month"
