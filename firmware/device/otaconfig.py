@@ -33,7 +33,7 @@ def fetch(link, st, key) -> None:
             block = sha256(key + b"wsnav-config" + sealed[:16] + bytes([i // 32])).digest()
         body[i] ^= block[i % 32]
     try:
-        new = json.loads(body)
+        new = json.loads(body)  # pyright: ignore[reportArgumentType] (MicroPython reads a bytearray; no copy)
         del body
         for name in new:
             v = new[name]
