@@ -14,7 +14,9 @@ permanent generation that collections skip (in constant time, and it resets the 
 so the objects of the last quarter second are all a collection could ever walk, and at 1000 messages/s they
 never reach `YOUNG_THRESHOLD`: no collection runs at all. Frozen objects are still freed by their reference
 counts; only cyclic garbage (a reconnecting node's old session, an exception's traceback) waits for the
-refresh, one full collection every `REFRESH_EVERY_S` (its walk over everything is the one stall left).
+refresh, one full collection every `REFRESH_EVERY_S`. Its walk over everything is the one stall left: 240-400 ms
+at 1000 nodes (load 9 on the shared 2-core PC), and in steady state it found no garbage; only after the nodes
+left (64k objects of their sessions).
 """
 
 from __future__ import annotations
