@@ -36,7 +36,7 @@ import psutil
 import yaml
 from paho.mqtt.enums import CallbackAPIVersion
 
-from bench.bench_broker import BROKERS, site_broker
+from bench.bench_broker import BROKERS, in_group_of_own, site_broker
 from bench.benchmarks_md import write_section
 from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser
 from wsnav.broker.credentials import write_credentials
@@ -504,7 +504,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--sim-nice must be 0..19")
     if not -20 <= (args.clients_nice or 0) <= 19:
         parser.error("--clients-nice must be -20..19")
-    if args.clients_nice is not None and (exit_code := _in_group_of_own(args.clients_nice, argv)) is not None:
+    if (
+        args.clients_nice is not None
+        and (exit_code := in_group_of_own(args.clients_nice, "bench.zone_fanin", argv)) is not None
+    ):
         return exit_code
     if args.quick:
         return quick(args.broker_cpus or None, args.broker_nice)
@@ -600,17 +603,6 @@ def main(argv: list[str] | None = None) -> int:
     write_section(SECTION, body)
     print(f"wrote {PICTURE} and BENCHMARKS.md ({SECTION[3:]})")
     return 0
-
-
-def _in_group_of_own(nice: int, argv: list[str] | None) -> int | None:
-    """Put this process in a scheduling group (Linux autogroup, one per session) of its own with `nice`: None once
-    it is in one, else the exit code of this benchmark run again in a new session (`setsid`) that does it.
-    (A plain nice would not do: each session's group gets an equal share of the CPU, whatever its nice.)"""
-    if os.getsid(0) == os.getpid():
-        Path("/proc/self/autogroup").write_text(str(nice))
-        return None
-    args = sys.argv[1:] if argv is None else argv
-    return subprocess.call(["setsid", "-w", sys.executable, "-m", "bench.zone_fanin", *args])
 
 
 def _commit() -> str:
