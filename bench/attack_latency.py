@@ -79,8 +79,10 @@ READING = (
     "4 kB/s is reset (the flood and the subscription attack's SUBSCRIBE packets alike), and nothing the flooder "
     "queued reaches the robot after it left (`none, again` takes no other zone message). Without the rule a "
     "node's QoS 0 flood delayed the other nodes by seconds (`bench.mosquitto_flood_firewall`). Each attacker runs "
-    "at nice 19 (a machine of its own at a site). p99 is the slowest of about 160 states, so one stall of the "
-    "shared machine moves it; the `none, again` row says how far the machine alone moved the ratios."
+    "at nice 19 in the idle scheduling class (a machine of its own at a site). p99 is the 4th slowest of about "
+    "400 states in 20 s windows (the 2nd of 160 in 8 s ones), so one stall of the shared machine moves it, in the "
+    "baseline window too; the `busy (no MQTT)` row is what a busy machine alone does, and a ratio over it near "
+    "1x says the broker added nothing of its own; `none, again` says how far the machine moved the ratios."
 )
 T = TypeVar("T")
 WARMUP_S = 2.0
