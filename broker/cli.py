@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from wsnav.broker.amqtt.gc_pacing import FREEZE_EVERY_S
 from wsnav.broker.identity_limits import (
     MAX_SUBSCRIPTIONS,
     NODE_PUBLISH_RATE,
@@ -77,8 +78,8 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     run.add_argument(
         "--gc-freeze",
         type=float,
-        default=10.0,
-        help="seconds between freezing long-lived objects out of garbage collections (0: never)",
+        default=FREEZE_EVERY_S,
+        help="seconds between freezing the objects alive out of garbage collections (0: never)",
     )
     run.add_argument(
         "--max-subscriptions",

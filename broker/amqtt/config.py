@@ -44,7 +44,7 @@ class BrokerOptions:
     max_packet_bytes: int = MAX_PACKET_BYTES
     """Bigger packets end the connection (and are never stored or delivered)."""
     gc_freeze_s: float = 0.0
-    """How often long-lived objects are frozen out of garbage collections (wsnav.broker.amqtt.gc_pacing); 0: never. The
+    """How often every object alive is frozen out of garbage collections (wsnav.broker.amqtt.gc_pacing); 0: never. The
     collector is the whole process's: `wsnav broker run` turns it on, a broker embedded in another program not."""
     limits: IdentityLimits = field(default_factory=IdentityLimits)
     """Subscriptions, parked sessions and a node's publish rate per identity (wsnav.broker.identity_limits)."""

@@ -4,8 +4,8 @@
   with one line instead, after closing whatever did open, so the caller exits non-zero.
 - SIGTERM and SIGINT (the amqtt CLI dies on SIGTERM without shutdown): `serve` turns them into a clean
   `Broker.shutdown()`, which flushes the retained store.
-- Garbage collection: long-lived objects are frozen out of collections every few seconds (wsnav.broker.amqtt.gc_pacing),
-  so a full collection does not stall every delivery for the walk over 1000 nodes' sessions.
+- Garbage collection: every object alive is frozen out of collections every 0.25 s, without a collection
+  (wsnav.broker.amqtt.gc_pacing), so no collection stalls every delivery for a walk over 1000 nodes' objects.
 - Descriptors: the soft open-file limit is raised to the hard one, and the connection cap kept below it
   (wsnav.broker.amqtt.admission).
 """
