@@ -2,8 +2,10 @@
 """The ROS tests' move_base stand-in, where no move_base is installed (Debian does not package it).
 
 `FakeMoveBase`: the one tests/test_ros_bridge_move_base.py runs in its own process (see there what it leaves out).
-`python -m tests.move_base_standin`: the same server as a process named move_base that drives, the command
-`wsnav experiment --backend ros --move-base-cmd` starts in CI (tests/test_experiment_ros.py). What it adds is a
+`python -m tests.move_base_standin`: the same server as a process that drives, the command
+`wsnav experiment --backend ros --move-base-cmd` starts in CI (tests/test_experiment_ros.py). Its node calls
+itself move_base_node, as the real binary does, so its `~` parameters are read only where the experiment names
+the node move_base (`__name:=move_base`, as TurtleBot3's launch file does). What it adds is a
 drive: it publishes a straight plan from where /odom says the robot is to the goal, and again at its
 `~planner_frequency` in /clock time as move_base replans (none at 0), and steers /cmd_vel along it (turn toward
 the goal, then go at the Burger's 0.22 m/s), and ends SUCCEEDED within 0.1 m. What it leaves out: navfn's plan
@@ -206,7 +208,7 @@ class DrivingMoveBase(FakeMoveBase):
 def main() -> None:
     import rospy
 
-    rospy.init_node("move_base", disable_signals=True)
+    rospy.init_node("move_base_node", disable_signals=True)  # the real binary's name; `__name:=` renames it
     DrivingMoveBase().start()
     print("move_base stand-in ready", flush=True)
     rospy.spin()

@@ -57,7 +57,11 @@ from wsnav.schemas.site import Site
 from wsnav.zone_sim.simulator import ZoneSimulator
 
 MOVE_BASE_CMD = "rosrun move_base move_base"
-"""The navigation process each run starts (`--move-base-cmd`); its node must be named move_base."""
+"""The navigation process each run starts (`--move-base-cmd`); `move_base_argv` names its node move_base."""
+NODE_NAME = "__name:=move_base"
+"""The node name every run's move_base gets: the binary calls itself move_base_node (TurtleBot3's launch file
+renames it), and its parameters, plan and recovery topics live under its node name, where this backend sets and
+reads them under /move_base."""
 RECOVERY_STATUS = "/move_base/recovery_status"
 """move_base_msgs/RecoveryStatus, one per recovery behaviour move_base runs (noetic's move_base)."""
 CONNECT_TIMEOUT_S = 5.0
@@ -77,8 +81,8 @@ BACKEND_LINE = (
 
 
 def move_base_argv(cmd: str) -> list[str]:
-    """The move_base command as argv, or one line saying it is not installed (`rosrun PKG` needs rospack to
-    find PKG: Debian packages no move_base)."""
+    """The move_base command as argv, its node named move_base unless the command names it, or one line saying
+    it is not installed (`rosrun PKG` needs rospack to find PKG: Debian packages no move_base)."""
     argv = shlex.split(cmd)
     if not argv:
         raise CliError("--move-base-cmd is empty")
@@ -96,6 +100,8 @@ def move_base_argv(cmd: str) -> list[str]:
         )
         if not found:
             raise CliError(missing.format(why=f"rospack finds no package {argv[1]}"))
+    if not any(arg.startswith("__name:=") for arg in argv):
+        argv.append(NODE_NAME)
     return argv
 
 
