@@ -11,7 +11,7 @@ process, static tf (robot at the south corridor); the broker in this process. No
 costmap's 10 Hz cycles, not always at the same one); each is timed from just before the MQTT publish to (a) the
 bridge's `/wsn/zone_grid_updates` and (b) the first `/move_base/global_costmap/costmap_updates` whose cell at
 the zone's centre shows the new state (lethal, or free). (a) is the baseline of the same run.
-`--quick`: 10 changes, (b)'s p50 over (a)'s at most 200 (measured 39); without move_base it is skipped (CI cannot
+`--quick`: 10 changes, (b)'s p50 over (a)'s at most 200 (measured 17-26 on 2026-11-28); without move_base it is skipped (CI cannot
 fetch move_base's sources, docs/ros.md).
 """
 

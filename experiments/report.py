@@ -483,8 +483,8 @@ ROS_MEASURES = (
     "Run-process CPU per simulated second: move_base's process CPU (user + system, psutil, its children "
     "included) over the run, per second of /clock, which advanced in real time: move_base's share of a core "
     "in real time, as the paper measured it. Peak memory is move_base's resident set, sampled during the run.",
-    "Replans: the plans move_base's global planner published during the run (navfn publishes one on "
-    "/move_base/NavfnROS/plan for every makePlan call, an empty one when it finds no path) less the goal's "
+    "Replans: the global planner's makePlan calls during the run, read from /move_base/NavfnROS/plan (navfn "
+    "publishes a plan it found twice with one stamp, an empty one once when it finds no path) less the goal's "
     "first; with the zone layer, each goal the bridge re-sends is planned and counted too. Recoveries: the "
     "messages on /move_base/recovery_status (noetic's move_base publishes one per recovery behaviour), named "
     "in the recovery log. A move_base that publishes neither topic leaves those cells empty in runs.csv (n/a "

@@ -2,10 +2,13 @@
 """The ROS tests' move_base stand-in, where no move_base is installed (Debian does not package it).
 
 `FakeMoveBase`: the one tests/test_ros_bridge_move_base.py runs in its own process (see there what it leaves out).
-`python -m tests.move_base_standin`: the same server as a process named move_base that drives, the command
-`wsnav experiment --backend ros --move-base-cmd` starts in CI (tests/test_experiment_ros.py). What it adds is a
+`python -m tests.move_base_standin`: the same server as a process that drives, the command
+`wsnav experiment --backend ros --move-base-cmd` starts in CI (tests/test_experiment_ros.py). Its node calls
+itself move_base_node, as the real binary does, so its `~` parameters are read only where the experiment names
+the node move_base (`__name:=move_base`, as TurtleBot3's launch file does). What it adds is a
 drive: it publishes a straight plan from where /odom says the robot is to the goal, and again at its
-`~planner_frequency` in /clock time as move_base replans (none at 0), and steers /cmd_vel along it (turn toward
+`~planner_frequency` in /clock time as move_base replans (none at 0), each plan twice with its time as navfn
+publishes it, and steers /cmd_vel along it (turn toward
 the goal, then go at the Burger's 0.22 m/s), and ends SUCCEEDED within 0.1 m. What it leaves out: navfn's plan
 round walls, DWA, the costmaps' use and every recovery (it publishes no /move_base/recovery_status), so a run on
 it says that the experiment's ROS backend starts, drives, times and measures a move_base, not where move_base
@@ -157,6 +160,19 @@ class DrivingMoveBase(FakeMoveBase):
         super().start()
         return self
 
+    def _navfn_publish(self, path: Any) -> None:
+        """One makePlan's plan as navfn publishes it: twice, both stamped with the plan's time, first from
+        getPlanFromPotential and then, the goal pose appended, at the end of makePlan."""
+        import copy
+
+        import rospy
+
+        path.header.stamp = rospy.Time.now()
+        first = copy.deepcopy(path)
+        first.poses = first.poses[:-1]
+        self._plan_pub.publish(first)
+        self._plan_pub.publish(path)
+
     def _on_odom(self, msg: Any) -> None:
         p, q = msg.pose.pose.position, msg.pose.pose.orientation
         self.pose = (float(p.x), float(p.y), 2 * math.atan2(float(q.z), float(q.w)))
@@ -182,13 +198,13 @@ class DrivingMoveBase(FakeMoveBase):
             pose.pose.position.x = self.pose[0] + (gx - self.pose[0]) * i / 20
             pose.pose.position.y = self.pose[1] + (gy - self.pose[1]) * i / 20
             path.poses.append(pose)
-        self._plan_pub.publish(path)
+        self._navfn_publish(path)
         frequency = float(rospy.get_param("~planner_frequency", 0.0))
         planned = rospy.get_time()
         while not rospy.is_shutdown():
             if frequency > 0 and rospy.get_time() - planned >= 1.0 / frequency:
                 planned = rospy.get_time()
-                self._plan_pub.publish(path)  # move_base's planner thread making its plan again
+                self._navfn_publish(path)  # move_base's planner thread making its plan again
             if self.server.is_preempt_requested():
                 self._drive(0.0, 0.0)
                 self.server.set_preempted()
@@ -206,7 +222,7 @@ class DrivingMoveBase(FakeMoveBase):
 def main() -> None:
     import rospy
 
-    rospy.init_node("move_base", disable_signals=True)
+    rospy.init_node("move_base_node", disable_signals=True)  # the real binary's name; `__name:=` renames it
     DrivingMoveBase().start()
     print("move_base stand-in ready", flush=True)
     rospy.spin()

@@ -262,6 +262,21 @@ def test_the_published_report_is_what_its_runs_table_renders_to(tmp_path: Path) 
         assert (tmp_path / name).read_text() == (published / name).read_text()
 
 
+def test_the_real_move_base_report_is_what_its_runs_table_renders_to(tmp_path: Path) -> None:
+    """docs/experiment_ros (the ROS backend on the real move_base) is the report code's output for its runs.csv,
+    compared run by run with docs/experiment's same runs, as its header's reproduce line says."""
+    import shutil
+
+    docs = SITES.parent / "docs"
+    published = docs / "experiment_ros"
+    for name in ("runs.csv", "header.md", *(p.name for p in published.glob("paths_*.png"))):
+        shutil.copy(published / name, tmp_path / name)
+    report = rerender(tmp_path, docs / "experiment").read_text()
+    assert report == (published / "report.md").read_text()
+    assert "## Backends compared run by run: ros (this report) and sim" in report
+    assert "| default | A->B | 0 | z1 | aborted | arrived |" in report
+
+
 def test_both_cpu_figures_are_reported_each_labelled_for_what_it_is(tmp_path: Path) -> None:
     """A table with the run process's CPU gives both figures (each with its own column, chart and definition)
     and the memory per run; a table from code that did not measure it says so instead of showing a blank."""

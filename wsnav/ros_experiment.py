@@ -9,7 +9,7 @@ for a configuration with the zone layer, `wsnav ros bridge --robot` (the zone gr
 through its relay so the bridge's re-sends do not end it). This process is a ROS node too: it publishes the
 site's map, sends the goal and reads /clock and /odom. move_base's CPU is its process's (user + system, psutil)
 over the run, as the paper measured it. Replans and recoveries are counted from what move_base publishes: its
-global planner's plan (navfn publishes one per makePlan call, an empty one when it finds none) and noetic's
+global planner's makePlan calls (navfn publishes a found plan twice with one stamp, an empty one once) and noetic's
 /move_base/recovery_status (one per recovery behaviour); a move_base that publishes one of them not, or whose
 topic this node could not connect to before the goal, has that column written as missing, never as 0.
 """
@@ -57,7 +57,11 @@ from wsnav.schemas.site import Site
 from wsnav.zone_sim.simulator import ZoneSimulator
 
 MOVE_BASE_CMD = "rosrun move_base move_base"
-"""The navigation process each run starts (`--move-base-cmd`); its node must be named move_base."""
+"""The navigation process each run starts (`--move-base-cmd`); `move_base_argv` names its node move_base."""
+NODE_NAME = "__name:=move_base"
+"""The node name every run's move_base gets: the binary calls itself move_base_node (TurtleBot3's launch file
+renames it), and its parameters, plan and recovery topics live under its node name, where this backend sets and
+reads them under /move_base."""
 RECOVERY_STATUS = "/move_base/recovery_status"
 """move_base_msgs/RecoveryStatus, one per recovery behaviour move_base runs (noetic's move_base)."""
 CONNECT_TIMEOUT_S = 5.0
@@ -77,8 +81,8 @@ BACKEND_LINE = (
 
 
 def move_base_argv(cmd: str) -> list[str]:
-    """The move_base command as argv, or one line saying it is not installed (`rosrun PKG` needs rospack to
-    find PKG: Debian packages no move_base)."""
+    """The move_base command as argv, its node named move_base unless the command names it, or one line saying
+    it is not installed (`rosrun PKG` needs rospack to find PKG: Debian packages no move_base)."""
     argv = shlex.split(cmd)
     if not argv:
         raise CliError("--move-base-cmd is empty")
@@ -96,6 +100,8 @@ def move_base_argv(cmd: str) -> list[str]:
         )
         if not found:
             raise CliError(missing.format(why=f"rospack finds no package {argv[1]}"))
+    if not any(arg.startswith("__name:=") for arg in argv):
+        argv.append(NODE_NAME)
     return argv
 
 
@@ -136,6 +142,17 @@ def plan_topic(params: dict[str, Any]) -> str:
     """The topic move_base's global planner publishes each plan on: `/move_base/<planner>/plan`
     (base_global_planner `navfn/NavfnROS` -> /move_base/NavfnROS/plan)."""
     return f"/move_base/{str(params['base_global_planner']).rsplit('/', 1)[-1]}/plan"
+
+
+def planning_cycles(plans: list[tuple[float, str]]) -> int:
+    """The global planner's makePlan calls among its plan messages (time heard, header stamp): navfn publishes a
+    found plan twice with the same stamp (from getPlanFromPotential, then with the goal pose appended at the end
+    of makePlan) and a failed one once, so a message stamped as the one just before it is that plan again."""
+    cycles, last = 0, None
+    for _, stamp in plans:
+        cycles += stamp != last
+        last = stamp
+    return cycles
 
 
 class Heard:
@@ -431,7 +448,7 @@ def _drive(
     from nav_msgs.msg import Path as PlanPath
 
     client = ros.clients[action]
-    plans = ros.heard(plan_topic(move_base_params(spec.config)), PlanPath, lambda msg: "")
+    plans = ros.heard(plan_topic(move_base_params(spec.config)), PlanPath, lambda msg: str(msg.header.stamp))
     recoveries = ros.heard(RECOVERY_STATUS, RecoveryStatus, lambda msg: str(msg.recovery_behavior_name))
 
     def waiting() -> None:
@@ -496,7 +513,7 @@ def _drive(
         "time_s": round(elapsed, 3),
         "distance_m": round(float(summary["distance"]), 3),
         # The first plan is the goal's, not a replan (as the sim backend counts them); not heard: missing.
-        "replans": max(len(planned) - 1, 0) if counted[plans.topic] else MISSING,
+        "replans": max(planning_cycles(planned) - 1, 0) if counted[plans.topic] else MISSING,
         "recoveries": len(recovered) if counted[recoveries.topic] else MISSING,
         "stalled_s": round(stalls.stalled_s, 3),
         "outcome": ended,
