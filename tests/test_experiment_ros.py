@@ -10,12 +10,15 @@ measures the navigation process and reports which backend it was.
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pandas as pd
+import psutil
 import yaml
 
 from tests.conftest import REPO, SITES
@@ -153,3 +156,33 @@ def _written(tmp_path: Path, table: pd.DataFrame, header: str) -> Path:
     table.to_csv(folder / "runs.csv", index=False)
     (folder / "header.md").write_text(header)
     return folder
+
+
+def test_a_terminated_experiment_leaves_no_roscore_simulator_or_move_base_behind(tmp_path: Path) -> None:
+    """`kill` (or systemd, or a CI timeout) on a running experiment: roscore, the simulated robot, the bridge and
+    move_base each run in a session of their own, so they outlived the experiment before; now they go with it."""
+    require_ros()
+    site = short_route_school(tmp_path)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "wsnav.cli", "experiment", "--backend", "ros", "--move-base-cmd", STANDIN,
+         "--site", str(site), "--runs", "1", "--out", str(tmp_path / "out")],
+        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    experiment = psutil.Process(proc.pid)
+    deadline = time.monotonic() + 120
+    started: list[psutil.Process] = []
+    while not any("move_base_standin" in " ".join(p.cmdline()) for p in started):
+        assert proc.poll() is None and time.monotonic() < deadline, "move_base never started"
+        time.sleep(0.5)
+        with contextlib.suppress(psutil.Error):
+            started = experiment.children(recursive=True)
+    proc.terminate()
+    assert proc.wait(timeout=60) != 0
+    assert "Traceback" not in (proc.stderr.read() if proc.stderr else "")
+    _, alive = psutil.wait_procs(started, timeout=20)
+    left: list[str] = []
+    for p in alive:
+        with contextlib.suppress(psutil.Error):
+            left.append(" ".join(p.cmdline()))
+            p.kill()  # not left to the next test
+    assert not left, f"left behind: {left}"

@@ -22,9 +22,11 @@ import os
 import re
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import xmlrpc.client
 from collections.abc import Callable, Iterator
@@ -351,7 +353,11 @@ def run_on_ros(
     """Every run in turn on one roscore of our own (ROS allows one master per graph: runs cannot overlap)."""
     require_rospy()
     done: list[tuple[RunSpec, RunResult]] = []
-    with tempfile.TemporaryDirectory(prefix="wsnav-ros-experiment-") as tmp, LocalRosCore(Path(tmp)) as core:
+    with (
+        _sigterm_unwinds(),
+        tempfile.TemporaryDirectory(prefix="wsnav-ros-experiment-") as tmp,
+        LocalRosCore(Path(tmp)) as core,
+    ):
         ros = RosSide(site, core)
         try:
             for spec in specs:
@@ -363,6 +369,24 @@ def run_on_ros(
         finally:
             ros.shutdown()
     return done
+
+
+@contextmanager
+def _sigterm_unwinds() -> Iterator[None]:
+    """SIGTERM (`kill`, systemd, a CI timeout) ends the experiment through its `finally` blocks, which stop
+    roscore, the simulator, the bridge and move_base: each runs in a session of its own, so nothing else would."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def unwind(signum: int, _frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, unwind)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 @contextmanager
