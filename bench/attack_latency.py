@@ -54,7 +54,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.reasoncodes import ReasonCode
 
 from bench.bench_broker import BROKERS, in_group_of_own, site_broker
-from bench.benchmarks_md import machine_note, write_section
+from bench.benchmarks_md import commit, machine_note, write_section
 from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser
 from bench.zone_fanin import PROBE, SITE, Probe, fanin_site
 from tests.netns_fixtures import enter_namespace, exec_in, in_namespace, namespace_pair
@@ -459,15 +459,10 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_write and attacks == ATTACKS:
         write_section(
             SECTION,
-            f"```sh\n{' '.join([COMMAND, *(sys.argv[1:] if argv is None else argv)])}\n```\n\n{DESCRIPTION}\n\nMeasured at commit {_commit()} with {machine_note()}"
+            f"```sh\n{' '.join([COMMAND, *(sys.argv[1:] if argv is None else argv)])}\n```\n\n{DESCRIPTION}\n\nMeasured at commit {commit()} with {machine_note()}"
             f" (`uptime` load averages {' '.join(f'{x:.2f}' for x in os.getloadavg())}):\n\n{text}\n\n{READING}",
         )
     return 0
-
-
-def _commit() -> str:
-    out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False)
-    return out.stdout.strip() or "unknown"
 
 
 if __name__ == "__main__":

@@ -25,7 +25,7 @@ from pathlib import Path
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
-from bench.benchmarks_md import machine_note, write_section
+from bench.benchmarks_md import commit, machine_note, write_section
 from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser
 from wsnav.broker.mosquitto.process import free_port
 
@@ -165,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     text = (
         f"`python -m bench.mosquitto_autosave --topics {args.topics} --rate {args.rate:g} --seconds "
-        f"{args.seconds:g}` (commit {_commit()}, {machine_note()}; `uptime` load averages "
+        f"{args.seconds:g}` (commit {commit()}, {machine_note()}; `uptime` load averages "
         f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}): a bare Mosquitto "
         f"{_version()} holding {args.topics} retained messages, {args.rate:g} retained QoS 1 updates a second over "
         f"them for {args.seconds:g} s; ratios to the first row, measured in the same run.\n\n"
@@ -194,11 +194,6 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_write:
         write_section(HEADING, text)
     return 0
-
-
-def _commit() -> str:
-    out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False)
-    return out.stdout.strip() or "unknown"
 
 
 def _version() -> str:

@@ -22,7 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench.benchmarks_md import machine_note, write_section
+from bench.benchmarks_md import commit, machine_note, write_section
 from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser
 from tests.netns_fixtures import NamespacePair, exec_in, namespace_pair
 from wsnav.broker.credentials import write_credentials
@@ -154,12 +154,9 @@ def main(argv: list[str] | None = None) -> int:
             f"| {name} | {p50 * 1000:.2f} ms | {p99 * 1000:.2f} ms | {p50 / base['p50']:.1f}x | "
             f"{p99 / base['p99']:.1f}x | {r['n']} | {r['flood']} / {r['sent']} |"
         )
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
-    ).stdout.strip()
     run_args = "--quick" if args.quick else f"--seconds {seconds:g}"
     text = (
-        f"`python -m bench.mosquitto_flood_firewall {run_args}` (commit {commit}, {machine_note()}; "
+        f"`python -m bench.mosquitto_flood_firewall {run_args}` (commit {commit()}, {machine_note()}; "
         f"`uptime` load averages {' '.join(f'{x:.2f}' for x in os.getloadavg())}). Rule: "
         f"{NODE_RATE_KBYTES} kB/s per node address, bursts of {NODE_BURST_KBYTES} kB.\n\n" + "\n".join(lines)
     )
