@@ -7,6 +7,7 @@ import contextlib
 import signal
 import socket
 import subprocess
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -25,6 +26,8 @@ from tests.broker_fixtures import (
 from tests.site_fixtures import tiny_site
 from wsnav.broker.amqtt.embedded import BrokerProcess
 from wsnav.broker.credentials import write_credentials
+from wsnav.broker.mosquitto.plugin import JOURNAL
+from wsnav.broker.mosquitto.store import STORE, check_store
 from wsnav.schemas import topics
 from wsnav.schemas.site import load_site
 
@@ -100,6 +103,42 @@ def test_operator_blocks_acknowledged_just_before_a_kill_9_survive_it(
         robot.wait_for(b3, timeout=5.0)
         robot.wait_for(b2, timeout=1.0)
         assert {m.topic: m.payload for m in robot.received} == {b2: b'{"block": 2}', b3: b'{"block": 3}'}
+
+
+def test_mosquittos_plugin_journals_only_what_the_acl_let_through_keeps_liftings_and_cuts_a_torn_record(
+    setup: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """The plugin publishes its journal again with the broker's own authority, so it must hold only what
+    Mosquitto's ACL let through: a node's forged block (PUBACKed by MQTT 3.1.1, dropped by the ACL) never comes
+    back. A block the store already held and the operator then lifted stays lifted after a kill -9 (the store
+    alone brought it back). A record torn by the power cut is cut off; the whole ones before it still count."""
+    site, creds = setup
+    data = tmp_path / "data"
+    saved, forged, kept = (topics.operator_block(SITE, b) for b in ("saved", "forged", "kept"))
+    plugin = store_guard_plugin(tmp_path)
+
+    def broker() -> contextlib.AbstractContextManager[tuple[Endpoint, subprocess.Popen[bytes]]]:
+        return mosquitto_on(site, creds, tmp_path / "mq", data, store_guard=plugin)
+
+    with broker() as (ep, proc), client(ep, "operator", "operator") as operator, client(ep, "n1") as node:
+        operator.publish(saved, b'{"block": "saved"}', retain=True)
+        deadline = time.monotonic() + TIMEOUT
+        while check_store(data / STORE).retained < 1:  # Mosquitto's own save holds the block now
+            assert time.monotonic() < deadline, check_store(data / STORE)
+            time.sleep(0.05)
+        node.publish(forged, b'{"block": "forged"}', retain=True)
+        operator.publish(kept, b'{"block": "kept"}', retain=True)
+        operator.publish(saved, b"", retain=True)  # lifted, acknowledged, then the power cut
+        proc.kill()
+        proc.wait()
+    with (data / JOURNAL).open("ab") as journal:
+        journal.write(b"\x00\x00\x00\x2a\x00\x00")  # a record's head cut by the power cut
+    sentinel = topics.operator_block(SITE, "sentinel")
+    with broker() as (ep, _), client(ep, "robot1") as robot, client(ep, "operator", "operator") as operator:
+        assert robot.subscribe(f"wsn/{SITE}/operator/blocks/#") == [1]
+        operator.publish(sentinel, b"after the retained ones")  # not retained: delivered after them
+        robot.wait_for(sentinel)
+        assert {m.topic: m.payload for m in robot.received if m.retain} == {kept: b'{"block": "kept"}'}
 
 
 @contextlib.contextmanager
