@@ -50,9 +50,9 @@ class MosquittoOptions:
     data_dir: Path = Path("/var/lib/mosquitto")
     autosave_interval_s: int = 1
     """Mosquitto saves its whole store when more than this many whole seconds have passed (1: every 2 s), so a
-    kill -9 or power cut loses at most that much. 60 (Mosquitto's example) lost operator blocks acknowledged 5
-    and 30 s before a kill; saving on every change cost 4.4x CPU and 36 MB/s of writes at 1000 updates a second
-    and delayed deliveries by seconds (bench.mosquitto_autosave, BENCHMARKS.md)."""
+    kill -9 or power cut loses at most that much (the operator blocks none, with `store_guard`). 60 (Mosquitto's
+    example) lost operator blocks acknowledged 5 and 30 s before a kill; saving on every change cost 4.4-17.8x
+    the CPU and gigabytes of writes at 1000 updates a second (bench.mosquitto_autosave, BENCHMARKS.md)."""
     user: str | None = None
     """The system user Mosquitto drops to when started as root (None: Mosquitto's default, `mosquitto`)."""
     max_packet_bytes: int = MAX_PACKET_BYTES
