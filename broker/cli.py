@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from wsnav.broker.amqtt.gc_pacing import FREEZE_EVERY_S
+from wsnav.broker.amqtt.gc_pacing import FREEZE_EVERY_S, REFRESH_EVERY_S
 from wsnav.broker.identity_limits import (
     MAX_SUBSCRIPTIONS,
     NODE_PUBLISH_RATE,
@@ -80,6 +80,13 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         type=float,
         default=FREEZE_EVERY_S,
         help="seconds between freezing the objects alive out of garbage collections (0: never)",
+    )
+    run.add_argument(
+        "--gc-refresh",
+        type=float,
+        default=REFRESH_EVERY_S,
+        help="seconds between full collections reclaiming what ended connections left (skipped when none "
+        "ended: a steady site never stalls for one)",
     )
     run.add_argument(
         "--max-subscriptions",
@@ -249,6 +256,8 @@ def run_command(args: argparse.Namespace) -> int:
         raise CliError("--max-connections must be >= 0")
     if not 0 <= args.gc_freeze <= 3600:
         raise CliError("--gc-freeze must be >= 0 and <= 3600 seconds")
+    if not 1 <= args.gc_refresh <= 86400:
+        raise CliError("--gc-refresh must be >= 1 and <= 86400 seconds")
     if not 1 <= args.max_subscriptions <= 100_000:
         raise CliError("--max-subscriptions must be between 1 and 100000")
     if not 0 <= args.node_publish_rate <= 100_000:
@@ -271,6 +280,7 @@ def run_command(args: argparse.Namespace) -> int:
         connect_timeout_s=args.connect_timeout,
         max_packet_bytes=args.max_packet_bytes,
         gc_freeze_s=args.gc_freeze,
+        gc_refresh_s=args.gc_refresh,
         limits=limits,
     )
 

@@ -26,8 +26,11 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import logging
 import time
 from collections.abc import Callable
+
+log = logging.getLogger(__name__)
 
 FREEZE_EVERY_S = 0.25
 REFRESH_EVERY_S = 600.0
@@ -44,11 +47,13 @@ def freeze_now() -> int:
     return gc.get_freeze_count()
 
 
-def refresh() -> None:
-    """One full collection over everything (frozen garbage included), then freeze what survived."""
+def refresh() -> int:
+    """One full collection over everything (frozen garbage included), then freeze what survived; returns the
+    number of unreachable objects found."""
     gc.unfreeze()
-    gc.collect()
+    found = gc.collect()
     gc.freeze()
+    return found
 
 
 async def pace_collections(
@@ -73,7 +78,12 @@ async def pace_collections(
             refreshed = time.monotonic()
             ended_now = ended() if ended is not None else ended_then + 1
             if ended_now != ended_then:
-                refresh()
+                found = refresh()
+                took = time.monotonic() - refreshed
+                log.info(
+                    f"full garbage collection: {found} unreachable objects from {ended_now - ended_then} "
+                    f"ended connection(s), {took * 1000:.0f} ms"
+                )
                 refreshed, ended_then = time.monotonic(), ended_now
             else:
                 gc.freeze()

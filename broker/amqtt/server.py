@@ -126,7 +126,9 @@ async def serve(
             loop.set_exception_handler(partial(_loop_exception, running.broker.admission))
         pacer = (
             asyncio.create_task(
-                pace_collections(options.gc_freeze_s, ended=lambda: running.broker.connections_ended)
+                pace_collections(
+                    options.gc_freeze_s, options.gc_refresh_s, ended=lambda: running.broker.connections_ended
+                )
             )
             if options.gc_freeze_s > 0
             else None
