@@ -238,6 +238,10 @@ def test_port_in_use_is_one_line_and_nonzero(setup: tuple[Path, Path]) -> None:
             ["--site", "{site}", "--credentials", "{creds}", "--bind", "127.0.0.1:0", "--gc-freeze", "-1"],
             "--gc-freeze must be",
         ),
+        (
+            ["--site", "{site}", "--credentials", "{creds}", "--bind", "127.0.0.1:0", "--gc-refresh", "0"],
+            "--gc-refresh must be",
+        ),
     ],
 )
 def test_bad_input_is_one_line(
