@@ -141,6 +141,37 @@ def test_mosquittos_plugin_journals_only_what_the_acl_let_through_keeps_liftings
         assert {m.topic: m.payload for m in robot.received if m.retain} == {kept: b'{"block": "kept"}'}
 
 
+def test_mosquittos_plugin_sets_a_journal_that_is_not_one_aside_in_one_line_and_journals_again(
+    setup: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """Hostile input on disk: a journal file that is not one (garbage, another program's file) stops nothing.
+    Mosquitto starts and serves its store's blocks, its log says where the file went, and the next block is
+    journaled again (it survives a kill -9)."""
+    site, creds = setup
+    data, log = tmp_path / "data", tmp_path / "mosquitto.log"
+    old, new = topics.operator_block(SITE, "old"), topics.operator_block(SITE, "new")
+    plugin = store_guard_plugin(tmp_path)
+
+    def broker() -> contextlib.AbstractContextManager[tuple[Endpoint, subprocess.Popen[bytes]]]:
+        return mosquitto_on(site, creds, tmp_path / "mq", data, log=log, store_guard=plugin)
+
+    with broker() as (ep, _), client(ep, "operator", "operator") as operator:
+        operator.publish(old, b'{"block": "old"}', retain=True)
+    garbage = b"not a journal \x00\xff" * 100
+    (data / JOURNAL).write_bytes(garbage)  # after the clean stop: the store holds the block
+    with broker() as (ep, proc), client(ep, "operator", "operator") as operator:
+        line = next(line for line in log.read_text().splitlines() if "not an operator-block journal" in line)
+        assert "ERROR" in line and f"{JOURNAL}.damaged" in line, line
+        assert (data / f"{JOURNAL}.damaged").read_bytes() == garbage
+        operator.publish(new, b'{"block": "new"}', retain=True)
+        proc.kill()
+        proc.wait()
+    with broker() as (ep, _), client(ep, "robot1") as robot:
+        assert robot.subscribe(f"wsn/{SITE}/operator/blocks/#") == [1]
+        assert robot.wait_for(old, timeout=5.0).payload == b'{"block": "old"}'
+        assert robot.wait_for(new, timeout=5.0).payload == b'{"block": "new"}'
+
+
 @contextlib.contextmanager
 def amqtt_on(site: Path, creds: Path, data: Path) -> Iterator[tuple[Endpoint, subprocess.Popen[str]]]:
     with BrokerProcess(site, creds, data_dir=data) as proc:

@@ -164,8 +164,19 @@ static off_t read_journal(void)
 	}
 	uint8_t head[RECORD_HEAD];
 	if(read_all(fd, head, MAGIC_BYTES) || memcmp(head, JOURNAL_MAGIC, MAGIC_BYTES)){
-		mosquitto_log_printf(MOSQ_LOG_ERR, "wsnav: %s is not an operator-block journal: ignored", journal_path);
 		close(fd);
+		size_t len = strlen(journal_path) + 9;
+		char *aside = malloc(len);
+		if(aside != NULL){
+			snprintf(aside, len, "%s.damaged", journal_path);
+			if(rename(journal_path, aside) != 0){
+				free(aside);
+				aside = NULL;
+			}
+		}
+		mosquitto_log_printf(MOSQ_LOG_ERR, "wsnav: ERROR: %s is not an operator-block journal: moved to %s, "
+				"no block restored from it (the store's are served)", journal_path, aside ? aside : "(could not move)");
+		free(aside);
 		return 0;
 	}
 	off_t whole = MAGIC_BYTES;
