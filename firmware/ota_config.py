@@ -1,4 +1,4 @@
-"""`wsnav firmware config`: a new configuration (Wi-Fi, broker address) for running nodes over MQTT, the
+"""`wsnav firmware config`: a new configuration (Wi-Fi, broker address, MQTT password) for running nodes over MQTT, the
 operator's side (the node's: device/otaconfig.py).
 
 Each node gets its settings sealed under its own update key (schemas.credentials.seal_config: robots and
@@ -32,10 +32,13 @@ class ConfigError(Exception):
 
 @dataclass(frozen=True)
 class Settings:
-    """What a configuration changes: the Wi-Fi network (SSID and key) and the broker's address, each optional."""
+    """What a configuration changes: the Wi-Fi network (SSID and key), the broker's address and the node's MQTT
+    password (one node's: the broker must take it beside the old one first, broker/credentials.py add_pending),
+    each optional."""
 
     wifi: tuple[str, str] | None = None
     broker: tuple[str, int] | None = None
+    password: str | None = None
 
     def payload(self) -> bytes:
         """The JSON the node merges into its config.json (schemas.credentials.CONFIG_KEYS), checked as a
@@ -53,8 +56,12 @@ class Settings:
             if not host or len(host) > 64 or not 0 < port < 65536:
                 raise ConfigError(f"broker {host}:{port}: a host name or address and a port 1..65535")
             d["broker"] = {"host": host, "port": port}
+        if self.password is not None:
+            if not 16 <= len(self.password) <= 64 or not self.password.isascii():
+                raise ConfigError("an MQTT password: 16 to 64 ASCII characters")
+            d["password"] = self.password
         if not d:
-            raise ConfigError("nothing to change: give --wifi, --node-broker or both")
+            raise ConfigError("nothing to change: give --wifi, --node-broker, --new-password or some of them")
         data = json.dumps(d, separators=(",", ":")).encode()
         if len(data) + CONFIG_NONCE_BYTES > CONFIG_MAX_BYTES:
             raise ConfigError(f"the settings take {len(data)} B, more than a node fetches in one piece")

@@ -92,9 +92,9 @@ def sign_manifest(node_key: str, manifest: bytes) -> str:
     return hmac.new(node_key.encode(), manifest, hashlib.sha256).hexdigest()
 
 
-CONFIG_KEYS = ("wifi", "broker")
-"""What a configuration over the air may change in a node's config.json (`wsnav firmware config`): its Wi-Fi and
-its broker's address; the node refuses any other key (firmware/device/otaconfig.py)."""
+CONFIG_KEYS = ("wifi", "broker", "password")
+"""What a configuration over the air may change in a node's config.json (`wsnav firmware config`): its Wi-Fi, its
+broker's address and its MQTT password; the node refuses any other key (firmware/device/otaconfig.py)."""
 CONFIG_NONCE_BYTES = 16
 CONFIG_MAX_BYTES = 512
 """A sealed configuration's size limit: one OTA chunk, what the node fetches in one piece."""

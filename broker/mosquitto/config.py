@@ -63,6 +63,8 @@ class MosquittoOptions:
     bind_client_ids: bool = True
     """False (`--shared-client-ids`): one identity may hold several connections under distinct client ids, and
     then any identity can kick another's connection by using its client id. For simulation stacks only."""
+    pending_passwords: bool = False
+    """Build and load the pending-password plugin (pending.py): nodes change their password over the air."""
 
 
 def mosquitto_hash(password: str, salt: bytes | None = None, iterations: int = PBKDF2_ITERATIONS) -> str:
@@ -112,6 +114,10 @@ def conf_text(out: Path, options: MosquittoOptions) -> str:
     ]
     if options.user is not None:
         lines.append(f"user {options.user}")
+    if options.pending_passwords:
+        from wsnav.broker.mosquitto.pending import conf_lines
+
+        lines += conf_lines(out)
     if options.tls is not None:  # per_listener_settings false: auth, ACL and limits apply here too
         tls_host, tls_port = options.tls.bind
         lines += [
@@ -156,6 +162,12 @@ def write_mosquitto_config(
         out / PASSWORDS: passwords_text(creds),
         out / ACL: acl_text(site_rules(spec)),
     }
+    if options.pending_passwords:
+        from wsnav.broker.mosquitto.pending import PENDING, build_plugin
+
+        build_plugin(out)
+        pending = out / PENDING  # a rerun keeps the passwords of changes under way
+        files[pending] = pending.read_text() if pending.exists() else ""
     for path, text in files.items():
         write_private(path, text)
     if options.data_dir.exists() and not options.data_dir.is_dir():

@@ -4,9 +4,9 @@
 The configuration is fetched as an update's manifest is (file 0, written to `config.new`, its HMAC-SHA256 under
 the node's update key checked against the command's), then opened: a 16-byte nonce, then JSON XORed with SHA-256
 in counter mode under the same key (schemas.credentials.seal_config: the Wi-Fi key never crosses the bus in
-clear). Only `wifi` and `broker` may change (schemas.credentials.CONFIG_KEYS), each with its two keys of the
-right types (a non-empty SSID or host): checked here, not by nodeconfig, whose code does not fit beside update
-mode's link on the board's heap. It becomes `config.json.tmp`, the one file of an update: otaboot.swap keeps the old one as
+clear). Only `wifi`, `broker` (each with its two keys of the right types, a non-empty SSID or host) and
+`password` (the MQTT password, 16 characters or more: `wsnav firmware config --new-password`) may change
+(schemas.credentials.CONFIG_KEYS): checked here, not by nodeconfig, whose code does not fit beside update mode's link on the board's heap. It becomes `config.json.tmp`, the one file of an update: otaboot.swap keeps the old one as
 `config.json.bak` and the next boot tries the new one (otaboot's trial), rolled back if the node is not online
 with it in time (health.py). Anything wrong: OtaAbort("config"), the old config untouched.
 """
@@ -41,6 +41,10 @@ def fetch(link, st, key) -> None:
                 v = v["ssid"], v["password"]
             elif name == "broker":
                 v = v["host"], v["port"]
+            elif name == "password":  # the MQTT password, as long as the site's credentials' at least
+                if type(v) is not str or len(v) < 16:
+                    raise ValueError
+                continue
             else:
                 raise ValueError
             if type(v[0]) is not str or not v[0] or type(v[1]) is not (str if name == "wifi" else int):

@@ -1,0 +1,102 @@
+"""Pending passwords on Mosquitto: a node's new MQTT password accepted beside its own until it confirms it.
+
+Mosquitto 2.0's password file holds one hash per user (a second line replaces the first), so it alone cannot
+accept a node's old and new passwords at once. `wsnav broker mosquitto-config --pending-passwords` builds a
+small auth plugin (pending_auth.c, against Debian's mosquitto-dev and libssl-dev) into the configuration: it
+accepts the `username:$7$...` lines of PENDING (read at each login, no SIGHUP) and defers every other login to
+the password file. `wsnav firmware config --new-password --mosquitto-config DIR` adds a node's new password here
+before the node tries it; once the node confirms, the password file gets it (the old one is refused after
+`systemctl reload mosquitto`) and PENDING keeps just that one line for the node, which is its own password by
+then, until its next change or `wsnav broker revoke` (which removes the node's lines).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+from wsnav.broker.credentials import write_private
+from wsnav.broker.mosquitto.config import PASSWORDS, mosquitto_hash
+from wsnav.schemas.credentials import CredentialsError
+
+SOURCE = Path(__file__).with_name("pending_auth.c")
+PLUGIN = "wsnav_pending.so"
+PENDING = "mosquitto.pending"
+
+
+def build_plugin(out: Path) -> Path:
+    """Compile the plugin into `out`; one line naming what is missing when it cannot be built."""
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        raise CredentialsError(
+            "--pending-passwords: no C compiler (apt-get install gcc mosquitto-dev libssl-dev)"
+        )
+    target = out / PLUGIN
+    cmd = [cc, "-O2", "-Wall", "-shared", "-fPIC", "-o", str(target), str(SOURCE), "-lcrypto"]
+    done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        first = next((line for line in done.stderr.splitlines() if "error" in line), done.stderr.strip())
+        raise CredentialsError(
+            f"--pending-passwords: cannot build the plugin (needs mosquitto-dev and libssl-dev): {first}"
+        )
+    return target
+
+
+def conf_lines(out: Path) -> list[str]:
+    """mosquitto.conf's lines that load the plugin (before the password file is consulted: it defers)."""
+    return [
+        "# wsnav's pending passwords (a node changing its password): accepted beside the password file",
+        f"plugin {out / PLUGIN}",
+        f"plugin_opt_pending_file {out / PENDING}",
+    ]
+
+
+def add(out: Path, user: str, password: str) -> None:
+    """`password` accepted for `user` from now on; its earlier lines stay (a change never confirmed may still
+    have reached the node)."""
+    _write(out, [*_lines(out), (user, mosquitto_hash(password))])
+
+
+def keep_only(out: Path, user: str, password: str) -> None:
+    """`user`'s lines replaced by `password`'s alone (it confirmed it: the password file has it too, but
+    Mosquitto reads that file only on SIGHUP)."""
+    _write(out, [*((u, d) for u, d in _lines(out) if u != user), (user, mosquitto_hash(password))])
+
+
+def withdraw(out: Path, user: str) -> None:
+    """No pending password of `user` any more (a change that did not happen, or a revoked identity)."""
+    if (out / PENDING).exists():
+        _write(out, [(u, d) for u, d in _lines(out) if u != user])
+
+
+def _lines(out: Path) -> list[tuple[str, str]]:
+    path = out / PENDING
+    if not (out / PLUGIN).exists():
+        raise CredentialsError(
+            f"{out}: no pending-password plugin in this Mosquitto configuration (run `wsnav broker "
+            "mosquitto-config --pending-passwords` again and restart Mosquitto)"
+        )
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        return []
+    except OSError as exc:
+        raise CredentialsError(f"{path}: cannot read: {exc.strerror}") from None
+    lines = []
+    for raw in text.splitlines():
+        user, sep, digest = raw.strip().partition(":")
+        if sep and user and digest.startswith("$7$"):
+            lines.append((user, digest))
+    return lines
+
+
+def _write(out: Path, lines: list[tuple[str, str]]) -> None:
+    """The file rewritten, keeping the owner of the password file beside it (Mosquitto reads both after
+    dropping to its user)."""
+    path = out / PENDING
+    write_private(path, "".join(f"{u}:{d}\n" for u, d in lines))
+    if os.geteuid() == 0:
+        owner = (out / PASSWORDS).stat()
+        os.chown(path, owner.st_uid, owner.st_gid)
