@@ -32,6 +32,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 from bench.benchmarks_md import machine_note, write_section
 from bench.firmware_heap import WASM_PORT, build_revision, node_config, wasm_port_ready, wasm_setup
 from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser
+from wsnav.broker.credentials import new_password
 from wsnav.console.operator_commands import node_command
 from wsnav.firmware.build import build
 from wsnav.firmware.deploy import firmware_files
@@ -190,8 +191,9 @@ def heap_rows(tmp: Path, creds: Path, update: Update, baseline: str) -> list[tup
     if words[:1] != ["heap"]:
         raise SystemExit(f"setup_heap.mjs (update mode): {(proc.stdout + proc.stderr).strip()[-300:]}")
     up = dict(zip(words[1::2], map(int, words[2::2]), strict=True))
-    wifi = {"wifi": {"ssid": "school-iot-2", "password": "a-new-wifi-key-0123456789"}}
-    every = {**wifi, "broker": {"host": "192.168.10.20", "port": 1883}, "password": "x" * 32}
+    wifi: dict[str, object] = {"wifi": {"ssid": "school-iot-2", "password": "a-new-wifi-key-0123456789"}}
+    password = {"password": new_password()}
+    every = {**wifi, "broker": {"host": "192.168.10.20", "port": 1883}, **password}
     opened = "update mode opening a configuration"
     return [
         ("PIR node after setup", wasm_setup(node, tmp / "heap-build", pir)["free"]),
@@ -313,8 +315,11 @@ def main() -> None:
         "setup_heap.mjs): the node in normal operation does not load the updater; update mode loads only the "
         "updater, the MQTT client and Wi-Fi (otaboot.py stays loaded under them), and its peak holds the parsed "
         "manifest's file list, a chunk in the client's buffer, the sha256 and the open `.tmp` file (the update key, "
-        "64 bytes, is held only while the manifest is checked, before that). The board's boot (`_boot.py`, about 1.2 KB, "
-        "BENCHMARKS.md's firmware heap section) is not taken off.\n\n"
+        "64 bytes, is held only while the manifest is checked, before that). A configuration (`wsnav firmware "
+        "config`) is opened in update mode by otaconfig.py, measured when it saves its state: the sealed chunk, the "
+        "settings and the merged config.json still held (CONFIG_SCRIPT; the chunk read from a file, not fetched; "
+        "these figures move by hundreds of bytes with the heap's layout, not only with the settings' size). The "
+        "board's boot (`_boot.py`, about 1.2 KB, BENCHMARKS.md's firmware heap section) is not taken off.\n\n"
         + "\n".join(heap_table)
         + f"\n\nReproduce: `{COMMAND}` (`--runs N`, `--baseline REF`; needs Node.js and npm for the heap rows)."
     )
