@@ -155,11 +155,12 @@ state (`otaboot.save`): the sealed chunk, the settings and the merged config.jso
 
 def config_heap(node: str, device: Path, config: Path, settings: Mapping[str, object], tmp: Path) -> int:
     """Free heap (32-bit, 38 KiB) in update mode at the end of opening `settings` sealed for the node."""
-    from wsnav.schemas.credentials import seal_config
+    from wsnav.schemas.credentials import config_seq, seal_config
 
     key = NodeConfig.model_validate_json(config.read_text()).update_key
     assert key is not None
-    (tmp / "sealed.bin").write_bytes(seal_config(key, json.dumps(settings).encode(), bytes(16)))
+    numbered = {**settings, "seq": config_seq(time.time())}
+    (tmp / "sealed.bin").write_bytes(seal_config(key, json.dumps(numbered).encode(), bytes(16)))
     (tmp / "config_heap.py").write_text(CONFIG_SCRIPT)
     cmd = [node, str(WASM_PORT / "setup_heap.mjs"), str(device), str(config), str(tmp / "config_heap.py")]
     proc = subprocess.run(

@@ -12,12 +12,19 @@ from __future__ import annotations
 
 import json
 import secrets
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
 from wsnav.firmware.ota import NodeProgress, NodeTransfer
 from wsnav.runtime.mqtt_bus import MqttBus
-from wsnav.schemas.credentials import CONFIG_MAX_BYTES, CONFIG_NONCE_BYTES, seal_config, sign_manifest
+from wsnav.schemas.credentials import (
+    CONFIG_MAX_BYTES,
+    CONFIG_NONCE_BYTES,
+    config_seq,
+    seal_config,
+    sign_manifest,
+)
 from wsnav.schemas.messages import NodeInfo, PayloadError, parse_payload
 
 ROLLED_BACK = "config: rolled back"
@@ -39,10 +46,13 @@ class Settings:
     wifi: tuple[str, str] | None = None
     broker: tuple[str, int] | None = None
     password: str | None = None
+    seq: int | None = None
+    """The configuration's number (schemas.credentials.config_seq; None: from the clock now): a node takes only
+    a number above the last it took, so an older configuration cannot be replayed."""
 
     def payload(self) -> bytes:
         """The JSON the node merges into its config.json (schemas.credentials.CONFIG_KEYS), checked as a
-        NodeConfig would check it."""
+        NodeConfig would check it, with its `seq`."""
         d: dict[str, object] = {}
         if self.wifi is not None:
             ssid, key = self.wifi
@@ -62,6 +72,7 @@ class Settings:
             d["password"] = self.password
         if not d:
             raise ConfigError("nothing to change: give --wifi, --node-broker, --new-password or some of them")
+        d["seq"] = self.seq if self.seq is not None else config_seq(time.time())
         data = json.dumps(d, separators=(",", ":")).encode()
         if len(data) + CONFIG_NONCE_BYTES > CONFIG_MAX_BYTES:
             raise ConfigError(f"the settings take {len(data)} B, more than a node fetches in one piece")

@@ -34,7 +34,7 @@ from wsnav.firmware.testing import (
     write_credentials,
 )
 from wsnav.runtime.mqtt_bus import BusError, MqttBus
-from wsnav.schemas.credentials import Credentials, NodeConfig
+from wsnav.schemas.credentials import Credentials, NodeConfig, config_seq
 
 pytestmark = pytest.mark.slow
 
@@ -218,15 +218,45 @@ def test_a_garbage_password_is_refused_in_one_line_and_nothing_changes(
     """A configuration signed for the node whose password is not one (a number, under 16 characters, a list):
     the node refuses it before its config.json is touched (`ota: config` in its `info`), stays online with its
     old password, and the tool's one line names it."""
-    from wsnav.schemas.credentials import UPDATE_KEY_FILE, node_update_key, seal_config, sign_manifest
+    from wsnav.schemas.credentials import (
+        UPDATE_KEY_FILE,
+        config_seq,
+        node_update_key,
+        seal_config,
+        sign_manifest,
+    )
 
     site, node = on_amqtt
     old = site.password()
     before = (node.fs / "config.json").read_bytes()
     key = node_update_key((site.creds / UPDATE_KEY_FILE).read_text().strip(), NODE)
-    sealed = seal_config(key, json.dumps({"password": value}).encode(), os.urandom(16))
+    settings = {"password": value, "seq": config_seq(time.time())}  # numbered: refused for its password alone
+    sealed = seal_config(key, json.dumps(settings).encode(), os.urandom(16))
     failures = send_config(site, sealed, sign_manifest(key, sealed))
     assert failures == [f"{NODE}: configuration refused: ota: config"], failures
     assert (node.fs / "config.json").read_bytes() == before
     assert site.infos.wait(lambda i: i.error is None and i.trial is None).fw == QUICK
     assert logs_in(site, old)
+
+
+def test_a_replayed_or_older_configuration_is_refused_and_nothing_changes(
+    on_amqtt: tuple[Site, Board],
+) -> None:
+    """A configuration the node took, captured on the bus (its sealed chunk and its `config` command) and sent
+    again, and one numbered before it: each refused in one line (`ota: old config`) before anything changes,
+    the node online on what it has. The number survives the node's reboots (it is in `config.seq`)."""
+    from wsnav.schemas.credentials import UPDATE_KEY_FILE, node_update_key
+
+    site, node = on_amqtt
+    key = node_update_key((site.creds / UPDATE_KEY_FILE).read_text().strip(), NODE)
+    here = (site.broker.host, site.broker.port)  # a change the node can confirm: the broker's own address
+    sealed, signature = seal_for(key, Settings(broker=here).payload())
+    assert send_config(site, sealed, signature) == []  # taken and confirmed
+    node.wait_confirmed()
+    kept = (node.fs / "config.json").read_bytes()
+    assert send_config(site, sealed, signature) == [f"{NODE}: configuration refused: ota: old config"]
+    older = Settings(broker=("192.0.2.1", 1883), seq=config_seq(time.time()) - 3600).payload()
+    sealed, signature = seal_for(key, older)
+    assert send_config(site, sealed, signature) == [f"{NODE}: configuration refused: ota: old config"]
+    assert (node.fs / "config.json").read_bytes() == kept
+    assert site.infos.wait(lambda i: i.error is None and i.trial is None).fw == QUICK

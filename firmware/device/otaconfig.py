@@ -6,15 +6,20 @@ the node's update key checked against the command's), then opened: a 16-byte non
 in counter mode under the same key (schemas.credentials.seal_config: the Wi-Fi key never crosses the bus in
 clear). Only `wifi`, `broker` (each with its two keys of the right types, a non-empty SSID or host) and
 `password` (the MQTT password, 16 characters or more: `wsnav firmware config --new-password`) may change
-(schemas.credentials.CONFIG_KEYS): checked here, not by nodeconfig, whose code does not fit beside update mode's link on the board's heap. It becomes `config.json.tmp`, the one file of an update: otaboot.swap keeps the old one as
+(schemas.credentials.CONFIG_KEYS), and its number `seq` must be above the last one taken (SEQ): checked here, not by nodeconfig, whose code does not fit beside update mode's link on the board's heap. It becomes `config.json.tmp`, the one file of an update: otaboot.swap keeps the old one as
 `config.json.bak` and the next boot tries the new one (otaboot's trial), rolled back if the node is not online
 with it in time (health.py). Anything wrong: OtaAbort("config"), the old config untouched.
 """
 
 import json
+import os
 from hashlib import sha256
 
 import otaboot
+
+SEQ = "config.seq"
+"""The last configuration's number (`seq`, schemas.credentials.config_seq): kept across rollbacks and updates, so
+neither an older configuration nor the same one again is taken (a captured one cannot be replayed)."""
 
 
 def fetch(link, st, key) -> None:
@@ -35,6 +40,9 @@ def fetch(link, st, key) -> None:
     try:
         new = json.loads(body)  # pyright: ignore[reportArgumentType] (MicroPython reads a bytearray; no copy)
         del body
+        seq = new.pop("seq")  # every configuration has its number: refused without one
+        if type(seq) is not int or seq <= last_seq():
+            raise OtaAbort("old config")  # a replay, or one older than the last taken
         for name in new:
             v = new[name]
             if name == "wifi":
@@ -65,4 +73,16 @@ def fetch(link, st, key) -> None:
     st["version"] = "config"
     st["stage"] = "swap"
     otaboot.save(st)
+    with open("config.sqt", "w") as f:  # after the state: a cut before leaves the number, not the config, behind
+        f.write(str(seq))
+    os.rename("config.sqt", SEQ)
     print("ota: config fetched")
+
+
+def last_seq() -> int:
+    """The number of the last configuration taken (0: none yet, or a board deployed before numbers)."""
+    try:
+        with open(SEQ) as f:
+            return int(f.read())
+    except (OSError, ValueError):
+        return 0
