@@ -188,6 +188,12 @@ def config_command(args: argparse.Namespace) -> int:
         wifi = (lines[0].rstrip("\r"), lines[1].rstrip("\r"))
     if args.mosquitto_config is not None and not args.new_password:
         raise CliError("--mosquitto-config goes with --new-password")
+    try:  # the settings checked before anything is read (each node's own password goes in below)
+        Settings(
+            wifi=wifi, broker=args.node_broker, password="p" * 32 if args.new_password else None
+        ).payload()
+    except ConfigError as exc:
+        raise CliError(str(exc)) from None
     passwords = PendingPasswords.new(args, nodes) if args.new_password else None
     site_key = _site_key(args)
     sealed: dict[str, bytes] = {}
