@@ -153,14 +153,17 @@ the update script of setup_heap.mjs sets update mode up; the chunk comes from /d
 state (`otaboot.save`): the sealed chunk, the settings and the merged config.json are still held then."""
 
 
-def config_heap(node: str, device: Path, config: Path, settings: Mapping[str, object], tmp: Path) -> int:
-    """Free heap (32-bit, 38 KiB) in update mode at the end of opening `settings` sealed for the node."""
+def config_heap(
+    node: str, device: Path, config: Path, settings: Mapping[str, object], tmp: Path, numbered: bool = True
+) -> int:
+    """Free heap (32-bit, 38 KiB) in update mode at the end of opening `settings` sealed for the node, with their
+    number (`seq`) unless not `numbered` (a firmware from before numbers, which refuses one)."""
     from wsnav.schemas.credentials import config_seq, seal_config
 
     key = NodeConfig.model_validate_json(config.read_text()).update_key
     assert key is not None
-    numbered = {**settings, "seq": config_seq(time.time())}
-    (tmp / "sealed.bin").write_bytes(seal_config(key, json.dumps(numbered).encode(), bytes(16)))
+    data = {**settings, "seq": config_seq(time.time())} if numbered else settings
+    (tmp / "sealed.bin").write_bytes(seal_config(key, json.dumps(data).encode(), bytes(16)))
     (tmp / "config_heap.py").write_text(CONFIG_SCRIPT)
     cmd = [node, str(WASM_PORT / "setup_heap.mjs"), str(device), str(config), str(tmp / "config_heap.py")]
     proc = subprocess.run(
@@ -206,7 +209,7 @@ def heap_rows(tmp: Path, creds: Path, update: Update, baseline: str) -> list[tup
         ),
         ("update mode after setup (updater, MQTT client, Wi-Fi)", up["setup_free"]),
         ("update mode during the transfer (the manifest's files, a chunk, sha256, open .tmp)", up["free"]),
-        (f"{opened}: Wi-Fi, {baseline}'s firmware", config_heap(node, base, pir, wifi, tmp)),
+        (f"{opened}: Wi-Fi, {baseline}'s firmware", config_heap(node, base, pir, wifi, tmp, numbered=False)),
         (f"{opened}: Wi-Fi", config_heap(node, tmp / "heap-build", pir, wifi, tmp)),
         (
             f"{opened}: Wi-Fi, broker and MQTT password",
