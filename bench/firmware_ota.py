@@ -211,6 +211,11 @@ def heap_rows(tmp: Path, creds: Path, update: Update, baseline: str) -> list[tup
         ("update mode during the transfer (the manifest's files, a chunk, sha256, open .tmp)", up["free"]),
         (f"{opened}: Wi-Fi, {baseline}'s firmware", config_heap(node, base, pir, wifi, tmp, numbered=False)),
         (f"{opened}: Wi-Fi", config_heap(node, tmp / "heap-build", pir, wifi, tmp)),
+        (f"{opened}: MQTT password", config_heap(node, tmp / "heap-build", pir, password, tmp)),
+        (
+            f"{opened}: Wi-Fi and MQTT password",
+            config_heap(node, tmp / "heap-build", pir, {**wifi, **password}, tmp),
+        ),
         (
             f"{opened}: Wi-Fi, broker and MQTT password",
             config_heap(node, tmp / "heap-build", pir, every, tmp),

@@ -23,7 +23,18 @@ from typing import cast
 import pytest
 
 from tests.broker_fixtures import mosquitto_on
-from tests.test_firmware_ota import NODE, QUICK, SITE, SITE_DIR, WAIT, Board, Infos, follow
+from tests.test_firmware_ota import (
+    NETWORKS,
+    NODE,
+    QUICK,
+    SITE,
+    SITE_DIR,
+    WAIT,
+    Board,
+    Infos,
+    follow,
+    update_mode_then_trial,
+)
 from wsnav.firmware.build import build
 from wsnav.firmware.ota_config import ConfigServer, Settings, seal_for
 from wsnav.firmware.testing import (
@@ -260,3 +271,40 @@ def test_a_replayed_or_older_configuration_is_refused_and_nothing_changes(
     assert send_config(site, sealed, signature) == [f"{NODE}: configuration refused: ota: old config"]
     assert (node.fs / "config.json").read_bytes() == kept
     assert site.infos.wait(lambda i: i.error is None and i.trial is None).fw == QUICK
+
+
+def test_wifi_broker_and_password_at_once_fit_the_boards_heap(fw: dict[str, Path], tmp_path: Path) -> None:
+    """main.py itself on `micropython -X heapsize=HEAP` (testing.HEAP: the board's free bytes after setup) from a
+    `config` command's ota.json, the heaviest configuration there is (a new Wi-Fi network, the broker's address and
+    a new MQTT password, pending at the broker): update mode fetches, opens and swaps it without a MemoryError,
+    and the trial boot joins, logs in with the new password and confirms."""
+    from wsnav.broker.credentials import add_pending, new_password
+    from wsnav.schemas.credentials import UPDATE_KEY_FILE, node_update_key
+
+    with running_site("amqtt", tmp_path) as site:
+        (tmp_path / "node").mkdir()
+        board = Board(fw, QUICK, site.creds, site.broker, tmp_path / "node", NETWORKS)
+        password = new_password()
+        add_pending(site.creds, NODE, password)
+        key = node_update_key((site.creds / UPDATE_KEY_FILE).read_text().strip(), NODE)
+        here = (site.broker.host, site.broker.port)
+        settings = Settings(wifi=("school-new", NETWORKS["school-new"]), broker=here, password=password)
+        sealed, signature = seal_for(key, settings.payload())
+        (board.fs / "ota.json").write_text(json.dumps({"stage": "config", "manifest": signature, "boots": 0}))
+        failures: list[list[str]] = []
+        server = threading.Thread(
+            target=lambda: failures.append(
+                follow(site.broker, site.creds, lambda bus: ConfigServer(bus, SITE, {NODE: sealed}))
+            )
+        )
+        server.start()
+        time.sleep(1)  # the server subscribed before the node asks
+        node = update_mode_then_trial(board, fw["stubs"], tmp_path / "node")
+        try:
+            server.join(WAIT)
+            assert failures == [[]], node.output()
+            board.wait_confirmed()
+        finally:
+            node.stop()
+        assert "MemoryError" not in node.output()
+        assert json.loads((board.fs / "config.json").read_text())["password"] == password
