@@ -29,7 +29,7 @@ from pathlib import Path
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
-from bench.benchmarks_md import machine_note, write_section
+from bench.benchmarks_md import commit, machine_note, write_section
 from bench.firmware_heap import WASM_PORT, build_revision, node_config, wasm_port_ready, wasm_setup
 from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser
 from wsnav.broker.credentials import new_password
@@ -311,7 +311,7 @@ def main() -> None:
         *(f"| {name} | {value} | {value / heap_base:.2f} |" for name, value in heap),
     ]
     text = (
-        f"{machine_note()}. The update: {files} modules, {total_bytes} B with the manifest, in 512-byte chunks "
+        f"{machine_note()}, commit {commit()}. The update: {files} modules, {total_bytes} B with the manifest, in 512-byte chunks "
         f"(`wsnav firmware ota`'s, firmware/ota.py), median of {args.runs} runs per broker. The node is the "
         "MicroPython unix port (firmware/unix_board.py), updated through `wsnav broker run` on this machine: the "
         "numbers are the protocol's and the broker's, not an ESP8266's, whose Wi-Fi round trips and flash "
