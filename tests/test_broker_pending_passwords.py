@@ -24,6 +24,7 @@ from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.broker.credentials import add_pending, promote_pending, write_credentials
 from wsnav.broker.mosquitto import pending
 from wsnav.broker.mosquitto.config import rewrite_passwords
+from wsnav.broker.mosquitto.pending_plugin import PENDING
 from wsnav.schemas.credentials import load_credentials
 from wsnav.schemas.site import load_site
 
@@ -131,7 +132,7 @@ def test_a_garbage_pending_file_stops_no_login(kind: str, tmp_path: Path) -> Non
             "\x00\xff:garbage\n"
             "n1:$argon2id$v=19$m=1,t=1,p=1$AAAA$AAAA\n"
         )
-        target = (mosquitto / pending.PENDING) if mosquitto is not None else (creds / "broker.pending")
+        target = (mosquitto / PENDING) if mosquitto is not None else (creds / "broker.pending")
         target.write_text(garbage, errors="surrogateescape")
         time.sleep(0.6)
         for user in ("n1", "n2"):

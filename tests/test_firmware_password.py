@@ -23,7 +23,7 @@ from typing import cast
 import pytest
 
 from tests.broker_fixtures import mosquitto_on
-from tests.test_firmware_ota import (
+from tests.ota_fixtures import (
     NETWORKS,
     NODE,
     QUICK,

@@ -115,7 +115,7 @@ def conf_text(out: Path, options: MosquittoOptions) -> str:
     if options.user is not None:
         lines.append(f"user {options.user}")
     if options.pending_passwords:
-        from wsnav.broker.mosquitto.pending import conf_lines
+        from wsnav.broker.mosquitto.pending_plugin import conf_lines
 
         lines += conf_lines(out)
     if options.tls is not None:  # per_listener_settings false: auth, ACL and limits apply here too
@@ -163,7 +163,7 @@ def write_mosquitto_config(
         out / ACL: acl_text(site_rules(spec)),
     }
     if options.pending_passwords:
-        from wsnav.broker.mosquitto.pending import PENDING, build_plugin
+        from wsnav.broker.mosquitto.pending_plugin import PENDING, build_plugin
 
         build_plugin(out)
         pending = out / PENDING  # a rerun keeps the passwords of changes under way

@@ -1,10 +1,10 @@
 """Pending passwords on Mosquitto: a node's new MQTT password accepted beside its own until it confirms it.
 
-Mosquitto 2.0's password file holds one hash per user (a second line replaces the first), so it alone cannot
-accept a node's old and new passwords at once. `wsnav broker mosquitto-config --pending-passwords` builds a
-small auth plugin (pending_auth.c, against Debian's mosquitto-dev and libssl-dev) into the configuration: it
-accepts the `username:$7$...` lines of PENDING (read at each login, no SIGHUP) and defers every other login to
-the password file. `wsnav firmware config --new-password --mosquitto-config DIR` adds a node's new password here
+Mosquitto 2.0's password file holds one hash per user (of two lines for one user, the last is taken), so it
+alone cannot accept a node's old and new passwords at once. `wsnav broker mosquitto-config --pending-passwords`
+builds a small auth plugin (pending_auth.c, pending_plugin.py) into the configuration: it accepts the
+`username:$7$...` lines of PENDING (read at each login, no SIGHUP) and defers every other login to the password
+file. `wsnav firmware config --new-password --mosquitto-config DIR` adds a node's new password here
 before the node tries it; once the node confirms, the password file gets it (the old one is refused after
 `systemctl reload mosquitto`) and PENDING keeps just that one line for the node, which is its own password by
 then, until its next change or `wsnav broker revoke` (which removes the node's lines).
@@ -13,44 +13,12 @@ then, until its next change or `wsnav broker revoke` (which removes the node's l
 from __future__ import annotations
 
 import os
-import shutil
-import subprocess
 from pathlib import Path
 
 from wsnav.broker.credentials import write_private
 from wsnav.broker.mosquitto.config import PASSWORDS, mosquitto_hash
+from wsnav.broker.mosquitto.pending_plugin import PENDING, PLUGIN
 from wsnav.schemas.credentials import CredentialsError
-
-SOURCE = Path(__file__).with_name("pending_auth.c")
-PLUGIN = "wsnav_pending.so"
-PENDING = "mosquitto.pending"
-
-
-def build_plugin(out: Path) -> Path:
-    """Compile the plugin into `out`; one line naming what is missing when it cannot be built."""
-    cc = shutil.which("cc") or shutil.which("gcc")
-    if cc is None:
-        raise CredentialsError(
-            "--pending-passwords: no C compiler (apt-get install gcc mosquitto-dev libssl-dev)"
-        )
-    target = out / PLUGIN
-    cmd = [cc, "-O2", "-Wall", "-shared", "-fPIC", "-o", str(target), str(SOURCE), "-lcrypto"]
-    done = subprocess.run(cmd, capture_output=True, text=True, check=False)
-    if done.returncode != 0:
-        first = next((line for line in done.stderr.splitlines() if "error" in line), done.stderr.strip())
-        raise CredentialsError(
-            f"--pending-passwords: cannot build the plugin (needs mosquitto-dev and libssl-dev): {first}"
-        )
-    return target
-
-
-def conf_lines(out: Path) -> list[str]:
-    """mosquitto.conf's lines that load the plugin (before the password file is consulted: it defers)."""
-    return [
-        "# wsnav's pending passwords (a node changing its password): accepted beside the password file",
-        f"plugin {out / PLUGIN}",
-        f"plugin_opt_pending_file {out / PENDING}",
-    ]
 
 
 def add(out: Path, user: str, password: str) -> None:
