@@ -217,5 +217,5 @@ def test_config_refuses_bad_settings_in_one_line(tmp_path: Path) -> None:
     one_line_error(
         config("--nodes", "n1", "--wifi", stdin="net\nlong-enough\n"), "cannot read the site's update key"
     )
-    one_line_error(config("--nodes", "n1", "--mosquitto-config", tmp_path), "goes with --new-password")
+    one_line_error(config("--nodes", "n1", "--mosquitto-config", str(tmp_path)), "goes with --new-password")
     one_line_error(config("--nodes", "n1", "--new-password"), "where the broker's credentials folder is")
