@@ -122,9 +122,7 @@ def test_retained_state_survives_a_restart(setup: tuple[Path, Path], tmp_path: P
             wait_stored(data, {STATE: b"blocked", STATUS: b"online"})
             assert first.kill() == -signal.SIGKILL
         else:
-            assert first.proc is not None
-            first.proc.send_signal(signal.SIGTERM if stop == "sigterm" else signal.SIGINT)
-            assert first.proc.wait(TIMEOUT) == 0
+            assert first.stop_with(signal.SIGTERM if stop == "sigterm" else signal.SIGINT, TIMEOUT) == 0
             assert "broker stopped\n" in first.output
     finally:
         first.kill()
