@@ -138,3 +138,29 @@ def test_a_garbage_pending_file_stops_no_login(kind: str, tmp_path: Path) -> Non
         for user in ("n1", "n2"):
             assert takes(end, user, end.password(user))
         assert not takes(end, "n1", "x" * 32) and not takes(end, "n1", "AAAA" * 8)
+
+
+def test_mosquitto_config_builds_and_loads_the_plugin_and_a_rerun_keeps_pending_passwords(
+    tmp_path: Path,
+) -> None:
+    """`wsnav broker mosquitto-config --pending-passwords`: the plugin built into the folder and loaded by
+    mosquitto.conf, its file owner-only; run again (a site's config regenerated), the passwords of a change under
+    way are kept (a new empty file would lock out the node trying its new one)."""
+    site = tiny_site(tmp_path / "site")
+    creds, out = tmp_path / "creds", tmp_path / "mosq"
+    write_credentials(load_site(site).spec, creds)
+    cmd = [
+        sys.executable, "-m", "wsnav.cli", "broker", "mosquitto-config", "--site", str(site),
+        "--credentials", str(creds), "--out", str(out), "--data", str(tmp_path / "data"), "--pending-passwords",
+    ]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    conf = (out / "mosquitto.conf").read_text().splitlines()
+    assert f"plugin {out.resolve() / 'wsnav_pending.so'}" in conf
+    assert f"plugin_opt_pending_file {out.resolve() / PENDING}" in conf
+    assert (out / PENDING).read_text() == "" and (out / PENDING).stat().st_mode & 0o777 == 0o600
+    pending.add(out, "n1", NEW)
+    line = (out / PENDING).read_text()
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert (out / PENDING).read_text() == line
