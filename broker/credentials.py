@@ -246,12 +246,17 @@ def promote_pending(folder: Path, user: str, password: str) -> None:
     write_private(pending_path, "".join(f"{u}:{d}\n" for u, ds in pending.items() for d in ds))
 
 
-def withdraw_pending(folder: Path, user: str) -> None:
-    """No pending password of `user` any more: a change that did not happen (the node went back to its old
-    password), or a revoked identity (`wsnav broker revoke`)."""
+def withdraw_pending(folder: Path, user: str, password: str | None = None) -> None:
+    """`password` no longer pending for `user` (a change that did not happen: the node went back to its old
+    password; an earlier change that was never confirmed keeps its line, the node may have taken it), or, without
+    `password`, none of `user`'s (a revoked identity, `wsnav broker revoke`)."""
     path = folder / PENDING_FILE
     pending = read_pending_file(path)
-    if pending.pop(user, None) is not None:
+    digests = pending.pop(user, [])
+    kept = [d for d in digests if password is not None and not verify_password(d, password)]
+    if kept:
+        pending[user] = kept
+    if len(kept) != len(digests):
         write_private(path, "".join(f"{u}:{d}\n" for u, ds in pending.items() for d in ds))
 
 

@@ -21,7 +21,7 @@ import pytest
 from tests.broker_fixtures import Client, Endpoint, connect_reason, mosquitto_on
 from tests.site_fixtures import tiny_site
 from wsnav.broker.amqtt.embedded import BrokerThread
-from wsnav.broker.credentials import add_pending, promote_pending, write_credentials
+from wsnav.broker.credentials import add_pending, promote_pending, withdraw_pending, write_credentials
 from wsnav.broker.mosquitto import pending
 from wsnav.broker.mosquitto.config import rewrite_passwords
 from wsnav.broker.mosquitto.pending_plugin import PENDING
@@ -89,6 +89,30 @@ def test_the_pending_password_is_taken_beside_the_old_one_until_it_is_promoted(
             assert takes(end, "n1", NEW) and not takes(end, "n1", old)
         finally:
             node.close()
+
+
+@pytest.mark.parametrize("kind", ["amqtt", "mosquitto"])
+def test_a_change_that_went_back_withdraws_its_own_password_only(kind: str, tmp_path: Path) -> None:
+    """The node's password is taken from the pending file alone (amqtt: an earlier change it never answered;
+    Mosquitto: an earlier change it confirmed, its password file rewritten but not reloaded yet); a later change
+    that went back withdraws that change's password, and the node's still logs in."""
+    site = tiny_site(tmp_path / "site")
+    creds = tmp_path / "creds"
+    spec = load_site(site).spec
+    write_credentials(spec, creds)
+    earlier, later = "an-earlier-new-password-0123", "a-later-new-password-4567"
+    with broker(kind, site, creds, tmp_path) as (end, mosquitto, _pid):
+        add(creds, mosquitto, "n1", earlier)
+        if mosquitto is not None:
+            promote_pending(creds, "n1", earlier)
+            pending.keep_only(mosquitto, "n1", earlier)
+            rewrite_passwords(spec, creds, mosquitto)  # and no `systemctl reload mosquitto` yet
+        add(creds, mosquitto, "n1", later)
+        withdraw_pending(creds, "n1", later)  # as `wsnav firmware config` does for a node that went back
+        if mosquitto is not None:
+            pending.withdraw(mosquitto, "n1", later)
+        time.sleep(0.6)
+        assert takes(end, "n1", earlier) and not takes(end, "n1", later)
 
 
 @pytest.mark.parametrize("kind", ["amqtt", "mosquitto"])

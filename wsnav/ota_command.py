@@ -305,9 +305,9 @@ class PendingPasswords:
                         f"{node}: new MQTT password in {self.folder / (node + '.json')}, the old one refused {when}"
                     )
                 elif prog.error is not None or not prog.started:
-                    withdraw_pending(self.folder, node)
+                    withdraw_pending(self.folder, node, password)
                     if self.mosquitto is not None:
-                        withdraw(self.mosquitto, node)
+                        withdraw(self.mosquitto, node, password)
                 else:
                     print(
                         f"{node}: its old and new MQTT passwords both stay accepted (it may be trying the new "

@@ -12,6 +12,8 @@ then, until its next change or `wsnav broker revoke` (which removes the node's l
 
 from __future__ import annotations
 
+import base64
+import hmac
 import os
 from pathlib import Path
 
@@ -33,10 +35,24 @@ def keep_only(out: Path, user: str, password: str) -> None:
     _write(out, [*((u, d) for u, d in _lines(out) if u != user), (user, mosquitto_hash(password))])
 
 
-def withdraw(out: Path, user: str) -> None:
-    """No pending password of `user` any more (a change that did not happen, or a revoked identity)."""
+def withdraw(out: Path, user: str, password: str | None = None) -> None:
+    """`password` no longer pending for `user` (a change that did not happen; the node's other lines stay: one
+    of them may be the password it has, which Mosquitto takes only from here until it reloads), or, without
+    `password`, none of `user`'s (a revoked identity)."""
     if (out / PENDING).exists():
-        _write(out, [(u, d) for u, d in _lines(out) if u != user])
+        _write(
+            out,
+            [(u, d) for u, d in _lines(out) if u != user or (password is not None and not _is(d, password))],
+        )
+
+
+def _is(digest: str, password: str) -> bool:
+    """Is `digest` (`$7$iterations$salt$hash`) the hash of `password`?"""
+    try:
+        _, _, iterations, salt, _ = digest.split("$")
+        return hmac.compare_digest(mosquitto_hash(password, base64.b64decode(salt), int(iterations)), digest)
+    except ValueError:  # (binascii.Error is one)
+        return False
 
 
 def _lines(out: Path) -> list[tuple[str, str]]:
