@@ -23,14 +23,16 @@ import subprocess
 import tempfile
 import threading
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
-from bench.benchmarks_md import machine_note, write_section
+from bench.benchmarks_md import commit, machine_note, write_section
 from bench.firmware_heap import WASM_PORT, build_revision, node_config, wasm_port_ready, wasm_setup
 from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser
+from wsnav.broker.credentials import new_password
 from wsnav.console.operator_commands import node_command
 from wsnav.firmware.build import build
 from wsnav.firmware.deploy import firmware_files
@@ -111,6 +113,68 @@ def one_update(bus: MqttBus, update: Update, key: str, timeout_s: float = 300.0)
     return total, prog.last_at - prog.first_at
 
 
+CONFIG_SCRIPT = """
+import sys
+import nodeconfig
+CFG = nodeconfig.load("/config.json")
+del nodeconfig
+del sys.modules["nodeconfig"]
+gc.collect()
+import otaboot
+import updater
+link = updater.Fetcher(CFG)
+import wifi
+w = wifi.Wifi(CFG["wifi_ssid"], CFG["wifi_password"])
+import json
+with open("/config.json") as f:
+    KEY = json.load(f)["update_key"].encode()
+gc.collect()
+_setup = gc.mem_alloc()
+def get(index, size, digest, out, key=None):
+    with open("/data.bin", "rb") as f:
+        out.write(f.read())
+link.get = get
+_save = otaboot.save
+_used = 0
+def save(st):
+    global _used
+    gc.collect()
+    _used = gc.mem_alloc()
+    _save(st)
+otaboot.save = save
+import otaconfig
+otaconfig.fetch(link, {"stage": "config", "manifest": "0" * 64, "boots": 0}, KEY)
+micropython.mem_info()
+print("heap used", _used, "bare", _bare, "setup", _setup)
+"""
+"""Update mode opening a configuration (device/otaconfig.py, loaded by the updater as for a `config` command), as
+the update script of setup_heap.mjs sets update mode up; the chunk comes from /data.bin instead of the broker
+(`get` stands for the updater's fetch, whose own peak is the update rows'). Measured when otaconfig saves its
+state (`otaboot.save`): the sealed chunk, the settings and the merged config.json are still held then."""
+
+
+def config_heap(
+    node: str, device: Path, config: Path, settings: Mapping[str, object], tmp: Path, numbered: bool = True
+) -> int:
+    """Free heap (32-bit, 38 KiB) in update mode at the end of opening `settings` sealed for the node, with their
+    number (`seq`) unless not `numbered` (a firmware from before numbers, which refuses one)."""
+    from wsnav.schemas.credentials import config_seq, seal_config
+
+    key = NodeConfig.model_validate_json(config.read_text()).update_key
+    assert key is not None
+    data = {**settings, "seq": config_seq(time.time())} if numbered else settings
+    (tmp / "sealed.bin").write_bytes(seal_config(key, json.dumps(data).encode(), bytes(16)))
+    (tmp / "config_heap.py").write_text(CONFIG_SCRIPT)
+    cmd = [node, str(WASM_PORT / "setup_heap.mjs"), str(device), str(config), str(tmp / "config_heap.py")]
+    proc = subprocess.run(
+        [*cmd, str(tmp / "sealed.bin")], capture_output=True, text=True, timeout=300, check=False
+    )
+    words = proc.stdout.split()
+    if words[:1] != ["heap"]:
+        raise SystemExit(f"setup_heap.mjs (configuration): {(proc.stdout + proc.stderr).strip()[-300:]}")
+    return dict(zip(words[1::2], map(int, words[2::2]), strict=True))["free"]
+
+
 def heap_rows(tmp: Path, creds: Path, update: Update, baseline: str) -> list[tuple[str, int]]:
     node = wasm_port_ready()
     build(tmp / "heap-build")
@@ -131,6 +195,10 @@ def heap_rows(tmp: Path, creds: Path, update: Update, baseline: str) -> list[tup
     if words[:1] != ["heap"]:
         raise SystemExit(f"setup_heap.mjs (update mode): {(proc.stdout + proc.stderr).strip()[-300:]}")
     up = dict(zip(words[1::2], map(int, words[2::2]), strict=True))
+    wifi: dict[str, object] = {"wifi": {"ssid": "school-iot-2", "password": "a-new-wifi-key-0123456789"}}
+    password = {"password": new_password()}
+    every = {**wifi, "broker": {"host": "192.168.10.20", "port": 1883}, **password}
+    opened = "update mode opening a configuration"
     return [
         ("PIR node after setup", wasm_setup(node, tmp / "heap-build", pir)["free"]),
         (f"PIR node after setup, {baseline}'s firmware (baseline)", wasm_setup(node, base, pir)["free"]),
@@ -141,6 +209,17 @@ def heap_rows(tmp: Path, creds: Path, update: Update, baseline: str) -> list[tup
         ),
         ("update mode after setup (updater, MQTT client, Wi-Fi)", up["setup_free"]),
         ("update mode during the transfer (the manifest's files, a chunk, sha256, open .tmp)", up["free"]),
+        (f"{opened}: Wi-Fi, {baseline}'s firmware", config_heap(node, base, pir, wifi, tmp, numbered=False)),
+        (f"{opened}: Wi-Fi", config_heap(node, tmp / "heap-build", pir, wifi, tmp)),
+        (f"{opened}: MQTT password", config_heap(node, tmp / "heap-build", pir, password, tmp)),
+        (
+            f"{opened}: Wi-Fi and MQTT password",
+            config_heap(node, tmp / "heap-build", pir, {**wifi, **password}, tmp),
+        ),
+        (
+            f"{opened}: Wi-Fi, broker and MQTT password",
+            config_heap(node, tmp / "heap-build", pir, every, tmp),
+        ),
     ]
 
 
@@ -232,7 +311,7 @@ def main() -> None:
         *(f"| {name} | {value} | {value / heap_base:.2f} |" for name, value in heap),
     ]
     text = (
-        f"{machine_note()}. The update: {files} modules, {total_bytes} B with the manifest, in 512-byte chunks "
+        f"{machine_note()}, commit {commit()}. The update: {files} modules, {total_bytes} B with the manifest, in 512-byte chunks "
         f"(`wsnav firmware ota`'s, firmware/ota.py), median of {args.runs} runs per broker. The node is the "
         "MicroPython unix port (firmware/unix_board.py), updated through `wsnav broker run` on this machine: the "
         "numbers are the protocol's and the broker's, not an ESP8266's, whose Wi-Fi round trips and flash "
@@ -245,8 +324,11 @@ def main() -> None:
         "setup_heap.mjs): the node in normal operation does not load the updater; update mode loads only the "
         "updater, the MQTT client and Wi-Fi (otaboot.py stays loaded under them), and its peak holds the parsed "
         "manifest's file list, a chunk in the client's buffer, the sha256 and the open `.tmp` file (the update key, "
-        "64 bytes, is held only while the manifest is checked, before that). The board's boot (`_boot.py`, about 1.2 KB, "
-        "BENCHMARKS.md's firmware heap section) is not taken off.\n\n"
+        "64 bytes, is held only while the manifest is checked, before that). A configuration (`wsnav firmware "
+        "config`) is opened in update mode by otaconfig.py, measured when it saves its state: the sealed chunk, the "
+        "settings and the merged config.json still held (CONFIG_SCRIPT; the chunk read from a file, not fetched; "
+        "these figures move by hundreds of bytes with the heap's layout, not only with the settings' size). The "
+        "board's boot (`_boot.py`, about 1.2 KB, BENCHMARKS.md's firmware heap section) is not taken off.\n\n"
         + "\n".join(heap_table)
         + f"\n\nReproduce: `{COMMAND}` (`--runs N`, `--baseline REF`; needs Node.js and npm for the heap rows)."
     )

@@ -156,6 +156,12 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         "before their PUBACK and put back at start, so a power cut loses none; a full disk or a cut-short store "
         "logged as an ERROR within a second (needs gcc, mosquitto-dev and libmosquitto-dev)",
     )
+    mosq.add_argument(
+        "--pending-passwords",
+        action="store_true",
+        help="build and load the pending-password plugin (needs gcc, mosquitto-dev, libssl-dev), so that nodes "
+        "can change their MQTT password over the air (wsnav firmware config --new-password)",
+    )
     mosq.add_argument("--tls-bind", type=host_port, help="HOST:PORT of an MQTT/TLS listener (as on amqtt)")
     mosq.add_argument("--certfile", type=Path, help="TLS certificate chain (PEM), with --tls-bind")
     mosq.add_argument("--keyfile", type=Path, help="TLS private key (PEM), with --tls-bind")
@@ -368,6 +374,7 @@ def mosquitto_command(args: argparse.Namespace) -> int:
         bind_client_ids=not args.shared_client_ids,
         tls=tls,
         store_guard=store_guard,
+        pending_passwords=args.pending_passwords,
     )
     try:
         files = write_mosquitto_config(spec, args.credentials, args.out, options)
@@ -405,8 +412,9 @@ def mosquitto_restore_command(args: argparse.Namespace) -> int:
 
 
 def revoke_command(args: argparse.Namespace) -> int:
-    from wsnav.broker.credentials import site_ids, write_credentials
+    from wsnav.broker.credentials import site_ids, withdraw_pending, write_credentials
     from wsnav.broker.mosquitto.config import rewrite_passwords
+    from wsnav.broker.mosquitto.pending import withdraw
     from wsnav.broker.revocation import clear_retained
     from wsnav.schemas.credentials import CredentialsError, load_credentials
 
@@ -421,8 +429,11 @@ def revoke_command(args: argparse.Namespace) -> int:
         write_credentials(spec, args.credentials, renew=frozenset(args.ids))
         new = {ident: load_credentials(args.credentials / f"{ident}.json") for ident in args.ids}
         for ident in args.ids:
+            withdraw_pending(args.credentials, ident)  # a password change under way would let the old one in
             print(f"{ident}: new password in {args.credentials / (ident + '.json')} (give it to the device)")
         if args.mosquitto_config is not None:
+            for ident in args.ids:
+                withdraw(args.mosquitto_config, ident)
             path = rewrite_passwords(spec, args.credentials, args.mosquitto_config)
             print(f"wrote {path}: reload Mosquitto now (sudo systemctl reload mosquitto)", flush=True)
     except CredentialsError as exc:

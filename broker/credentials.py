@@ -36,6 +36,9 @@ from wsnav.schemas.site_file import SiteFile
 
 PASSWORD_FILE = "broker.passwd"
 """`username:<argon2 hash>` lines; the format amqtt's FileAuthPlugin also reads."""
+PENDING_FILE = "broker.pending"
+"""The same lines, for passwords a node is changing to (`wsnav firmware config --new-password`): the amqtt broker
+takes them beside the password file's, so the node is never locked out, until it confirms one (`promote_pending`)."""
 OPERATOR = "operator"
 DASHBOARD = "dashboard"
 """A read-only identity for dashboards (Home Assistant): it reads the site and publishes nothing of it."""
@@ -181,7 +184,12 @@ def read_password_file(path: Path) -> dict[str, str]:
         ) from None
     except OSError as exc:
         raise CredentialsError(f"{path}: cannot read: {exc.strerror}") from None
-    users: dict[str, str] = {}
+    return dict(_hash_lines(path, text))
+
+
+def _hash_lines(path: Path, text: str) -> list[tuple[str, str]]:
+    """The `username:$argon2...` lines of a password or pending file, in order."""
+    lines: list[tuple[str, str]] = []
     for number, raw in enumerate(text.splitlines(), 1):
         line = raw.strip()
         if not line or line.startswith("#"):
@@ -189,8 +197,67 @@ def read_password_file(path: Path) -> dict[str, str]:
         user, sep, digest = line.partition(":")
         if not sep or not user or not digest.startswith("$argon2"):
             raise CredentialsError(f"{path}: line {number}: expected `username:$argon2...`")
-        users[user] = digest
-    return users
+        lines.append((user, digest))
+    return lines
+
+
+def read_pending_file(path: Path) -> dict[str, list[str]]:
+    """username -> the argon2 hashes of its pending passwords (PENDING_FILE); none when the file is missing."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        return {}
+    except OSError as exc:
+        raise CredentialsError(f"{path}: cannot read: {exc.strerror}") from None
+    pending: dict[str, list[str]] = {}
+    for user, digest in _hash_lines(path, text):
+        pending.setdefault(user, []).append(digest)
+    return pending
+
+
+def add_pending(folder: Path, user: str, password: str) -> None:
+    """`password` accepted for `user` beside its own from now on (the amqtt broker reads PENDING_FILE again when
+    it changes), until `promote_pending`. Earlier pending passwords of `user` stay: a change that was never
+    confirmed may still have reached the node."""
+    path = folder / PENDING_FILE
+    lines = [(u, d) for u, ds in read_pending_file(path).items() for d in ds]
+    lines.append((user, HASHER.hash(password)))
+    write_private(path, "".join(f"{u}:{d}\n" for u, d in lines))
+
+
+def promote_pending(folder: Path, user: str, password: str) -> None:
+    """The node confirmed `password` (a pending one): it becomes `user`'s in `<user>.json` and in the password
+    file (the pending line's very hash, which tells the broker's watch a promotion from a revocation), then its
+    pending lines go, the old password with them. In this order, a crash at any step leaves the node a password
+    the broker takes."""
+    pending_path = folder / PENDING_FILE
+    pending = read_pending_file(pending_path)
+    digest = next((d for d in pending.get(user, []) if verify_password(d, password)), None)
+    if digest is None:
+        raise CredentialsError(f"{pending_path}: no pending password of {user!r} matches")
+    path = folder / f"{user}.json"
+    creds = load_credentials(path)
+    write_private(path, creds.model_copy(update={"password": password}).model_dump_json(indent=2) + "\n")
+    passwd = folder / PASSWORD_FILE
+    hashes = read_password_file(passwd)
+    hashes[user] = digest
+    write_private(passwd, "".join(f"{u}:{d}\n" for u, d in hashes.items()))
+    pending.pop(user)
+    write_private(pending_path, "".join(f"{u}:{d}\n" for u, ds in pending.items() for d in ds))
+
+
+def withdraw_pending(folder: Path, user: str, password: str | None = None) -> None:
+    """`password` no longer pending for `user` (a change that did not happen: the node went back to its old
+    password; an earlier change that was never confirmed keeps its line, the node may have taken it), or, without
+    `password`, none of `user`'s (a revoked identity, `wsnav broker revoke`)."""
+    path = folder / PENDING_FILE
+    pending = read_pending_file(path)
+    digests = pending.pop(user, [])
+    kept = [d for d in digests if password is not None and not verify_password(d, password)]
+    if kept:
+        pending[user] = kept
+    if len(kept) != len(digests):
+        write_private(path, "".join(f"{u}:{d}\n" for u, ds in pending.items() for d in ds))
 
 
 def file_stamp(path: Path) -> tuple[int, int, int] | None:

@@ -1,4 +1,4 @@
-"""`wsnav firmware config`: a new configuration (Wi-Fi, broker address) for running nodes over MQTT, the
+"""`wsnav firmware config`: a new configuration (Wi-Fi, broker address, MQTT password) for running nodes over MQTT, the
 operator's side (the node's: device/otaconfig.py).
 
 Each node gets its settings sealed under its own update key (schemas.credentials.seal_config: robots and
@@ -12,12 +12,19 @@ from __future__ import annotations
 
 import json
 import secrets
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
 from wsnav.firmware.ota import NodeProgress, NodeTransfer
 from wsnav.runtime.mqtt_bus import MqttBus
-from wsnav.schemas.credentials import CONFIG_MAX_BYTES, CONFIG_NONCE_BYTES, seal_config, sign_manifest
+from wsnav.schemas.credentials import (
+    CONFIG_MAX_BYTES,
+    CONFIG_NONCE_BYTES,
+    config_seq,
+    seal_config,
+    sign_manifest,
+)
 from wsnav.schemas.messages import NodeInfo, PayloadError, parse_payload
 
 ROLLED_BACK = "config: rolled back"
@@ -32,14 +39,20 @@ class ConfigError(Exception):
 
 @dataclass(frozen=True)
 class Settings:
-    """What a configuration changes: the Wi-Fi network (SSID and key) and the broker's address, each optional."""
+    """What a configuration changes: the Wi-Fi network (SSID and key), the broker's address and the node's MQTT
+    password (one node's: the broker must take it beside the old one first, broker/credentials.py add_pending),
+    each optional."""
 
     wifi: tuple[str, str] | None = None
     broker: tuple[str, int] | None = None
+    password: str | None = None
+    seq: int | None = None
+    """The configuration's number (schemas.credentials.config_seq; None: from the clock now): a node takes only
+    a number above the last it took, so an older configuration cannot be replayed."""
 
     def payload(self) -> bytes:
         """The JSON the node merges into its config.json (schemas.credentials.CONFIG_KEYS), checked as a
-        NodeConfig would check it."""
+        NodeConfig would check it, with its `seq`."""
         d: dict[str, object] = {}
         if self.wifi is not None:
             ssid, key = self.wifi
@@ -53,8 +66,13 @@ class Settings:
             if not host or len(host) > 64 or not 0 < port < 65536:
                 raise ConfigError(f"broker {host}:{port}: a host name or address and a port 1..65535")
             d["broker"] = {"host": host, "port": port}
+        if self.password is not None:
+            if not 16 <= len(self.password) <= 64 or not self.password.isascii():
+                raise ConfigError("an MQTT password: 16 to 64 ASCII characters")
+            d["password"] = self.password
         if not d:
-            raise ConfigError("nothing to change: give --wifi, --node-broker or both")
+            raise ConfigError("nothing to change: give --wifi, --node-broker, --new-password or some of them")
+        d["seq"] = self.seq if self.seq is not None else config_seq(time.time())
         data = json.dumps(d, separators=(",", ":")).encode()
         if len(data) + CONFIG_NONCE_BYTES > CONFIG_MAX_BYTES:
             raise ConfigError(f"the settings take {len(data)} B, more than a node fetches in one piece")

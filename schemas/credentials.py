@@ -92,9 +92,20 @@ def sign_manifest(node_key: str, manifest: bytes) -> str:
     return hmac.new(node_key.encode(), manifest, hashlib.sha256).hexdigest()
 
 
-CONFIG_KEYS = ("wifi", "broker")
-"""What a configuration over the air may change in a node's config.json (`wsnav firmware config`): its Wi-Fi and
-its broker's address; the node refuses any other key (firmware/device/otaconfig.py)."""
+CONFIG_KEYS = ("wifi", "broker", "password")
+"""What a configuration over the air may change in a node's config.json (`wsnav firmware config`): its Wi-Fi, its
+broker's address and its MQTT password; the node refuses any other key (firmware/device/otaconfig.py)."""
+CONFIG_SEQ_EPOCH = 1_577_836_800
+"""2020-01-01 UTC: a configuration's `seq` counts seconds from it (a small int on the ESP8266 until 2054)."""
+
+
+def config_seq(now: float) -> int:
+    """A configuration's number (`seq` in its settings, `wsnav firmware config`): the operator's clock in seconds
+    since CONFIG_SEQ_EPOCH. The node keeps the last one it took (`config.seq`) and refuses one not above it, so a
+    captured older configuration cannot be replayed (firmware/device/otaconfig.py)."""
+    return int(now) - CONFIG_SEQ_EPOCH
+
+
 CONFIG_NONCE_BYTES = 16
 CONFIG_MAX_BYTES = 512
 """A sealed configuration's size limit: one OTA chunk, what the node fetches in one piece."""

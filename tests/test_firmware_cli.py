@@ -192,7 +192,8 @@ def test_ota_refuses_bad_arguments_in_one_line(tmp_path: Path) -> None:
 
 def test_config_refuses_bad_settings_in_one_line(tmp_path: Path) -> None:
     """Refused before it connects (no broker here): nothing to change, no SSID on stdin, a key WPA2 refuses, a
-    bad broker address."""
+    bad broker address, a Mosquitto folder without a new password, a new password away from the broker's
+    credentials folder."""
     site = Path(__file__).resolve().parent.parent / "sites" / "school"
     common = (
         "config",
@@ -216,3 +217,5 @@ def test_config_refuses_bad_settings_in_one_line(tmp_path: Path) -> None:
     one_line_error(
         config("--nodes", "n1", "--wifi", stdin="net\nlong-enough\n"), "cannot read the site's update key"
     )
+    one_line_error(config("--nodes", "n1", "--mosquitto-config", str(tmp_path)), "goes with --new-password")
+    one_line_error(config("--nodes", "n1", "--new-password"), "where the broker's credentials folder is")

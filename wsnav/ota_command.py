@@ -24,6 +24,7 @@ if TYPE_CHECKING:
     from wsnav.firmware.ota import NodeTransfer
     from wsnav.runtime.cli_support import Parser
     from wsnav.schemas.messages import NodeCommandName
+    from wsnav.schemas.site_file import SiteFile
 
 
 def register(sub: argparse._SubParsersAction[Parser]) -> None:
@@ -61,6 +62,18 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
         type=host_port,
         metavar="HOST:PORT",
         help="the broker the nodes use from now on (its address as the nodes reach it)",
+    )
+    c.add_argument(
+        "--new-password",
+        action="store_true",
+        help="a new random MQTT password for each node; the broker takes it beside the old one until the node "
+        "confirms it (run where the broker's credentials folder is, as wsnav broker revoke)",
+    )
+    c.add_argument(
+        "--mosquitto-config",
+        type=Path,
+        metavar="DIR",
+        help="with --new-password on Mosquitto: the folder of `wsnav broker mosquitto-config --pending-passwords`",
     )
     _key_and_timeout(c, "signs and seals the configuration")
     c.set_defaults(func=config_command)
@@ -179,7 +192,8 @@ def _follow_on_new_broker(args: argparse.Namespace) -> OperatorLink | None:
 
 def config_command(args: argparse.Namespace) -> int:
     """Seal the settings for each node (its own key), send its `config`, serve them, wait until each has kept
-    them or gone back (firmware/ota_config.py); exit 1 naming every node that did not keep them."""
+    them or gone back (firmware/ota_config.py); exit 1 naming every node that did not keep them. With
+    --new-password, each node's new password is pending at the broker before its command goes (PendingPasswords)."""
     from wsnav.console.operator_link import connect
     from wsnav.firmware.ota_config import ConfigError, ConfigServer, Settings, seal_for
 
@@ -190,20 +204,32 @@ def config_command(args: argparse.Namespace) -> int:
         if len(lines) < 2 or not lines[0]:
             raise CliError("--wifi: give the SSID on the first line of stdin and the key on the second")
         wifi = (lines[0].rstrip("\r"), lines[1].rstrip("\r"))
-    try:
-        settings = Settings(wifi=wifi, broker=args.node_broker).payload()
+    if args.mosquitto_config is not None and not args.new_password:
+        raise CliError("--mosquitto-config goes with --new-password")
+    try:  # the settings checked before anything is read (each node's own password goes in below)
+        Settings(
+            wifi=wifi, broker=args.node_broker, password="p" * 32 if args.new_password else None
+        ).payload()
     except ConfigError as exc:
         raise CliError(str(exc)) from None
+    passwords = PendingPasswords.new(args, nodes) if args.new_password else None
     site_key = _site_key(args)
     sealed: dict[str, bytes] = {}
     signatures: dict[str, str] = {}
     for n in nodes:
+        password = passwords.new_of[n] if passwords is not None else None
+        try:
+            settings = Settings(wifi=wifi, broker=args.node_broker, password=password).payload()
+        except ConfigError as exc:
+            raise CliError(str(exc)) from None
         sealed[n], signatures[n] = seal_for(node_update_key(site_key, n), settings)
-    changed = " and ".join(k for k, v in (("Wi-Fi", wifi), ("broker", args.node_broker)) if v is not None)
-    print(f"configuration: new {changed} for {len(nodes)} node(s)")
+    what = (("Wi-Fi", wifi), ("broker", args.node_broker), ("MQTT password", passwords))
+    print(f"configuration: new {' and '.join(k for k, v in what if v is not None)} for {len(nodes)} node(s)")
     link = connect(args, "config")
     new_broker = _follow_on_new_broker(args)
     try:
+        if passwords is not None:
+            passwords.add()
         server = ConfigServer(link.bus, link.site.name, sealed)
         if new_broker is not None:
             server.follow_on(new_broker.bus)
@@ -212,7 +238,86 @@ def config_command(args: argparse.Namespace) -> int:
         link.bus.close()
         if new_broker is not None:
             new_broker.bus.close()
+    if passwords is not None:
+        passwords.settle(server, link.site.spec)
     for line in failures:
         print(line, file=sys.stderr)
     print(f"{len(nodes) - len(failures)} of {len(nodes)} nodes kept the new configuration")
     return 1 if failures else 0
+
+
+class PendingPasswords:
+    """`--new-password`: each node's new password pending at the broker (amqtt: broker.pending in the credentials
+    folder; Mosquitto: its pending-password plugin's file) while the node tries it, so neither password is ever
+    refused to it; made its own once it confirms, withdrawn once it went back (broker/credentials.py)."""
+
+    def __init__(self, folder: Path, mosquitto: Path | None, new_of: dict[str, str]) -> None:
+        self.folder = folder
+        self.mosquitto = mosquitto
+        self.new_of = new_of
+
+    @classmethod
+    def new(cls, args: argparse.Namespace, nodes: list[str]) -> PendingPasswords:
+        from wsnav.broker.credentials import PASSWORD_FILE, new_password
+
+        folder = args.credentials.parent
+        if not (folder / PASSWORD_FILE).exists():
+            raise CliError(
+                f"--new-password: no {PASSWORD_FILE} beside {args.credentials}: run it where the broker's "
+                "credentials folder is"
+            )
+        return cls(folder, args.mosquitto_config, {n: new_password() for n in nodes})
+
+    def add(self) -> None:
+        """Every node's new password taken by the broker from now on, beside its own."""
+        from wsnav.broker.credentials import add_pending
+        from wsnav.broker.mosquitto.pending import add
+        from wsnav.schemas.credentials import CredentialsError
+
+        try:
+            for node, password in self.new_of.items():
+                add_pending(self.folder, node, password)
+                if self.mosquitto is not None:
+                    add(self.mosquitto, node, password)
+        except CredentialsError as exc:
+            raise CliError(str(exc)) from None
+
+    def settle(self, server: NodeTransfer, spec: SiteFile) -> None:
+        """Confirmed: the new password becomes the node's (`<node>.json`, the password files) and the old one
+        is refused (on Mosquitto after its reload). Gone back or refused before trying it: the pending password
+        is withdrawn. Neither (it may be trying it): both stay accepted, and a line says so."""
+        from wsnav.broker.credentials import promote_pending, withdraw_pending
+        from wsnav.broker.mosquitto.config import rewrite_passwords
+        from wsnav.broker.mosquitto.pending import keep_only, withdraw
+        from wsnav.schemas.credentials import CredentialsError
+
+        promoted = False
+        try:
+            for node, password in self.new_of.items():
+                prog = server.progress[node]
+                if prog.done:
+                    promote_pending(self.folder, node, password)
+                    if self.mosquitto is not None:
+                        keep_only(self.mosquitto, node, password)
+                    promoted = True
+                    when = "once Mosquitto reloads" if self.mosquitto is not None else "from now on"
+                    print(
+                        f"{node}: new MQTT password in {self.folder / (node + '.json')}, the old one refused {when}"
+                    )
+                elif prog.error is not None or not prog.started:
+                    withdraw_pending(self.folder, node, password)
+                    if self.mosquitto is not None:
+                        withdraw(self.mosquitto, node, password)
+                else:
+                    print(
+                        f"{node}: its old and new MQTT passwords both stay accepted (it may be trying the new "
+                        "one): send it a new password again once it is back",
+                        file=sys.stderr,
+                    )
+            if promoted and self.mosquitto is not None:
+                path = rewrite_passwords(spec, self.folder, self.mosquitto)
+                print(
+                    f"wrote {path}: reload Mosquitto (sudo systemctl reload mosquitto) to refuse the old passwords"
+                )
+        except CredentialsError as exc:
+            raise CliError(str(exc)) from None

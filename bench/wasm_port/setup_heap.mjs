@@ -2,7 +2,7 @@
 // as the unix port the tests use), whose objects have the ESP8266's sizes (4-byte pointers, 16-byte GC blocks),
 // where the 64-bit unix port's are larger.
 //
-//     node setup_heap.mjs BUILD_DIR CONFIG_JSON [MANIFEST_JSON | SCRIPT_PY]
+//     node setup_heap.mjs BUILD_DIR CONFIG_JSON [MANIFEST_JSON | SCRIPT_PY [DATA_FILE]]
 //
 // machine, network, socket and select are JavaScript modules: like the board's, which are in ROM, they take
 // (almost) nothing from the heap; each object the firmware keeps from them (a Pin, a WLAN) is one small proxy
@@ -12,12 +12,13 @@
 // imported; largest: the largest free block, which bounds the biggest message the node can still build; with a
 // manifest, update mode's instead, and "setup_free S" before the transfer; with a .py script, that script run
 // from source instead of the sequence below: bench/firmware_heap.py's main.py up to the node's setup), or
-// "error ..." when the node does not set up. The port's heap would grow by itself past 38 KiB; a total other than the first one is reported as
+// "error ..." when the node does not set up. DATA_FILE, with a script: put at /data.bin for it (a sealed
+// configuration, bench/firmware_ota.py). The port's heap would grow by itself past 38 KiB; a total other than the first one is reported as
 // an error, so a number is always what a 38 KiB heap holds.
 import { loadMicroPython } from "@micropython/micropython-webassembly-pyscript/micropython.mjs";
 import fs from "node:fs";
 
-const [buildDir, configPath, manifestPath] = process.argv.slice(2);
+const [buildDir, configPath, manifestPath, dataPath] = process.argv.slice(2);
 let out = "";
 const mp = await loadMicroPython({
   heapsize: 38 * 1024,
@@ -56,6 +57,7 @@ for (const name of fs.readdirSync(buildDir)) {
   if (name.endsWith(".mpy")) mp.FS.writeFile("/lib/" + name, fs.readFileSync(buildDir + "/" + name));
 }
 mp.FS.writeFile("/config.json", fs.readFileSync(configPath));
+if (dataPath) mp.FS.writeFile("/data.bin", fs.readFileSync(dataPath));
 
 mp.runPython(`
 import gc

@@ -13,6 +13,8 @@ A successful verification is remembered as an HMAC under a per-process key, so r
 argon2 cost again; argon2 itself runs in a worker thread so the event loop keeps serving other clients.
 The password file is read again when it changes (`wsnav broker revoke`): a renewed password works at the next
 login and the old one no longer does, without a restart (the broker drops the identity's connections, patch.py).
+A node changing its password (`wsnav firmware config --new-password`) logs in with either its own or a pending one (the
+PENDING_FILE beside the password file, read again when it changes too) until it confirms the new one.
 """
 
 from __future__ import annotations
@@ -29,7 +31,13 @@ from amqtt.plugins.base import BaseAuthPlugin
 from amqtt.session import Session
 
 from wsnav.broker.acl import AclRules
-from wsnav.broker.credentials import file_stamp, read_password_file, verify_password
+from wsnav.broker.credentials import (
+    PENDING_FILE,
+    file_stamp,
+    read_password_file,
+    read_pending_file,
+    verify_password,
+)
 from wsnav.schemas.credentials import CredentialsError
 
 
@@ -49,6 +57,9 @@ class WsnavAuthPlugin(BaseAuthPlugin):
         self._path = Path(config.password_file)
         self._hashes = read_password_file(self._path)
         self._stamp = file_stamp(self._path)
+        self._pending_path = self._path.parent / PENDING_FILE
+        self._pending = read_pending_file(self._pending_path)
+        self._pending_stamp = file_stamp(self._pending_path)
         self._rules = AclRules(publish=config.publish, subscribe={})
         self._reserved = set(config.reserved_client_ids)
         self._key = secrets.token_bytes(32)
@@ -60,8 +71,8 @@ class WsnavAuthPlugin(BaseAuthPlugin):
             self.context.logger.info("refused a client without username")
             return False
         self._reload_if_changed()
-        digest = self._hashes.get(user)
-        if digest is None or not await self._password_ok(user, password, digest):
+        digests = [d for d in [self._hashes.get(user), *self._pending.get(user, [])] if d is not None]
+        if not digests or not await self._password_ok(user, password, digests):
             self.context.logger.info(f"refused {user!r}: unknown user or wrong password")
             return False
         client_id = session.client_id or ""
@@ -78,6 +89,7 @@ class WsnavAuthPlugin(BaseAuthPlugin):
     def _reload_if_changed(self) -> None:
         """A changed file replaces the hashes (and the remembered verifications of users whose hash changed); a
         file that cannot be read keeps the last good hashes, with one line."""
+        self._reload_pending()
         stamp = file_stamp(self._path)
         if stamp == self._stamp:
             return
@@ -92,12 +104,30 @@ class WsnavAuthPlugin(BaseAuthPlugin):
                 del self._verified[user]
         self._hashes = hashes
 
-    async def _password_ok(self, user: str, password: str, digest: str) -> bool:
+    def _reload_pending(self) -> None:
+        """The pending passwords, as `_reload_if_changed` reads the password file; a user whose pending ones
+        changed must pass argon2 again (a withdrawn pending password must not live on in `_verified`)."""
+        stamp = file_stamp(self._pending_path)
+        if stamp == self._pending_stamp:
+            return
+        self._pending_stamp = stamp
+        try:
+            pending = read_pending_file(self._pending_path)
+        except CredentialsError as exc:
+            self.context.logger.error(f"{exc}: keeping the pending passwords read before")
+            return
+        for user in list(self._verified):
+            if pending.get(user) != self._pending.get(user):
+                del self._verified[user]
+        self._pending = pending
+
+    async def _password_ok(self, user: str, password: str, digests: list[str]) -> bool:
         tag = hmac.new(self._key, password.encode(), hashlib.sha256).digest()
         known = self._verified.get(user)
         if known is not None and hmac.compare_digest(known, tag):
             return True
-        ok = await asyncio.to_thread(verify_password, digest, password)
-        if ok:
-            self._verified[user] = tag
-        return ok
+        for digest in digests:
+            if await asyncio.to_thread(verify_password, digest, password):
+                self._verified[user] = tag
+                return True
+        return False

@@ -58,7 +58,7 @@ from wsnav.broker.amqtt.admission import Admission, Ticket
 from wsnav.broker.amqtt.packet_gate import MAX_PACKET_BYTES, PUBLISH, SUBSCRIBE, UNSUBSCRIBE, GateReader
 from wsnav.broker.amqtt.retained_store import RetainedStorePlugin
 from wsnav.broker.amqtt.subscription_index import SubscriptionIndex
-from wsnav.broker.credentials import file_stamp, read_password_file
+from wsnav.broker.credentials import PENDING_FILE, file_stamp, read_password_file, read_pending_file
 from wsnav.broker.identity_limits import IdentityLimits, budget
 from wsnav.runtime.drop_log import DropLog
 from wsnav.schemas import topics
@@ -288,8 +288,18 @@ class WsnavBroker(Broker):
         before the change are closed and its parked sessions dropped (the auth plugin checks new logins against
         the new file)."""
         hashes, stamp = _hashes_or_none(path), file_stamp(path)
+        pending_path = path.parent / PENDING_FILE
+        pending_stamp: tuple[int, int, int] | None = None
+        pending: dict[str, set[str]] = {}
+        """Every pending hash seen (PENDING_FILE): one that becomes a user's own is a confirmed password change
+        (credentials.promote_pending), whose connection logged in with it and stays."""
         while True:
             await asyncio.sleep(every_s)
+            if file_stamp(pending_path) != pending_stamp:
+                pending_stamp = file_stamp(pending_path)
+                with contextlib.suppress(CredentialsError):
+                    for user, digests in read_pending_file(pending_path).items():
+                        pending.setdefault(user, set()).update(digests)
             if file_stamp(path) == stamp:
                 continue
             stamp = file_stamp(path)
@@ -297,7 +307,12 @@ class WsnavBroker(Broker):
             if now is None or hashes is None or stamp is None:
                 hashes = now if now is not None else hashes
                 continue
-            revoked = sorted(user for user in hashes if now.get(user) != hashes[user])
+            promoted = {user for user in hashes if now.get(user) in pending.get(user, ())}
+            for user in promoted:
+                pending.pop(user)
+            revoked = sorted(
+                user for user in hashes if now.get(user) != hashes[user] and user not in promoted
+            )
             hashes = now
             changed_at = stamp[1] / 1e9
             for user in revoked:

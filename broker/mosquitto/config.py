@@ -70,6 +70,8 @@ class MosquittoOptions:
     """wsnav's plugin (`broker/mosquitto/plugin.py` builds it): operator blocks journaled with fdatasync before
     their PUBACK and put back at start, and a full disk or a cut-short store logged as an ERROR within a second.
     None: Mosquitto alone, which loses what it acknowledged in the last 2 s before a power cut."""
+    pending_passwords: bool = False
+    """Build and load the pending-password plugin (pending.py): nodes change their password over the air."""
 
 
 def mosquitto_hash(password: str, salt: bytes | None = None, iterations: int = PBKDF2_ITERATIONS) -> str:
@@ -127,6 +129,10 @@ def conf_text(out: Path, options: MosquittoOptions, site: str) -> str:
             f"plugin_opt_topic_prefix {all_operator_blocks(site).removesuffix('+')}",
             f"plugin_opt_store {options.data_dir / STORE}",
         ]
+    if options.pending_passwords:
+        from wsnav.broker.mosquitto.pending_plugin import conf_lines
+
+        lines += conf_lines(out)
     if options.tls is not None:  # per_listener_settings false: auth, ACL and limits apply here too
         tls_host, tls_port = options.tls.bind
         lines += [
@@ -171,6 +177,12 @@ def write_mosquitto_config(
         out / PASSWORDS: passwords_text(creds),
         out / ACL: acl_text(site_rules(spec)),
     }
+    if options.pending_passwords:
+        from wsnav.broker.mosquitto.pending_plugin import PENDING, build_plugin
+
+        build_plugin(out)
+        pending = out / PENDING  # a rerun keeps the passwords of changes under way
+        files[pending] = pending.read_text() if pending.exists() else ""
     for path, text in files.items():
         write_private(path, text)
     if options.data_dir.exists() and not options.data_dir.is_dir():
