@@ -18,13 +18,14 @@ from pathlib import Path
 
 import pytest
 
-from tests.broker_fixtures import Client, Endpoint, connect_reason, mosquitto_on
+from tests.broker_fixtures import Client, Endpoint, client, connect_reason, mosquitto_on, store_guard_plugin
 from tests.site_fixtures import tiny_site
 from wsnav.broker.amqtt.embedded import BrokerThread
 from wsnav.broker.credentials import add_pending, promote_pending, withdraw_pending, write_credentials
 from wsnav.broker.mosquitto import pending
 from wsnav.broker.mosquitto.config import rewrite_passwords
 from wsnav.broker.mosquitto.pending_plugin import PENDING
+from wsnav.schemas import topics
 from wsnav.schemas.credentials import load_credentials
 from wsnav.schemas.site import load_site
 
@@ -188,3 +189,32 @@ def test_mosquitto_config_builds_and_loads_the_plugin_and_a_rerun_keeps_pending_
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert (out / PENDING).read_text() == line
+
+
+def test_mosquitto_with_both_of_wsnavs_plugins_takes_pending_passwords_and_keeps_blocks_over_a_kill_9(
+    tmp_path: Path,
+) -> None:
+    """The Pi guide's Mosquitto loads both plugins (--store-guard --pending-passwords): each gets its own
+    plugin_opt lines and neither hides the other: a node's pending password is taken, and an operator block
+    acknowledged just before a kill -9 is back after the restart."""
+    site = tiny_site(tmp_path / "site")
+    creds = tmp_path / "creds"
+    write_credentials(load_site(site).spec, creds)
+    conf, data = tmp_path / "mq", tmp_path / "mq-data"
+    guard = store_guard_plugin(tmp_path / "guard")
+    block = topics.operator_block("tiny", "b1")
+
+    def both() -> contextlib.AbstractContextManager[tuple[Endpoint, subprocess.Popen[bytes]]]:
+        return mosquitto_on(site, creds, conf, data, pending_passwords=True, store_guard=guard)
+
+    with both() as (end, proc):
+        add(creds, conf, "n1", NEW)
+        assert takes(end, "n1", NEW)
+        with client(end, "operator", "operator") as operator:
+            operator.publish(block, b'{"block": 1}', retain=True)
+        proc.kill()
+        proc.wait()
+    with both() as (end, _), client(end, "robot1") as robot:
+        assert takes(end, "n1", NEW)
+        assert robot.subscribe("wsn/tiny/operator/blocks/#") == [1]
+        robot.wait_for(block, b'{"block": 1}', timeout=5.0)
