@@ -42,7 +42,7 @@ import tempfile
 from pathlib import Path
 from typing import NoReturn
 
-from bench.benchmarks_md import machine_note, write_section
+from bench.benchmarks_md import commit, machine_note, write_section
 from bench.quick import check_ratio, finish_quick, parse_quick_args, quick_parser
 from wsnav.firmware.build import build, mpy_cross_exe
 from wsnav.firmware.testing import (
@@ -442,7 +442,7 @@ def main() -> None:
         for name, (_u, free32, used64, _l) in through_main.items()
     )
     text = (
-        f"{machine_note()} (heap sizes do not depend on load). Issue 19's floor, on the 32-bit interpreter "
+        f"{machine_note()} at commit {commit()} (heap sizes do not depend on load). Issue 19's floor, on the 32-bit interpreter "
         f"(whose objects have the ESP8266's sizes): at least {SETUP_TARGET} B free after setup with both "
         f"sensors: {'met' if setup_ok else 'NOT MET'}; also with the board's boot taken off at its bound: "
         f"{'met' if boot_ok else 'NOT MET'}; at least {TARGET_FREE} B at the lowest while connected: "
@@ -464,8 +464,9 @@ def main() -> None:
         "450 B), the port's frozen `os` that otaboot imports (about 600 B; on the board `os` is in ROM) and "
         "otaboot's names (interned for good). The largest free "
         "block (`micropython.mem_info`'s max free size, in 16-byte blocks) bounds the biggest single allocation "
-        "the node can still make (a message, a module's bytecode); through main.py it is low because nothing is "
-        "freed until the end of the call, where the board's main.py collects after each step. The port has no "
+        "the node can still make (a message, a module's bytecode); through main.py it is low here because nothing "
+        "is freed until the call ends, so what stays is strewn among the garbage, where the board's main.py "
+        "collects after each step (the sequence's rows, one collection in between, are closer). The port has no "
         "sockets, so the connected row adds what being connected cost in the unix port's long run below "
         f"({connected_cost} B: its lowest less its own start). The board's boot (`_boot.py`) leaves its flash "
         "block device and littlefs mount on the heap, which neither node measurement has; measured apart, "
