@@ -212,11 +212,15 @@ def wasm_setup(node: str, device: Path, config: Path, script: Path | None = None
         raise SystemExit(f"setup_heap.mjs ({config.name}): {(proc.stdout + proc.stderr).strip()[-300:]}")
     result = dict(zip(words[1::2], map(int, words[2::2]), strict=True))
     if "grew" in result:  # the board would have collected there; its largest free block is then a bound
+        GROWN.append(config.name)
         print(
             f"({config.name}: the port added {result['grew']} B of heap inside one call, garbage uncollected)"
         )
     return result
 
+
+GROWN: list[str] = []
+"""The configs of the runs in which the WebAssembly port added heap inside a call (setup_heap.mjs's `grew`)."""
 
 MAIN_LOOP = "        app.main(cfg)\n"
 """The line of main.py that enters the node's loop; `main_to_setup` ends at the setup instead."""
@@ -443,6 +447,7 @@ def main() -> None:
     connected_ok = w_pir["free"] - connected_cost - boot >= TARGET_FREE
     main_ok = min(free32 for _u, free32, _u64, _l in through_main.values()) >= SETUP_TARGET
     main_cost = w_pir["free"] - through_main["PIR"][1]
+    grew_note = f"{len(GROWN)} runs of this one: {', '.join(GROWN)}" if GROWN else "none in this run"
     equivalence = "; ".join(
         f"{name}: {used64} B used on the 64-bit port, {free32} B free on the 32-bit"
         for name, (_u, free32, used64, _l) in through_main.items()
@@ -465,7 +470,7 @@ def main() -> None:
         "with one between them (after the parser is dropped), main.py's path in two as well (main.py compiled "
         "and kept, as the board's running main.py is; then run whole). Inside a call nothing is freed; where the "
         "board would collect (an allocation that does not fit), the port adds heap instead, which the bench "
-        "reports (not in this run), and the figures stay those of a 38 KiB heap. Until this run they were read "
+        f"reports ({grew_note}), and the figures stay those of a 38 KiB heap. Until this run they were read "
         "inside the "
         "call and counted that garbage (main.py's path: 4912 B free for PIR). Through main.py the node has "
         f"{main_cost} B less than the sequence alone (PIR): main.py's own bytecode (kept while it runs, about "
