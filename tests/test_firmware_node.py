@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import itertools
 import json
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -44,7 +46,8 @@ from wsnav.firmware.testing import (
 )
 from wsnav.schemas import topics
 from wsnav.schemas.credentials import NodeConfig, load_credentials
-from wsnav.schemas.messages import NodeCommand, ZoneState
+from wsnav.schemas.messages import MAX_LOG_LINE_CHARS, MAX_LOG_LINES, NodeCommand, NodeLog, ZoneState
+from wsnav.schemas.site import load_site
 from wsnav.zone_sim.firmware_modules import diagnostics
 
 
@@ -535,3 +538,101 @@ def test_a_node_cannot_command_another_node(
     infos = [m for m in subscriber.snapshot()[mark:] if info_of(m) is not None]
     assert len(infos) == 1 and node.proc.poll() is None, node.output()
     assert "restart" not in node.output() and "bad command" not in node.output()
+
+
+RING_DRIVER = r"""
+import app
+import command
+
+
+class Client:
+    def __init__(self):
+        self.sent = []
+
+    def publish(self, topic, payload, retain=False, qos=0):
+        self.sent.append((topic, payload, retain, qos))
+
+
+class Logic:
+    status_topic = "wsn/school/nodes/n1/status"
+
+
+class Node:  # the attributes app.Node.log and command.apply use, nothing else
+    uptime_s = 7
+    command_id = 0
+    bad_commands = 0
+    info_due_ms = 0
+    trial = 1
+
+
+n = Node()
+n.logs = []
+n.client = Client()
+n.logic = Logic()
+for i in range(20):
+    app.Node.log(n, "loop error:", i, 'a "quoted" back\\slash\nnew\tline ' + "x" * 80)
+command.apply(n, b'{"v":1,"id":5,"command":"logs"}', 0)
+topic, payload, retain, qos = n.client.sent[0]
+print(topic, retain, qos, n.bad_commands)
+print(payload)
+"""
+
+
+def test_the_log_ring_keeps_the_last_lines_bounded_and_valid_json(
+    host_build: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """On the MicroPython VM: 20 lines logged, each longer than a line may be and holding a quote, a backslash, a
+    newline and a tab; the `logs` command then publishes the last 8, each cut to 60 characters, as a NodeLog the
+    contract accepts (not retained, QoS 0). A quote left in would make the whole message invalid JSON."""
+    device, stubs = host_build
+    driver = tmp_path / "ring_driver.py"
+    driver.write_text(RING_DRIVER)
+    env = micropython_env(device, stubs, tmp_path)
+    env["MICROPYPATH"] += f":{tmp_path}"
+    proc = subprocess.run(
+        micropython_cmd("ring_driver"),
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    head, payload = proc.stdout.splitlines()[-2:]
+    assert head == f"{topics.node_log(SITE, NODE)} False 0 0", head
+    log = NodeLog.model_validate_json(payload)
+    assert log.node == NODE and len(log.lines) == MAX_LOG_LINES
+    assert all(len(line) <= MAX_LOG_LINE_CHARS for line in log.lines)
+    assert log.lines[0].startswith("7s loop error: 12 a 'quoted' back'slash'new'line xx"), log.lines
+    assert log.lines[-1].startswith("7s loop error: 19 "), log.lines
+
+
+def test_logs_command_and_wsnav_firmware_logs_print_the_nodes_last_lines(
+    broker: SiteBroker, creds: Path, subscriber: Subscriber, start_node, tmp_path: Path
+) -> None:
+    """The node's lines since boot come back on `nodes/<node>/log` (the broker's ACL lets the node write it),
+    and `wsnav firmware logs` prints them; a node that is not running gets one line and exit 1, not a hang."""
+    cfg = node_config(creds, broker, tmp_path / "config.json", heartbeat_s=60)
+    node = start_node(cfg)
+    assert node.wait_output("mqtt up 1", WAIT), node.output()
+    subscriber.wait(is_info())
+    mark = len(subscriber.snapshot())
+    send_command(broker, creds, NODE, command("logs", 31))
+    msg = subscriber.wait(lambda m: m.topic == topics.node_log(SITE, NODE), after=mark)
+    log = NodeLog.model_validate_json(msg.payload)
+    assert not msg.retain and any(line.endswith("s mqtt up 1") for line in log.lines), log
+    cli = [
+        *(sys.executable, "-m", "wsnav.cli", "firmware", "logs"),
+        *("--site", str(SITE_DIR), "--broker", f"{broker.host}:{broker.port}"),
+        *("--credentials", str(creds / "operator.json"), "--timeout", "3"),
+    ]
+    ok = subprocess.run([*cli, "--nodes", NODE], capture_output=True, text=True, timeout=WAIT, check=False)
+    assert ok.returncode == 0 and ok.stderr == "", ok.stdout + ok.stderr
+    assert f"{NODE}: " in ok.stdout and "s mqtt up 1" in ok.stdout, ok.stdout
+    other = next(n.id for n in load_site(SITE_DIR).spec.nodes if n.id != NODE)  # never started here
+    missing = subprocess.run(
+        [*cli, "--nodes", f"{NODE},{other}"], capture_output=True, text=True, timeout=WAIT, check=False
+    )
+    assert missing.returncode == 1 and "s mqtt up 1" in missing.stdout, missing.stdout + missing.stderr
+    assert missing.stderr.strip() == f"{other}: no answer within 3 s (offline? a command is not queued)"
+    assert "Traceback" not in missing.stderr

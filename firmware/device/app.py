@@ -57,6 +57,10 @@ online with two states or heartbeats sent after the first connect's), before it 
 (health.apply): an update is confirmed, the boot-loop count cleared. A first connect proves little: a version whose loop fails 8 s later
 was once confirmed at it, then boot-looped with its backups gone."""
 
+_LOG_LINES = const(8)
+_LOG_CHARS = const(60)
+"""The log ring (`Node.log`): its last 8 lines of at most 60 characters, about 0.7 KB full on the board."""
+
 _OFFLINE = const(0)
 _WIFI_JOINING = const(1)
 _BROKER_WAIT = const(2)
@@ -124,6 +128,23 @@ class Node:
         # (the boot-loop count to clear), 0 once done. Names the firmware already has: on the 64-bit unix port
         # its interned strings sit at the edge of a qstr pool (diagnostics.py).
         self.trial = 2 if "trial" in cfg else 1
+        self.logs = []  # the log ring (log); its name is the `logs` command's (command.py): no qstr of its own
+
+    def log(self, *parts) -> None:
+        """A line of the serial log, also kept in the ring the `logs` command sends (command.py): the last
+        _LOG_LINES, each its uptime and the line, cut to _LOG_CHARS; a quote, backslash, newline or tab becomes
+        "'" (the line goes into JSON as it is). Never raises: with no heap for it the line is only printed."""
+        print(*parts)
+        try:
+            line = ("%ds " % self.uptime_s + " ".join([str(p) for p in parts]))[:_LOG_CHARS]
+            for bad in '"\\\n\r\t':
+                line = line.replace(bad, "'")  # the same str when there is none: no copy
+            logs = self.logs
+            if len(logs) >= _LOG_LINES:
+                logs.pop(0)
+            logs.append(line)
+        except MemoryError:
+            pass
 
     def ticks(self) -> int:
         """The clock's tick count: an int (a small one on the board), whatever type the stubs give it."""
@@ -149,7 +170,7 @@ class Node:
         wifi_up = self.wifi is None or self.wifi.connected()
         self.phase = _BROKER_WAIT if wifi_up else _OFFLINE
         self.next_attempt_ms = ticks_add(now_ms, self.broker_backoff.next_delay_ms())
-        print("mqtt down:", why)
+        self.log("mqtt down:", why)
 
     def _connect_broker(self, now_ms: int) -> None:
         client = self.client
@@ -166,7 +187,7 @@ class Node:
         self.phase = _ONLINE
         self.connects += 1
         self.info_due_ms = now_ms  # diagnostics at once: the next iteration sends them
-        print("mqtt up", self.connects)
+        self.log("mqtt up", self.connects)
 
     def _connection_step(self, now_ms: int) -> None:
         wifi = self.wifi
@@ -189,7 +210,7 @@ class Node:
             elif ticks_diff(now_ms, self.next_attempt_ms) > 0:
                 self.phase = _OFFLINE
                 self.next_attempt_ms = ticks_add(now_ms, self.wifi_backoff.next_delay_ms())
-                print("wifi join timed out")
+                self.log("wifi join timed out")
             return
         # _BROKER_WAIT
         if wifi is not None and not wifi.connected():
@@ -254,7 +275,7 @@ class Node:
                 payload = payload[:-1] + ',"trial":true}'
         except MemoryError:
             self.info_due_ms = ticks_add(now_ms, _INFO_RETRY_MS)
-            print("info: no heap")
+            self.log("info: no heap")
             return
         self.info_due_ms = ticks_add(now_ms, diagnostics.INFO_PERIOD_MS)
         self.client.publish(topic, payload, retain, qos)
@@ -272,10 +293,10 @@ class Node:
             except MemoryError:
                 gc.collect()
                 self.errors += 1
-                print("MemoryError")
+                self.log("MemoryError")
             except Exception as exc:  # a bug must not kill the node silently: count it, let the WDT decide
                 self.errors += 1
-                print("loop error:", exc)
+                self.log("loop error:", exc)
             self.feed()
             clock.sleep_ms(_LOOP_MS)
 
