@@ -58,7 +58,7 @@ def node_command(site: str, node: str) -> str:
 
 
 def node_log(site: str, node: str) -> str:
-    """A node's last log lines (schemas.messages.NodeLog), its answer to a `logs` command: only that node writes it."""
+    """A node's last log lines (schemas.messages.NodeLog), its answer to a `log` command: only that node writes it."""
     _check(site, node)
     return f"{ROOT}/{site}/nodes/{node}/log"
 

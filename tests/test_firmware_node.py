@@ -540,7 +540,12 @@ def test_a_node_cannot_command_another_node(
     assert "restart" not in node.output() and "bad command" not in node.output()
 
 
-RING_DRIVER = r"""
+HOSTILE = 'a "quoted" back\\slash\nnew\tline \x1b[2J ' + "x" * 80
+"""A line as an exception's text may be: a quote, a backslash, a newline, a tab, a terminal's escape, too long."""
+
+RING_DRIVER = (
+    f"HOSTILE = {HOSTILE!r}\n"
+    + r"""
 import app
 import command
 
@@ -566,24 +571,26 @@ class Node:  # the attributes app.Node.log and command.apply use, nothing else
 
 
 n = Node()
-n.logs = []
+n.buffer = []
 n.client = Client()
 n.logic = Logic()
 for i in range(20):
-    app.Node.log(n, "loop error:", i, 'a "quoted" back\\slash\nnew\tline ' + "x" * 80)
-command.apply(n, b'{"v":1,"id":5,"command":"logs"}', 0)
+    app.Node.log(n, "loop error:", i, HOSTILE)
+command.apply(n, b'{"v":1,"id":5,"command":"log"}', 0)
 topic, payload, retain, qos = n.client.sent[0]
 print(topic, retain, qos, n.bad_commands)
 print(payload)
 """
+)
 
 
 def test_the_log_ring_keeps_the_last_lines_bounded_and_valid_json(
     host_build: tuple[Path, Path], tmp_path: Path
 ) -> None:
     """On the MicroPython VM: 20 lines logged, each longer than a line may be and holding a quote, a backslash, a
-    newline and a tab; the `logs` command then publishes the last 8, each cut to 60 characters, as a NodeLog the
-    contract accepts (not retained, QoS 0). A quote left in would make the whole message invalid JSON."""
+    newline, a tab and a terminal escape; the `log` command then publishes the last 8, each cut to 60 characters,
+    as a NodeLog the contract accepts (not retained, QoS 0), every character as it was (a quote left unescaped
+    would make the whole message invalid JSON)."""
     device, stubs = host_build
     driver = tmp_path / "ring_driver.py"
     driver.write_text(RING_DRIVER)
@@ -603,11 +610,12 @@ def test_the_log_ring_keeps_the_last_lines_bounded_and_valid_json(
     log = NodeLog.model_validate_json(payload)
     assert log.node == NODE and len(log.lines) == MAX_LOG_LINES
     assert all(len(line) <= MAX_LOG_LINE_CHARS for line in log.lines)
-    assert log.lines[0].startswith("7s loop error: 12 a 'quoted' back'slash'new'line xx"), log.lines
-    assert log.lines[-1].startswith("7s loop error: 19 "), log.lines
+    assert log.lines == [f"7 loop error: {i} {HOSTILE}"[:MAX_LOG_LINE_CHARS] for i in range(12, 20)], (
+        log.lines
+    )
 
 
-def test_logs_command_and_wsnav_firmware_logs_print_the_nodes_last_lines(
+def test_log_command_and_wsnav_firmware_logs_print_the_nodes_last_lines(
     broker: SiteBroker, creds: Path, subscriber: Subscriber, start_node, tmp_path: Path
 ) -> None:
     """The node's lines since boot come back on `nodes/<node>/log` (the broker's ACL lets the node write it),
@@ -617,10 +625,10 @@ def test_logs_command_and_wsnav_firmware_logs_print_the_nodes_last_lines(
     assert node.wait_output("mqtt up 1", WAIT), node.output()
     subscriber.wait(is_info())
     mark = len(subscriber.snapshot())
-    send_command(broker, creds, NODE, command("logs", 31))
+    send_command(broker, creds, NODE, command("log", 31))
     msg = subscriber.wait(lambda m: m.topic == topics.node_log(SITE, NODE), after=mark)
     log = NodeLog.model_validate_json(msg.payload)
-    assert not msg.retain and any(line.endswith("s mqtt up 1") for line in log.lines), log
+    assert not msg.retain and any(line.endswith(" mqtt up 1") for line in log.lines), log
     cli = [
         *(sys.executable, "-m", "wsnav.cli", "firmware", "logs"),
         *("--site", str(SITE_DIR), "--broker", f"{broker.host}:{broker.port}"),
@@ -628,11 +636,11 @@ def test_logs_command_and_wsnav_firmware_logs_print_the_nodes_last_lines(
     ]
     ok = subprocess.run([*cli, "--nodes", NODE], capture_output=True, text=True, timeout=WAIT, check=False)
     assert ok.returncode == 0 and ok.stderr == "", ok.stdout + ok.stderr
-    assert f"{NODE}: " in ok.stdout and "s mqtt up 1" in ok.stdout, ok.stdout
+    assert f"{NODE}: " in ok.stdout and " mqtt up 1" in ok.stdout, ok.stdout
     other = next(n.id for n in load_site(SITE_DIR).spec.nodes if n.id != NODE)  # never started here
     missing = subprocess.run(
         [*cli, "--nodes", f"{NODE},{other}"], capture_output=True, text=True, timeout=WAIT, check=False
     )
-    assert missing.returncode == 1 and "s mqtt up 1" in missing.stdout, missing.stdout + missing.stderr
+    assert missing.returncode == 1 and " mqtt up 1" in missing.stdout, missing.stdout + missing.stderr
     assert missing.stderr.strip() == f"{other}: no answer within 3 s (offline? a command is not queued)"
     assert "Traceback" not in missing.stderr

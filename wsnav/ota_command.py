@@ -66,7 +66,8 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     c.set_defaults(func=config_command)
 
     g = fw_sub.add_parser(
-        "logs", help="print running nodes' last log lines (each keeps its last 8 and sends them on command)"
+        "logs",
+        help="print running nodes' last log lines (each keeps its last 8 and sends them on a `log` command)",
     )
     operator_arguments(g)
     g.add_argument("--nodes", required=True, metavar="N1,N2", help="the nodes to ask, comma-separated")
@@ -206,9 +207,9 @@ def config_command(args: argparse.Namespace) -> int:
 
 
 def logs_command(args: argparse.Namespace) -> int:
-    """Send each node a `logs` command and print the lines it answers with (schemas.messages.NodeLog), node by
-    node as they come; exit 1 if a node did not answer within --timeout (offline: a command is not queued) or
-    answered with a message the contract refuses (one line saying why)."""
+    """Send each node a `log` command and print the lines it answers with (schemas.messages.NodeLog), node by
+    node as they come, a character a terminal would act on shown escaped; exit 1 if a node did not answer within
+    --timeout (offline: a command is not queued) or answered with a message the contract refuses (one line)."""
     import time
 
     from wsnav.console.operator_commands import CommandError, node_command
@@ -222,14 +223,14 @@ def logs_command(args: argparse.Namespace) -> int:
     failures: list[str] = []
     try:
         try:
-            pubs = {n: node_command(link.site, n, "logs") for n in nodes}
+            pubs = {n: node_command(link.site, n, "log") for n in nodes}
         except CommandError as exc:
             raise CliError(str(exc)) from None
         for n in nodes:
             link.bus.subscribe(topics.node_log(link.site.name, n), qos=0)
         for n, pub in pubs.items():  # subscribed first: the answer comes at once
             if not link.bus.publish_confirmed(pub.topic, pub.payload):
-                failures.append(f"{n}: the broker did not confirm the logs command")
+                failures.append(f"{n}: the broker did not confirm the log command")
                 waiting.discard(n)
         deadline = time.monotonic() + args.timeout
         while waiting and (left := deadline - time.monotonic()) > 0:
@@ -246,7 +247,7 @@ def logs_command(args: argparse.Namespace) -> int:
                     continue
                 print(f"{parsed.node}: {len(answer.lines)} lines")
                 for line in answer.lines:
-                    print(f"  {line}")
+                    print("  " + "".join(c if c.isprintable() else repr(c)[1:-1] for c in line))
     finally:
         link.bus.close()
     failures += [

@@ -59,7 +59,7 @@ was once confirmed at it, then boot-looped with its backups gone."""
 
 _LOG_LINES = const(8)
 _LOG_CHARS = const(60)
-"""The log ring (`Node.log`): its last 8 lines of at most 60 characters, about 0.7 KB full on the board."""
+"""The log ring (`Node.log`): its last 8 lines of at most 60 characters (schemas.messages.NodeLog)."""
 
 _OFFLINE = const(0)
 _WIFI_JOINING = const(1)
@@ -128,21 +128,21 @@ class Node:
         # (the boot-loop count to clear), 0 once done. Names the firmware already has: on the 64-bit unix port
         # its interned strings sit at the edge of a qstr pool (diagnostics.py).
         self.trial = 2 if "trial" in cfg else 1
-        self.logs = []  # the log ring (log); its name is the `logs` command's (command.py): no qstr of its own
+        # The log ring (log, command.py's `log`). Its name, log's, args' and the command's are names MicroPython
+        # already has: on the 64-bit unix port the firmware's own names sit just under a qstr pool's end, and one
+        # more at run time costs the next pool, ~3.5 KB in one block (diagnostics.py).
+        self.buffer = []
 
-    def log(self, *parts) -> None:
-        """A line of the serial log, also kept in the ring the `logs` command sends (command.py): the last
-        _LOG_LINES, each its uptime and the line, cut to _LOG_CHARS; a quote, backslash, newline or tab becomes
-        "'" (the line goes into JSON as it is). Never raises: with no heap for it the line is only printed."""
-        print(*parts)
+    def log(self, *args) -> None:
+        """A line of the serial log, also kept in the ring the `log` command sends (command.py): the last
+        _LOG_LINES, each its uptime in seconds and the line, cut to _LOG_CHARS characters (sent as JSON strings,
+        escaped there). Never raises: with no heap for it the line is only printed."""
+        print(*args)
         try:
-            line = ("%ds " % self.uptime_s + " ".join([str(p) for p in parts]))[:_LOG_CHARS]
-            for bad in '"\\\n\r\t':
-                line = line.replace(bad, "'")  # the same str when there is none: no copy
-            logs = self.logs
-            if len(logs) >= _LOG_LINES:
-                logs.pop(0)
-            logs.append(line)
+            ring = self.buffer
+            if len(ring) >= _LOG_LINES:
+                ring.pop(0)
+            ring.append((str(self.uptime_s) + " " + " ".join([str(a) for a in args]))[:_LOG_CHARS])
         except MemoryError:
             pass
 
