@@ -11,8 +11,9 @@ Baselines in the same run: each bare interpreter's free heap (the ratio is the s
 and on the unix port the firmware of another git revision (`--baseline REF`, default main).
 Writes its section of BENCHMARKS.md unless --no-write. Target (issues 19 and 36): >= 8 KB free after setup, 32-bit,
 both for the sequence alone and through main.py itself (the board's own path).
-`--quick`: the 32-bit rows after setup alone (PIR and HC-SR04), then through main.py, each as the floor over the
-free heap, at most 1.0: any change that takes a node under the 8 KB floor on either path fails; and the tests' heap
+`--quick`: the 32-bit rows after setup alone (PIR and HC-SR04), then through main.py, then that with the node's log
+ring full, each as the floor over the free heap, at most 1.0: any change that takes a node under the 8 KB floor on
+any of them fails; and the tests' heap
 (firmware.testing.HEAP) over the 64-bit heap that corresponds to the board's (`tests_heap`), at most 1.0: the tests
 never get more room than the board has.
 
@@ -244,6 +245,19 @@ def main_to_setup(device: Path, out: Path) -> Path:
     return script
 
 
+RING_FULL = '#---\nfor cfg in range(12):\n    node.log("loop error:", str(cfg) * 80)\n'
+"""After main.py's setup, in a call of its own: the node's log ring filled (app.Node.log: 8 lines kept, each cut to
+60 characters), with names the firmware already has (a new one could cost a qstr pool the board would not pay)."""
+
+
+def ring_full_free(node_exe: str, device: Path, config: Path, tmp: Path) -> int:
+    """Free bytes after main.py's setup with the log ring full, on the 32-bit port (setup_heap.mjs)."""
+    script = main_to_setup(device, tmp / "main-ring")
+    ring = script.with_name("main_ring.py")
+    ring.write_text(script.read_text() + RING_FULL)
+    return wasm_setup(node_exe, device, config, ring)["free"]
+
+
 def main_used_64(device: Path, stubs: Path, script: Path, config: Path, pins: Path) -> int:
     """Bytes in use after main.py's setup on the 64-bit unix port, on a heap large enough for anything (1 MiB);
     the board's filesystem is a folder holding config.json (cwd)."""
@@ -345,6 +359,13 @@ def quick_floor() -> NoReturn:
                 SETUP_TARGET / free32,
                 1.0,
             )
+            ring = ring_full_free(node_exe, device, configs[name], tmp)
+            print(f"{name} through main.py, its log ring full: 32-bit {ring} B free")
+            check_ratio(
+                f"{name}: the {SETUP_TARGET} B floor over the free heap after main.py's setup, log ring full",
+                SETUP_TARGET / ring,
+                1.0,
+            )
         print(
             f"the 64-bit heap that corresponds to the board's 38 KiB: {derived} B (the tests' HEAP: {HEAP})"
         )
@@ -386,6 +407,10 @@ def main() -> None:
         through_main, derived = derive_tests_heap(
             node_exe, device, stubs, {"PIR": tmp / "pir.json", "HC-SR04 (15 samples)": sonar_cfg}, tmp
         )
+        rings = {
+            name: ring_full_free(node_exe, device, cfg, tmp)
+            for name, cfg in (("PIR", tmp / "pir.json"), ("HC-SR04 (15 samples)", sonar_cfg))
+        }
         base_device, base_stubs = build_revision(args.baseline, tmp / "baseline")
         base_pir = setup_free(base_device, base_stubs, tmp / "pir.json", pins)
         base_hcsr04 = setup_free(base_device, base_stubs, sonar_cfg, pins)
@@ -417,6 +442,10 @@ def main() -> None:
                 big,
             )
             for name, (_u, _f, _u64, big) in through_main.items()
+        ),
+        *(
+            (f"{name} node after setup through main.py, its log ring full (8 lines of 60 characters)", free)
+            for name, free in rings.items()
         ),
         ("HC-SR04 node after setup, less the board's boot (bound)", w_sonar["free"] - boot),
         ("PIR node after setup, less the board's boot (bound)", w_pir["free"] - boot),

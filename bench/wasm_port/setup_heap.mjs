@@ -122,10 +122,12 @@ gc.collect()
 const script = manifestPath && manifestPath.endsWith(".py") ? fs.readFileSync(manifestPath, "utf8") : null;
 if (manifestPath && !script) mp.FS.writeFile("/manifest.json", fs.readFileSync(manifestPath));
 // A script (main.py's path) is compiled in a call of its own and kept, then run: on the board main.py's bytecode
-// stays referenced while it runs (app.main never returns), its compiler's temporaries do not.
-if (script) mp.FS.writeFile("/main_setup.py", script);
+// stays referenced while it runs (app.main never returns), its compiler's temporaries do not. What the script has
+// after a "#---" line runs after that, a call each (bench/firmware_heap.py fills the node's log ring so).
+const [mainScript, ...after] = script ? script.split("#---\n") : [""];
+if (script) mp.FS.writeFile("/main_setup.py", mainScript);
 const run = 'with open("/main_setup.py") as f:\n    _main = compile(f.read(), "main.py", "exec")\n#---\nexec(_main)\n';
-const parts = (script ? run : manifestPath ? update : node).split("#---\n");
+const parts = script ? [...run.split("#---\n"), ...after] : (manifestPath ? update : node).split("#---\n");
 const kept = [];
 try {
   for (const part of parts) {
