@@ -20,7 +20,7 @@ never get more room than the board has.
 The WebAssembly port collects only between calls from JavaScript (a gc.collect() inside one call frees nothing:
 bench/wasm_port/setup_heap.mjs), so its figures are read from JavaScript after a collection, and a sequence runs in
 parts where the board collects. Until 2026-11-28 they were read inside the call and counted every byte the setup
-had allocated, garbage included (main.py's path: 4912 B free instead of 17840 B).
+had allocated, garbage included (main.py's path, PIR: 4912 B free instead of 17840 B on the same firmware).
 
 The 64-bit heap that corresponds to the board's 38 KiB (`tests_heap`, what firmware.testing.HEAP is set from):
 main.py run from source up to the node's setup (`main_to_setup`: config parsed, otaboot loaded and dropped, app
