@@ -11,6 +11,7 @@ import itertools
 import json
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -644,3 +645,43 @@ def test_log_command_and_wsnav_firmware_logs_print_the_nodes_last_lines(
     assert missing.returncode == 1 and " mqtt up 1" in missing.stdout, missing.stdout + missing.stderr
     assert missing.stderr.strip() == f"{other}: no answer within 3 s (offline? a command is not queued)"
     assert "Traceback" not in missing.stderr
+
+
+def test_wsnav_firmware_logs_shows_a_nodes_line_escaped_and_refuses_a_bad_message(
+    broker: SiteBroker, creds: Path
+) -> None:
+    """A node's log lines are text from a board anyone could open: a line holding a terminal's escape sequence
+    and a newline is printed escaped, on one line; a message the contract refuses gets one line and exit 1, no
+    traceback. The node here is a paho client with n2's own credentials, answering each command as the firmware
+    does (the broker's ACL is the real one); what it leaves out is the firmware itself (tested above)."""
+    other = next(n.id for n in load_site(SITE_DIR).spec.nodes if n.id != NODE)
+    answers = [
+        NodeLog(node=other, lines=["5 loop error: \x1b[2J\nboom"]).to_payload(),
+        b'{"v":1,"node":"%s","lines":"not a list"}' % other.encode(),
+    ]
+    who = load_credentials(creds / f"{other}.json")
+    fake = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=other)
+    fake.username_pw_set(who.username, who.password)
+    fake.on_message = lambda c, _u, _m: c.publish(topics.node_log(SITE, other), answers.pop(0))
+    subscribed = threading.Event()
+    fake.on_subscribe = lambda *_a: subscribed.set()
+    fake.connect(broker.host, broker.port)
+    fake.loop_start()
+    try:
+        fake.subscribe(topics.node_command(SITE, other), qos=1)
+        assert subscribed.wait(WAIT)
+        cli = [
+            *(sys.executable, "-m", "wsnav.cli", "firmware", "logs", "--nodes", other),
+            *("--site", str(SITE_DIR), "--broker", f"{broker.host}:{broker.port}"),
+            *("--credentials", str(creds / "operator.json"), "--timeout", "20"),
+        ]
+        shown = subprocess.run(cli, capture_output=True, text=True, timeout=WAIT, check=False)
+        assert shown.returncode == 0, shown.stdout + shown.stderr
+        assert shown.stdout == f"{other}: its last log lines (1)\n  5 loop error: \\x1b[2J\\nboom\n", shown.stdout
+        refused = subprocess.run(cli, capture_output=True, text=True, timeout=WAIT, check=False)
+        assert refused.returncode == 1 and refused.stdout == "", refused.stdout
+        assert refused.stderr.startswith(f"{other}: its log message was refused: "), refused.stderr
+        assert refused.stderr.count("\n") == 1 and "Traceback" not in refused.stderr, refused.stderr
+    finally:
+        fake.loop_stop()
+        fake.disconnect()

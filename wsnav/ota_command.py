@@ -245,7 +245,7 @@ def logs_command(args: argparse.Namespace) -> int:
                 except PayloadError as exc:
                     failures.append(f"{parsed.node}: its log message was refused: {exc}")
                     continue
-                print(f"{parsed.node}: {len(answer.lines)} lines")
+                print(f"{parsed.node}: its last log lines ({len(answer.lines)})")
                 for line in answer.lines:
                     print("  " + "".join(c if c.isprintable() else repr(c)[1:-1] for c in line))
     finally:
