@@ -662,7 +662,11 @@ def test_wsnav_firmware_logs_shows_a_nodes_line_escaped_and_refuses_a_bad_messag
     who = load_credentials(creds / f"{other}.json")
     fake = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=other)
     fake.username_pw_set(who.username, who.password)
-    fake.on_message = lambda c, _u, _m: c.publish(topics.node_log(SITE, other), answers.pop(0))
+
+    def answer(c: mqtt.Client, _u: object, _m: mqtt.MQTTMessage) -> None:
+        c.publish(topics.node_log(SITE, other), answers.pop(0))
+
+    fake.on_message = answer
     subscribed = threading.Event()
     fake.on_subscribe = lambda *_a: subscribed.set()
     fake.connect(broker.host, broker.port)
@@ -677,7 +681,9 @@ def test_wsnav_firmware_logs_shows_a_nodes_line_escaped_and_refuses_a_bad_messag
         ]
         shown = subprocess.run(cli, capture_output=True, text=True, timeout=WAIT, check=False)
         assert shown.returncode == 0, shown.stdout + shown.stderr
-        assert shown.stdout == f"{other}: its last log lines (1)\n  5 loop error: \\x1b[2J\\nboom\n", shown.stdout
+        assert shown.stdout == f"{other}: its last log lines (1)\n  5 loop error: \\x1b[2J\\nboom\n", (
+            shown.stdout
+        )
         refused = subprocess.run(cli, capture_output=True, text=True, timeout=WAIT, check=False)
         assert refused.returncode == 1 and refused.stdout == "", refused.stdout
         assert refused.stderr.startswith(f"{other}: its log message was refused: "), refused.stderr
