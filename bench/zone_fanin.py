@@ -489,6 +489,11 @@ def main(argv: list[str] | None = None) -> int:
         help="passed to `wsnav broker run --gc-freeze` (0: the collector untouched; default: the broker's)",
     )
     parser.add_argument(
+        "--amqtt-gc-refresh",
+        help="passed to `wsnav broker run --gc-refresh` (seconds; short, to see whether a refresh stalls the "
+        "window; default: the broker's)",
+    )
+    parser.add_argument(
         "--profile", type=Path, help="py-spy every process over each window into this folder, and summarise"
     )
     parser.add_argument(
@@ -511,7 +516,9 @@ def main(argv: list[str] | None = None) -> int:
         return exit_code
     if args.quick:
         return quick(args.broker_cpus or None, args.broker_nice)
-    amqtt_args = None if args.amqtt_gc_freeze is None else ["--gc-freeze", args.amqtt_gc_freeze]
+    amqtt_args = [] if args.amqtt_gc_freeze is None else ["--gc-freeze", args.amqtt_gc_freeze]
+    if args.amqtt_gc_refresh is not None:
+        amqtt_args += ["--gc-refresh", args.amqtt_gc_refresh]
     brokers = list(BROKERS) if args.broker == "both" else [args.broker]
     counts = [args.nodes] if args.nodes else list(CURVE_NODES)
     cpus = args.broker_cpus or None

@@ -148,6 +148,14 @@ class NodeTransfer:
         self.nodes = nodes
         self.say = say
         self.progress = {n: NodeProgress(n) for n in nodes}
+        self.followers: list[MqttBus] = []
+        """Other brokers' connections where the nodes may come back (a configuration moving them there)."""
+
+    def follow_on(self, bus: MqttBus) -> None:
+        """Also follow the nodes' `info` on `bus`: a node sent to another broker confirms there, not here."""
+        for n in self.nodes:
+            bus.subscribe(topics.node_info(self.site, n), qos=0)
+        self.followers.append(bus)
 
     def payloads(self, node: str) -> list[bytes]:
         """What `node` fetches: index 0 first (a manifest, a sealed configuration), then any files."""
@@ -165,13 +173,13 @@ class NodeTransfer:
     def pending(self) -> list[NodeProgress]:
         return [p for p in self.progress.values() if not p.done and p.error is None]
 
-    def handle(self, msg: Message) -> None:
+    def handle(self, msg: Message, *, infos_only: bool = False) -> None:
         """One message from a node: a request is answered, an info may end its update."""
         parsed = topics.parse(msg.topic)
         if parsed is None or parsed.node not in self.progress:
             return
         prog = self.progress[parsed.node]
-        if parsed.kind == "node_ota_request":
+        if parsed.kind == "node_ota_request" and not infos_only:
             self._serve(prog, msg.payload)
         elif parsed.kind == "node_info" and not msg.retain and not prog.done:
             self._info(prog, msg.payload)
@@ -212,9 +220,12 @@ class NodeTransfer:
         """Serve until every node is done or failed, or `timeout_s`; the failures, one line each."""
         deadline = time.monotonic() + timeout_s
         while self.pending() and time.monotonic() < deadline:
-            if self.bus.wait(min(0.5, max(0.0, deadline - time.monotonic()))):
+            if self.bus.wait(min(0.25 if self.followers else 0.5, max(0.0, deadline - time.monotonic()))):
                 for msg in self.bus.poll():
                     self.handle(msg)
+            for follower in self.followers:
+                for msg in follower.poll():
+                    self.handle(msg, infos_only=True)  # chunks are served where they were asked for
         failures = [p.error for p in self.progress.values() if p.error is not None]
         for p in self.pending():
             where = (

@@ -24,9 +24,10 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.reasoncodes import ReasonCode
 
-from tests.conftest import require_tool
+from tests.conftest import require_tool, unavailable
 from wsnav.broker.amqtt.retained_store import read_retained
 from wsnav.broker.mosquitto.config import CONF, MosquittoOptions, write_mosquitto_config
+from wsnav.broker.mosquitto.plugin import PluginBuildError, build_plugin
 from wsnav.broker.mosquitto.process import free_port
 from wsnav.schemas.credentials import load_credentials
 from wsnav.schemas.site import load_site
@@ -231,16 +232,19 @@ def wait_stored(data: Path, expected: dict[str, bytes]) -> None:
 
 @contextlib.contextmanager
 def mosquitto_on(
-    site: Path, creds: Path, conf: Path, data: Path, **options: Any
+    site: Path, creds: Path, conf: Path, data: Path, *, log: Path | None = None, **options: Any
 ) -> Iterator[tuple[Endpoint, subprocess.Popen[bytes]]]:
     """Mosquitto from the generated config (`options` for MosquittoOptions: its defaults, a save every 2 s, unless
-    given), its store in `data`; stopped cleanly (SIGTERM: it saves once more) unless the test killed it."""
+    given), its store in `data`, its log appended to `log` (else dropped); stopped cleanly (SIGTERM: it saves
+    once more) unless the test killed it."""
     mosquitto = require_tool("mosquitto")
     port = free_port()
     user = "root" if os.geteuid() == 0 else None
     settings = MosquittoOptions(**{"bind": ("127.0.0.1", port), "data_dir": data, "user": user, **options})
     write_mosquitto_config(load_site(site).spec, creds, conf, settings)
-    proc = subprocess.Popen([mosquitto, "-c", str(conf / CONF)], stderr=subprocess.DEVNULL)
+    with contextlib.ExitStack() as files:
+        stderr = files.enter_context(log.open("ab")) if log is not None else subprocess.DEVNULL
+        proc = subprocess.Popen([mosquitto, "-c", str(conf / CONF)], stderr=stderr)
     try:
         wait_listening("127.0.0.1", port, proc)
         yield Endpoint("mosquitto", "127.0.0.1", port, creds), proc
@@ -248,3 +252,12 @@ def mosquitto_on(
         if proc.poll() is None:
             proc.terminate()
             assert proc.wait(30) == 0
+
+
+def store_guard_plugin(out: Path) -> Path:
+    """wsnav's Mosquitto plugin built from the repo's source into `out` (skips without a compiler or Debian's
+    mosquitto-dev, fails so under WSNAV_REQUIRE_TOOLS=1)."""
+    try:
+        return build_plugin(out)
+    except PluginBuildError as exc:
+        unavailable(str(exc))

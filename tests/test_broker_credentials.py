@@ -15,7 +15,7 @@ import paho.mqtt.client as mqtt
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
-from tests.broker_fixtures import wait_listening
+from tests.broker_fixtures import store_guard_plugin, wait_listening
 from tests.conftest import require_tool
 from tests.site_fixtures import tiny_site
 from wsnav.broker.credentials import (
@@ -32,7 +32,9 @@ from wsnav.broker.mosquitto.config import (
     mosquitto_hash,
     write_mosquitto_config,
 )
+from wsnav.broker.mosquitto.plugin import JOURNAL, PLUGIN
 from wsnav.broker.mosquitto.process import free_port
+from wsnav.broker.mosquitto.store import STORE
 from wsnav.schemas.credentials import (
     OPERATOR_TOOLS,
     UPDATE_KEY_FILE,
@@ -209,6 +211,44 @@ def test_mosquitto_config_files(tmp_path: Path) -> None:
     users = [line.split(":")[0] for line in (out / PASSWORDS).read_text().splitlines()]
     assert sorted(users) == sorted(["dashboard", "n1", "n2", "robot1", *operator_logins("operator")])
     assert all(mode(p) == 0o600 for p in out.iterdir())
+
+
+def test_mosquitto_config_store_guard_builds_the_plugin_from_the_repo_and_loads_it(tmp_path: Path) -> None:
+    """`--store-guard` compiles wsnav's plugin here (nothing prebuilt ships) and the config loads it, journaling
+    this site's operator blocks beside the store (tests/test_broker_process.py and test_broker_storage.py run it)."""
+    site = tiny_site(tmp_path / "site")
+    creds, out, data = tmp_path / "creds", tmp_path / "mosq", tmp_path / "data"
+    assert wsnav("broker", "credentials", "--site", site, "--out", creds).returncode == 0
+    store_guard_plugin(
+        tmp_path / "probe"
+    )  # skips (fails under WSNAV_REQUIRE_TOOLS=1) without gcc/mosquitto-dev
+    args = (
+        "broker",
+        "mosquitto-config",
+        "--site",
+        site,
+        "--credentials",
+        creds,
+        "--out",
+        out,
+        "--data",
+        data,
+    )
+    result = wsnav(*args, "--store-guard")
+    assert result.returncode == 0, result.stderr
+    conf = (out / CONF).read_text().splitlines()
+    for line in (
+        f"plugin {out.resolve() / PLUGIN}",
+        f"plugin_opt_journal {data.resolve() / JOURNAL}",
+        "plugin_opt_topic_prefix wsn/tiny/operator/blocks/",
+        f"plugin_opt_store {data.resolve() / STORE}",
+    ):
+        assert line in conf
+    assert (out / PLUGIN).is_file() and f"built {out.resolve() / PLUGIN}" in result.stdout
+    plain = wsnav(*args)
+    assert plain.returncode == 0 and not [
+        line for line in (out / CONF).read_text().splitlines() if "plugin" in line
+    ]
 
 
 def test_mosquitto_config_creates_the_persistence_folder_for_the_brokers_user(tmp_path: Path) -> None:

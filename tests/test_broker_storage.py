@@ -15,7 +15,15 @@ from pathlib import Path
 
 import pytest
 
-from tests.broker_fixtures import TIMEOUT, Endpoint, client, mosquitto_on, wait_stored, wsnav
+from tests.broker_fixtures import (
+    TIMEOUT,
+    Endpoint,
+    client,
+    mosquitto_on,
+    store_guard_plugin,
+    wait_stored,
+    wsnav,
+)
 from tests.conftest import unavailable
 from tests.site_fixtures import tiny_site
 from wsnav.broker.amqtt.embedded import BrokerProcess
@@ -228,6 +236,67 @@ def test_mosquitto_full_disk_is_reported_at_once_and_the_last_whole_store_comes_
         with mosquitto_on(site, creds, tmp_path / "mq", data) as (mq, _), client(mq, "robot1") as robot:
             assert robot.subscribe(block) == [1]
             assert robot.wait_for(block).payload == b'{"marker": "block"}'
+
+
+def test_mosquitto_with_wsnavs_plugin_logs_a_full_disk_within_a_save_interval_and_keeps_the_last_whole_store(
+    setup: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """Mosquitto 2.0.11 logs nothing when a full disk cuts its store short; with wsnav's plugin its own log says
+    so within one save interval (2 s), before and after the save, and says which block a full disk kept out of
+    the journal (a block journaled after the last whole save comes back with it); the plugin keeps the last whole store for `wsnav broker mosquitto-restore` by itself (no
+    healthcheck runs here). A real 512 KiB tmpfs; the log is on another disk."""
+    site, creds = setup
+    block, late_block, big_block = (topics.operator_block(SITE, b) for b in ("b1", "b2", "b3"))
+    log = tmp_path / "mosquitto.log"
+    plugin = store_guard_plugin(tmp_path / "plugin")
+    with tiny_tmpfs(tmp_path / "disk", "512k") as disk:
+        data = disk / "data"
+        with (
+            mosquitto_on(site, creds, tmp_path / "mq", data, log=log, store_guard=plugin) as (mq, _),
+            client(mq, "operator", "operator") as operator,
+            client(mq, "n1") as node,
+        ):
+            operator.publish(block, b'{"marker": "block"}', retain=True)
+            node.publish(STATE, b"blocked", retain=True)
+            deadline = time.monotonic() + TIMEOUT
+            while check_store(data / f"{STORE}.good").retained < 2:
+                assert time.monotonic() < deadline, check_store(data / f"{STORE}.good")
+                time.sleep(0.1)
+            filler = fill(disk)
+            full_at = time.monotonic()
+            line = wait_log(log, "is full")
+            assert time.monotonic() - full_at < 2.5, "not within one save interval"
+            assert "ERROR" in line and "bytes free" in line, line
+            node.publish(STATE, b"clear", retain=True)
+            line = wait_log(log, "a restart would lose every retained message")
+            assert "ERROR" in line and f"{STORE}.good" in line, line
+            operator.publish(late_block, b'{"marker": "late"}', retain=True)  # fits the journal's last page
+            operator.publish(big_block, b"x" * 8000, retain=True)  # does not: in force, and said so
+            line = wait_log(log, "NOT journaled")
+            assert big_block in line and "will not survive a power cut" in line, line
+        assert check_store(data / STORE).problem is not None  # the clean stop's save was cut short too
+        assert check_store(data / f"{STORE}.good").retained == 2
+        filler.unlink()
+        restored = wsnav("broker", "mosquitto-restore", "--data", data)
+        assert restored.returncode == 0 and "restored the last whole store" in restored.stderr, restored
+        with (
+            mosquitto_on(site, creds, tmp_path / "mq", data, store_guard=plugin) as (mq, _),
+            client(mq, "robot1") as robot,
+        ):
+            assert robot.subscribe(topics.all_operator_blocks(SITE)) == [1]
+            assert robot.wait_for(block).payload == b'{"marker": "block"}'
+            assert robot.wait_for(late_block).payload == b'{"marker": "late"}'  # from the journal
+
+
+def wait_log(log: Path, needle: str) -> str:
+    """The first line of Mosquitto's log holding `needle`, waiting for it up to TIMEOUT."""
+    deadline = time.monotonic() + TIMEOUT
+    while time.monotonic() < deadline:
+        for line in log.read_text(errors="replace").splitlines():
+            if needle in line:
+                return line
+        time.sleep(0.05)
+    raise AssertionError(f"no line with {needle!r} in Mosquitto's log: {log.read_text(errors='replace')}")
 
 
 def mosquitto_store(retained: int) -> bytes:

@@ -220,12 +220,14 @@ def ota_cli(fw: dict[str, Path], creds: Path, broker: SiteBroker, version: str, 
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def config_cli(creds: Path, broker: SiteBroker, stdin: str) -> subprocess.CompletedProcess[str]:
-    """`wsnav firmware config --wifi` as an operator runs it, the SSID and key on stdin."""
+def config_cli(creds: Path, broker: SiteBroker, stdin: str, *change: str) -> subprocess.CompletedProcess[str]:
+    """`wsnav firmware config` as an operator runs it: `--wifi` (the SSID and key on stdin) unless `change` says
+    what changes."""
     cmd = [
         *(sys.executable, "-m", "wsnav.cli", "firmware", "config"),
         *("--site", str(SITE_DIR), "--broker", f"{broker.host}:{broker.port}"),
-        *("--credentials", str(creds / "operator.json"), "--nodes", NODE, "--wifi", "--timeout", str(WAIT)),
+        *("--credentials", str(creds / "operator.json"), "--nodes", NODE, "--timeout", str(WAIT)),
+        *(change or ("--wifi",)),
     ]
     return subprocess.run(cmd, input=stdin, capture_output=True, text=True, timeout=WAIT * 2)
 
@@ -620,3 +622,24 @@ def test_a_wrong_wifi_key_sent_over_the_air_is_rolled_back(fw, creds, broker, in
     assert (board.fs / "config.json").read_bytes() == before
     assert not (board.fs / "config.json.bak").exists()
     assert infos.wait(lambda i: i.error == "config: rolled back").fw == QUICK
+
+
+def test_a_node_moved_to_another_broker_is_followed_there(
+    fw, creds, broker, infos, board_of, tmp_path
+) -> None:
+    """`--node-broker` naming another broker (the site's new Pi, same credentials): the node fetches its settings
+    here, comes back on trial there and confirms there; the command follows it there and exits 0."""
+    board = board_of(QUICK, NETWORKS)
+    infos.wait(lambda i: i.fw == QUICK)
+    new_pi = SiteBroker(SITE_DIR, creds, tmp_path / "new-pi-data")
+    new_pi.start()
+    try:
+        there = Infos(new_pi, creds)
+        proc = config_cli(creds, broker, "", "--node-broker", f"{new_pi.host}:{new_pi.port}")
+        assert proc.returncode == 0, (proc.stdout, proc.stderr, board.serial()[-3000:])
+        assert f"{NODE}: new configuration confirmed" in proc.stdout
+        assert there.wait(lambda i: i.fw == QUICK and not i.trial).error is None
+        there.close()
+    finally:
+        new_pi.kill()
+    assert json.loads((board.fs / "config.json").read_text())["broker"]["port"] == new_pi.port

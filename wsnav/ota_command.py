@@ -170,6 +170,24 @@ def ota_command(args: argparse.Namespace) -> int:
     return 1 if failures else 0
 
 
+def _follow_on_new_broker(args: argparse.Namespace) -> OperatorLink | None:
+    """The operator's login on --node-broker too, when it is another address: a node moved there confirms
+    there. None (and one line saying so) when it cannot be reached from here with these credentials."""
+    from wsnav.console.operator_link import connect
+
+    if args.node_broker is None or tuple(args.node_broker) == tuple(args.broker):
+        return None
+    try:
+        return connect(argparse.Namespace(**{**vars(args), "broker": args.node_broker}), "config")
+    except CliError as exc:
+        host, port = args.node_broker
+        print(
+            f"cannot follow the nodes on {host}:{port} ({exc}): a node that moves there is reported as not "
+            "confirmed here; check it there with wsnav status"
+        )
+        return None
+
+
 def config_command(args: argparse.Namespace) -> int:
     """Seal the settings for each node (its own key), send its `config`, serve them, wait until each has kept
     them or gone back (firmware/ota_config.py); exit 1 naming every node that did not keep them."""
@@ -195,11 +213,16 @@ def config_command(args: argparse.Namespace) -> int:
     changed = " and ".join(k for k, v in (("Wi-Fi", wifi), ("broker", args.node_broker)) if v is not None)
     print(f"configuration: new {changed} for {len(nodes)} node(s)")
     link = connect(args, "config")
+    new_broker = _follow_on_new_broker(args)
     try:
         server = ConfigServer(link.bus, link.site.name, sealed)
+        if new_broker is not None:
+            server.follow_on(new_broker.bus)
         failures = _send_and_follow(args, link, server, signatures, "config")
     finally:
         link.bus.close()
+        if new_broker is not None:
+            new_broker.bus.close()
     for line in failures:
         print(line, file=sys.stderr)
     print(f"{len(nodes) - len(failures)} of {len(nodes)} nodes kept the new configuration")

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from wsnav.broker.acl import site_rules
+from wsnav.broker.amqtt.gc_pacing import REFRESH_EVERY_S
 from wsnav.broker.credentials import PASSWORD_FILE, site_ids
 from wsnav.broker.identity_limits import MAX_PACKET_BYTES, IdentityLimits
 from wsnav.schemas.site_file import SiteFile
@@ -46,6 +47,9 @@ class BrokerOptions:
     gc_freeze_s: float = 0.0
     """How often every object alive is frozen out of garbage collections (wsnav.broker.amqtt.gc_pacing); 0: never. The
     collector is the whole process's: `wsnav broker run` turns it on, a broker embedded in another program not."""
+    gc_refresh_s: float = REFRESH_EVERY_S
+    """How often, while freezing, one full collection reclaims frozen garbage, if a connection ended since the
+    last one (a steady site never needs it; wsnav.broker.amqtt.gc_pacing)."""
     limits: IdentityLimits = field(default_factory=IdentityLimits)
     """Subscriptions, parked sessions and a node's publish rate per identity (wsnav.broker.identity_limits)."""
 

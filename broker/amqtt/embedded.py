@@ -305,13 +305,14 @@ class BrokerProcess:
 
     def terminate(self, timeout_s: float = 30.0) -> int:
         """SIGTERM and wait: the clean shutdown path."""
-        return self._signal(signal.SIGTERM, timeout_s)
+        return self.stop_with(signal.SIGTERM, timeout_s)
 
     def kill(self, timeout_s: float = 30.0) -> int:
         """SIGKILL (kill -9) and wait: the crash path."""
-        return self._signal(signal.SIGKILL, timeout_s)
+        return self.stop_with(signal.SIGKILL, timeout_s)
 
-    def _signal(self, sig: signal.Signals, timeout_s: float) -> int:
+    def stop_with(self, sig: signal.Signals, timeout_s: float = 30.0) -> int:
+        """Send `sig`, wait for the exit and for the output's last line (read by the pump threads)."""
         if self.proc is None:
             return 0
         if self.proc.poll() is None:

@@ -242,6 +242,8 @@ class WsnavBroker(Broker):
         self._subscription_count: dict[str | None, int] = {}
         self.refused_subscriptions = 0
         self.dropped_sessions = 0
+        self.connections_ended = 0
+        """Each one leaves cyclic garbage (its session, handler, streams) for gc_pacing's refresh."""
         self._last_limit_report = 0.0
         self._password_file = password_file
         self._watch: asyncio.Task[None] | None = None
@@ -363,6 +365,7 @@ class WsnavBroker(Broker):
             await self._client_connected(listener_name, gate, writer)
         finally:
             self.admission.release(ticket)
+            self.connections_ended += 1
             abort()  # a no-op after a clean close; frees the descriptor of every other ending (CLOSE-WAIT)
 
     async def _initialize_client_session(

@@ -125,7 +125,13 @@ async def serve(
         if loop.get_exception_handler() is None:
             loop.set_exception_handler(partial(_loop_exception, running.broker.admission))
         pacer = (
-            asyncio.create_task(pace_collections(options.gc_freeze_s)) if options.gc_freeze_s > 0 else None
+            asyncio.create_task(
+                pace_collections(
+                    options.gc_freeze_s, options.gc_refresh_s, ended=lambda: running.broker.connections_ended
+                )
+            )
+            if options.gc_freeze_s > 0
+            else None
         )
         try:
             on_ready(running)
