@@ -1,7 +1,7 @@
 """The site's topic access rules, derived once from the site file and enforced by amqtt and Mosquitto alike.
 
 - a node publishes only `zones/<its zone>/state/<itself>`, `nodes/<itself>/status`, `nodes/<itself>/info`
-  (its diagnostics) and `nodes/<itself>/ota/request` (update mode asks for chunks), may read back the first two
+  (its diagnostics), `nodes/<itself>/log` (its last log lines, on command) and `nodes/<itself>/ota/request` (update mode asks for chunks), may read back the first two
   (e.g. to resume its `seq` after a reboot), and reads its own `nodes/<itself>/command` and
   `nodes/<itself>/ota/chunk`, which only the operator writes (a node cannot command or update another);
 - a robot reads zones, nodes, operator topics, robots' statuses, its goal and the simulated world, and publishes
@@ -57,7 +57,12 @@ def site_rules(spec: SiteFile) -> AclRules:
     subscribe: dict[str, list[str]] = {}
     for node in spec.nodes:
         own = [topics.zone_state(site, node.zone, node.id), topics.node_status(site, node.id)]
-        publish[node.id] = [*own, topics.node_info(site, node.id), topics.node_ota_request(site, node.id)]
+        publish[node.id] = [
+            *own,
+            topics.node_info(site, node.id),
+            topics.node_log(site, node.id),
+            topics.node_ota_request(site, node.id),
+        ]
         subscribe[node.id] = [*own, topics.node_command(site, node.id), topics.node_ota_chunk(site, node.id)]
     for robot in spec.robots:
         publish[robot.id] = [topics.robot_status(site, robot.id)]

@@ -24,7 +24,7 @@ REPL_ONLY = ("maintenance.py",)
 """Sent to the board's REPL by `wsnav firmware deploy`, never built or copied (firmware/deploy.py)."""
 SIZE_TARGET = 40 * 1024
 MPY_CROSS_FLAGS = ("-O3",)
-"""-O3 leaves the line-number tables out of the bytecode: about 1 KB more free heap after setup on the 38 KiB
+"""-O3 leaves the line-number tables out of the bytecode: about 0.6 KB more free heap after setup on the 38 KiB
 heap (bench.firmware_heap). The board prints an error's message, not a traceback, so nobody reads those line
 numbers; -O3 also drops asserts, and the firmware has none (the host test drivers, which do, are built without)."""
 

@@ -132,7 +132,25 @@ class NodeInfo(_Message):
     gone from the next `info`) once the node has run healthy for a while, connected, sending states."""
 
 
-NodeCommandName = Literal["restart", "send_info", "set_heartbeat", "update", "config"]
+MAX_LOG_LINES = 8
+MAX_LOG_LINE_CHARS = 60
+"""A node's log ring (firmware/device/app.py, `Node.log`): its last lines, each cut to this many characters
+(its uptime first): bounded bytes on the node's heap. A line may hold any character (an exception's text):
+whoever shows one escapes what a terminal or a page would act on."""
+
+
+class NodeLog(_Message):
+    """`nodes/<node>/log`: a node's last log lines, oldest first, each `<uptime_s> <line>`; its answer to the
+    operator's `log` command (`wsnav firmware logs`). QoS 0, never retained: asked for, not state."""
+
+    node: Id
+    lines: Annotated[
+        list[Annotated[str, Field(max_length=MAX_LOG_LINE_CHARS)]],
+        Field(max_length=MAX_LOG_LINES),
+    ]
+
+
+NodeCommandName = Literal["restart", "send_info", "set_heartbeat", "update", "config", "log"]
 Sha256Hex = Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]
 MAX_COMMAND_ID = 2**30 - 1
 """Command ids stay below 2**30: a small int (no heap) on the ESP8266, as ZoneState's seq on the node."""
@@ -148,7 +166,8 @@ class NodeCommand(_Message):
     (schemas.credentials.sign_manifest) is `manifest`, then its files
     (over-the-air update, docs/firmware-esp8266.md); `config`: the same way, it fetches a sealed configuration
     (schemas.credentials.seal_config: new Wi-Fi, broker address) whose HMAC is `manifest`, then tries it as a
-    trial and goes back to its old one if it cannot get online with it. `id` is the sender's, random per command: the node applies a
+    trial and goes back to its old one if it cannot get online with it; `log`: it publishes its last log lines
+    (NodeLog). `id` is the sender's, random per command: the node applies a
     command once even if QoS 1 delivers it again. The whole payload stays under 128 bytes, what the node's MQTT
     client hands over (an `update` takes 120 at most)."""
 
@@ -340,6 +359,7 @@ MESSAGE_MODELS: dict[str, type[_Message]] = {
     "node_status": NodeStatus,
     "node_info": NodeInfo,
     "node_command": NodeCommand,
+    "node_log": NodeLog,
     "ota_manifest": OtaManifest,
     "ota_request": OtaRequest,
     "robot_status": RobotStatus,

@@ -19,6 +19,7 @@ TopicKind = Literal[
     "node_status",
     "node_info",
     "node_command",
+    "node_log",
     "node_ota_request",
     "node_ota_chunk",
     "robot_status",
@@ -54,6 +55,12 @@ def node_command(site: str, node: str) -> str:
     """The operator's commands to one node (schemas.messages.NodeCommand): QoS 1, never retained."""
     _check(site, node)
     return f"{ROOT}/{site}/nodes/{node}/command"
+
+
+def node_log(site: str, node: str) -> str:
+    """A node's last log lines (schemas.messages.NodeLog), its answer to a `log` command: only that node writes it."""
+    _check(site, node)
+    return f"{ROOT}/{site}/nodes/{node}/log"
 
 
 def node_ota_request(site: str, node: str) -> str:
@@ -151,6 +158,8 @@ def parse(topic: str) -> Topic | None:
             return Topic("node_info", site, node=node)
         case ["nodes", node, "command"]:
             return Topic("node_command", site, node=node)
+        case ["nodes", node, "log"]:
+            return Topic("node_log", site, node=node)
         case ["nodes", node, "ota", "request"]:
             return Topic("node_ota_request", site, node=node)
         case ["nodes", node, "ota", "chunk"]:

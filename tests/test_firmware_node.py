@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import itertools
 import json
+import subprocess
+import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -44,7 +47,8 @@ from wsnav.firmware.testing import (
 )
 from wsnav.schemas import topics
 from wsnav.schemas.credentials import NodeConfig, load_credentials
-from wsnav.schemas.messages import NodeCommand, ZoneState
+from wsnav.schemas.messages import MAX_LOG_LINE_CHARS, MAX_LOG_LINES, NodeCommand, NodeLog, ZoneState
+from wsnav.schemas.site import load_site
 from wsnav.zone_sim.firmware_modules import diagnostics
 
 
@@ -535,3 +539,155 @@ def test_a_node_cannot_command_another_node(
     infos = [m for m in subscriber.snapshot()[mark:] if info_of(m) is not None]
     assert len(infos) == 1 and node.proc.poll() is None, node.output()
     assert "restart" not in node.output() and "bad command" not in node.output()
+
+
+HOSTILE = 'a "quoted" back\\slash\nnew\tline \x1b[2J ' + "x" * 80
+"""A line as an exception's text may be: a quote, a backslash, a newline, a tab, a terminal's escape, too long."""
+
+RING_DRIVER = (
+    f"HOSTILE = {HOSTILE!r}\n"
+    + r"""
+import app
+import command
+
+
+class Client:
+    def __init__(self):
+        self.sent = []
+
+    def publish(self, topic, payload, retain=False, qos=0):
+        self.sent.append((topic, payload, retain, qos))
+
+
+class Logic:
+    status_topic = "wsn/school/nodes/n1/status"
+
+
+class Node:  # the attributes app.Node.log and command.apply use, nothing else
+    uptime_s = 7
+    command_id = 0
+    bad_commands = 0
+    info_due_ms = 0
+    trial = 1
+
+
+n = Node()
+n.buffer = []
+n.client = Client()
+n.logic = Logic()
+for i in range(20):
+    app.Node.log(n, "loop error:", i, HOSTILE)
+command.apply(n, b'{"v":1,"id":5,"command":"log"}', 0)
+topic, payload, retain, qos = n.client.sent[0]
+print(topic, retain, qos, n.bad_commands)
+print(payload)
+"""
+)
+
+
+def test_the_log_ring_keeps_the_last_lines_bounded_and_valid_json(
+    host_build: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """On the MicroPython VM: 20 lines logged, each longer than a line may be and holding a quote, a backslash, a
+    newline, a tab and a terminal escape; the `log` command then publishes the last 8, each cut to 60 characters,
+    as a NodeLog the contract accepts (not retained, QoS 0), every character as it was (a quote left unescaped
+    would make the whole message invalid JSON)."""
+    device, stubs = host_build
+    driver = tmp_path / "ring_driver.py"
+    driver.write_text(RING_DRIVER)
+    env = micropython_env(device, stubs, tmp_path)
+    env["MICROPYPATH"] += f":{tmp_path}"
+    proc = subprocess.run(
+        micropython_cmd("ring_driver"),
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    head, payload = proc.stdout.splitlines()[-2:]
+    assert head == f"{topics.node_log(SITE, NODE)} False 0 0", head
+    log = NodeLog.model_validate_json(payload)
+    assert log.node == NODE and len(log.lines) == MAX_LOG_LINES
+    assert all(len(line) <= MAX_LOG_LINE_CHARS for line in log.lines)
+    assert log.lines == [f"7 loop error: {i} {HOSTILE}"[:MAX_LOG_LINE_CHARS] for i in range(12, 20)], (
+        log.lines
+    )
+
+
+def test_log_command_and_wsnav_firmware_logs_print_the_nodes_last_lines(
+    broker: SiteBroker, creds: Path, subscriber: Subscriber, start_node, tmp_path: Path
+) -> None:
+    """The node's lines since boot come back on `nodes/<node>/log` (the broker's ACL lets the node write it),
+    and `wsnav firmware logs` prints them; a node that is not running gets one line and exit 1, not a hang."""
+    cfg = node_config(creds, broker, tmp_path / "config.json", heartbeat_s=60)
+    node = start_node(cfg)
+    assert node.wait_output("mqtt up 1", WAIT), node.output()
+    subscriber.wait(is_info())
+    mark = len(subscriber.snapshot())
+    send_command(broker, creds, NODE, command("log", 31))
+    msg = subscriber.wait(lambda m: m.topic == topics.node_log(SITE, NODE), after=mark)
+    log = NodeLog.model_validate_json(msg.payload)
+    assert not msg.retain and any(line.endswith(" mqtt up 1") for line in log.lines), log
+    cli = [
+        *(sys.executable, "-m", "wsnav.cli", "firmware", "logs"),
+        *("--site", str(SITE_DIR), "--broker", f"{broker.host}:{broker.port}"),
+        *("--credentials", str(creds / "operator.json"), "--timeout", "3"),
+    ]
+    ok = subprocess.run([*cli, "--nodes", NODE], capture_output=True, text=True, timeout=WAIT, check=False)
+    assert ok.returncode == 0 and ok.stderr == "", ok.stdout + ok.stderr
+    assert f"{NODE}: " in ok.stdout and " mqtt up 1" in ok.stdout, ok.stdout
+    other = next(n.id for n in load_site(SITE_DIR).spec.nodes if n.id != NODE)  # never started here
+    missing = subprocess.run(
+        [*cli, "--nodes", f"{NODE},{other}"], capture_output=True, text=True, timeout=WAIT, check=False
+    )
+    assert missing.returncode == 1 and " mqtt up 1" in missing.stdout, missing.stdout + missing.stderr
+    assert missing.stderr.strip() == f"{other}: no answer within 3 s (offline? a command is not queued)"
+    assert "Traceback" not in missing.stderr
+
+
+def test_wsnav_firmware_logs_shows_a_nodes_line_escaped_and_refuses_a_bad_message(
+    broker: SiteBroker, creds: Path
+) -> None:
+    """A node's log lines are text from a board anyone could open: a line holding a terminal's escape sequence
+    and a newline is printed escaped, on one line; a message the contract refuses gets one line and exit 1, no
+    traceback. The node here is a paho client with n2's own credentials, answering each command as the firmware
+    does (the broker's ACL is the real one); what it leaves out is the firmware itself (tested above)."""
+    other = next(n.id for n in load_site(SITE_DIR).spec.nodes if n.id != NODE)
+    answers = [
+        NodeLog(node=other, lines=["5 loop error: \x1b[2J\nboom"]).to_payload(),
+        b'{"v":1,"node":"%s","lines":"not a list"}' % other.encode(),
+    ]
+    who = load_credentials(creds / f"{other}.json")
+    fake = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=other)
+    fake.username_pw_set(who.username, who.password)
+
+    def answer(c: mqtt.Client, _u: object, _m: mqtt.MQTTMessage) -> None:
+        c.publish(topics.node_log(SITE, other), answers.pop(0))
+
+    fake.on_message = answer
+    subscribed = threading.Event()
+    fake.on_subscribe = lambda *_a: subscribed.set()
+    fake.connect(broker.host, broker.port)
+    fake.loop_start()
+    try:
+        fake.subscribe(topics.node_command(SITE, other), qos=1)
+        assert subscribed.wait(WAIT)
+        cli = [
+            *(sys.executable, "-m", "wsnav.cli", "firmware", "logs", "--nodes", other),
+            *("--site", str(SITE_DIR), "--broker", f"{broker.host}:{broker.port}"),
+            *("--credentials", str(creds / "operator.json"), "--timeout", "20"),
+        ]
+        shown = subprocess.run(cli, capture_output=True, text=True, timeout=WAIT, check=False)
+        assert shown.returncode == 0, shown.stdout + shown.stderr
+        assert shown.stdout == f"{other}: its last log lines (1)\n  5 loop error: \\x1b[2J\\nboom\n", (
+            shown.stdout
+        )
+        refused = subprocess.run(cli, capture_output=True, text=True, timeout=WAIT, check=False)
+        assert refused.returncode == 1 and refused.stdout == "", refused.stdout
+        assert refused.stderr.startswith(f"{other}: its log message was refused: "), refused.stderr
+        assert refused.stderr.count("\n") == 1 and "Traceback" not in refused.stderr, refused.stderr
+    finally:
+        fake.loop_stop()
+        fake.disconnect()

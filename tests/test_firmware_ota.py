@@ -450,7 +450,7 @@ def test_a_configuration_is_fetched_and_tried_on_the_boards_heap(fw, creds, brok
 def test_update_mode_and_the_trial_boot_fit_the_boards_38_kib_heap(
     fw, creds, broker, infos, tmp_path
 ) -> None:
-    """main.py itself on `micropython -X heapsize=HEAP` (testing.HEAP: the 64-bit heap that leaves the board's free
+    """main.py itself on `micropython -X heapsize=HEAP` (testing.HEAP: at most the 64-bit heap leaving the board's free
     bytes after setup), from an
     `update` command's ota.json: update mode fetches and swaps, then the trial boot runs the new app."""
     update = make_update(tmp_path / "build", fw[NEW])

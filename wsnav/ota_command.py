@@ -1,5 +1,5 @@
 """`wsnav firmware ota` and `config`: the app, or the configuration (Wi-Fi, broker address), of running nodes
-changed over MQTT, as the site's operator.
+changed over MQTT, as the site's operator; and `wsnav firmware logs`: their last log lines, asked for.
 
 Here, not in firmware/cli.py: it logs in as the operator (`wsnav node-command`'s connection and command,
 console/operator_link.py and console/operator_commands.py), and the firmware component does not import the console
@@ -77,6 +77,17 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     )
     _key_and_timeout(c, "signs and seals the configuration")
     c.set_defaults(func=config_command)
+
+    g = fw_sub.add_parser(
+        "logs",
+        help="print running nodes' last log lines (each keeps its last 8 and sends them on a `log` command)",
+    )
+    operator_arguments(g)
+    g.add_argument("--nodes", required=True, metavar="N1,N2", help="the nodes to ask, comma-separated")
+    g.add_argument(
+        "--timeout", type=float, default=10.0, metavar="S", help="wait this long for the answers (default 10)"
+    )
+    g.set_defaults(func=logs_command)
 
 
 def _key_and_timeout(p: argparse.ArgumentParser, what: str) -> None:
@@ -321,3 +332,57 @@ class PendingPasswords:
                 )
         except CredentialsError as exc:
             raise CliError(str(exc)) from None
+
+
+def logs_command(args: argparse.Namespace) -> int:
+    """Send each node a `log` command and print the lines it answers with (schemas.messages.NodeLog), node by
+    node as they come, a character a terminal would act on shown escaped; exit 1 if a node did not answer within
+    --timeout (offline: a command is not queued) or answered with a message the contract refuses (one line)."""
+    import time
+
+    from wsnav.console.operator_commands import CommandError, node_command
+    from wsnav.console.operator_link import connect
+    from wsnav.schemas import topics
+    from wsnav.schemas.messages import NodeLog, PayloadError, parse_payload
+
+    nodes = _nodes(args)
+    link = connect(args, "logs")
+    waiting = set(nodes)
+    failures: list[str] = []
+    try:
+        try:
+            pubs = {n: node_command(link.site, n, "log") for n in nodes}
+        except CommandError as exc:
+            raise CliError(str(exc)) from None
+        for n in nodes:
+            link.bus.subscribe(topics.node_log(link.site.name, n), qos=0)
+        for n, pub in pubs.items():  # subscribed first: the answer comes at once
+            if not link.bus.publish_confirmed(pub.topic, pub.payload):
+                failures.append(f"{n}: the broker did not confirm the log command")
+                waiting.discard(n)
+        deadline = time.monotonic() + args.timeout
+        while waiting and (left := deadline - time.monotonic()) > 0:
+            link.bus.wait(left)
+            for msg in link.bus.poll():
+                parsed = topics.parse(msg.topic)
+                if parsed is None or parsed.node not in waiting or msg.retain:
+                    continue
+                waiting.discard(parsed.node)
+                try:
+                    answer = parse_payload(NodeLog, msg.payload)
+                except PayloadError as exc:
+                    failures.append(f"{parsed.node}: its log message was refused: {exc}")
+                    continue
+                print(f"{parsed.node}: its last log lines ({len(answer.lines)})")
+                for line in answer.lines:
+                    print("  " + "".join(c if c.isprintable() else repr(c)[1:-1] for c in line))
+    finally:
+        link.bus.close()
+    failures += [
+        f"{n}: no answer within {args.timeout:g} s (offline? a command is not queued)"
+        for n in nodes
+        if n in waiting
+    ]
+    for line in failures:
+        print(line, file=sys.stderr)
+    return 1 if failures else 0

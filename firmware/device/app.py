@@ -57,6 +57,10 @@ online with two states or heartbeats sent after the first connect's), before it 
 (health.apply): an update is confirmed, the boot-loop count cleared. A first connect proves little: a version whose loop fails 8 s later
 was once confirmed at it, then boot-looped with its backups gone."""
 
+_LOG_LINES = const(8)
+_LOG_CHARS = const(60)
+"""The log ring (`Node.log`): its last 8 lines of at most 60 characters (schemas.messages.NodeLog)."""
+
 _OFFLINE = const(0)
 _WIFI_JOINING = const(1)
 _BROKER_WAIT = const(2)
@@ -124,6 +128,23 @@ class Node:
         # (the boot-loop count to clear), 0 once done. Names the firmware already has: on the 64-bit unix port
         # its interned strings sit at the edge of a qstr pool (diagnostics.py).
         self.trial = 2 if "trial" in cfg else 1
+        # The log ring (log, command.py's `log`). Its name, log's, args' and the command's are names MicroPython
+        # already has: on the 64-bit unix port the firmware's own names sit just under a qstr pool's end, and one
+        # more at run time costs the next pool, ~3.5 KB in one block (diagnostics.py).
+        self.buffer = []
+
+    def log(self, *args) -> None:
+        """A line of the serial log, also kept in the ring the `log` command sends (command.py): the last
+        _LOG_LINES, each its uptime in seconds and the line, cut to _LOG_CHARS characters (sent as JSON strings,
+        escaped there). Never raises: with no heap for it the line is only printed."""
+        print(*args)
+        try:
+            ring = self.buffer
+            if len(ring) >= _LOG_LINES:
+                ring.pop(0)
+            ring.append((str(self.uptime_s) + " " + " ".join([str(a) for a in args]))[:_LOG_CHARS])
+        except MemoryError:
+            pass
 
     def ticks(self) -> int:
         """The clock's tick count: an int (a small one on the board), whatever type the stubs give it."""
@@ -149,7 +170,7 @@ class Node:
         wifi_up = self.wifi is None or self.wifi.connected()
         self.phase = _BROKER_WAIT if wifi_up else _OFFLINE
         self.next_attempt_ms = ticks_add(now_ms, self.broker_backoff.next_delay_ms())
-        print("mqtt down:", why)
+        self.log("mqtt down:", why)
 
     def _connect_broker(self, now_ms: int) -> None:
         client = self.client
@@ -166,7 +187,7 @@ class Node:
         self.phase = _ONLINE
         self.connects += 1
         self.info_due_ms = now_ms  # diagnostics at once: the next iteration sends them
-        print("mqtt up", self.connects)
+        self.log("mqtt up", self.connects)
 
     def _connection_step(self, now_ms: int) -> None:
         wifi = self.wifi
@@ -189,7 +210,7 @@ class Node:
             elif ticks_diff(now_ms, self.next_attempt_ms) > 0:
                 self.phase = _OFFLINE
                 self.next_attempt_ms = ticks_add(now_ms, self.wifi_backoff.next_delay_ms())
-                print("wifi join timed out")
+                self.log("wifi join timed out")
             return
         # _BROKER_WAIT
         if wifi is not None and not wifi.connected():
@@ -254,7 +275,7 @@ class Node:
                 payload = payload[:-1] + ',"trial":true}'
         except MemoryError:
             self.info_due_ms = ticks_add(now_ms, _INFO_RETRY_MS)
-            print("info: no heap")
+            self.log("info: no heap")
             return
         self.info_due_ms = ticks_add(now_ms, diagnostics.INFO_PERIOD_MS)
         self.client.publish(topic, payload, retain, qos)
@@ -272,10 +293,10 @@ class Node:
             except MemoryError:
                 gc.collect()
                 self.errors += 1
-                print("MemoryError")
+                self.log("MemoryError")
             except Exception as exc:  # a bug must not kill the node silently: count it, let the WDT decide
                 self.errors += 1
-                print("loop error:", exc)
+                self.log("loop error:", exc)
             self.feed()
             clock.sleep_ms(_LOOP_MS)
 

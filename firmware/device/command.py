@@ -11,7 +11,7 @@ import json
 
 def apply(node, body, now_ms: int) -> None:
     """Apply one NodeCommand payload: `restart`, `send_info`, `set_heartbeat` (RAM only; each applied command
-    is confirmed by an info at once), `update` (the update's state written, then a restart into update mode:
+    is confirmed by an info at once), `log` (the log ring, schemas.messages.NodeLog), `update` (the update's state written, then a restart into update mode:
     otaboot.py, updater.py), `config` (the same, for a configuration: otaconfig.py; not during a trial).
     Anything else, or a heartbeat outside (0, 3600] s, is counted in the
     info's `bad_commands` and ignored; a command with the last applied id is a QoS 1 redelivery, ignored."""
@@ -39,6 +39,10 @@ def apply(node, body, now_ms: int) -> None:
                 f.write('{"stage":"%s","manifest":"%s","boots":0}' % ("fetch" if cmd == "update" else cmd, digest))
             print("update", digest[:8])
             restart(node)  # into update mode (otaboot.boot at the next boot)
+        elif cmd == "log":  # its last log lines (app.Node.log) on nodes/<node>/log, QoS 0: an answer, not state
+            topic = node.logic.status_topic  # .../nodes/<node>/status
+            payload = '{"v":1,"node":"%s","lines":%s}' % (topic.split("/")[3], json.dumps(node.buffer))
+            node.client.publish(topic[:-6] + "log", payload)
         elif cmd != "send_info":
             raise ValueError
         node.command_id = d["id"]
