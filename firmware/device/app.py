@@ -154,7 +154,9 @@ class Node:
     def _connect_broker(self, now_ms: int) -> None:
         client = self.client
         try:
-            client.connect(self.logic.will(), self.logic.status_topic[:-6] + "command")  # its nodes/<node>/command
+            client.connect(
+                self.logic.will(), self.logic.status_topic[:-6] + "command"
+            )  # its nodes/<node>/command
             self.feed()
             for topic, payload, retain, qos in self.logic.on_connect(now_ms):
                 client.publish(topic, payload, retain, qos)
@@ -179,7 +181,9 @@ class Node:
                 if wifi is not None:
                     wifi.start()
                 self.phase = _WIFI_JOINING
-                self.next_attempt_ms = ticks_add(now_ms, _WIFI_JOIN_TIMEOUT_MS)  # while joining: when to give up
+                self.next_attempt_ms = ticks_add(
+                    now_ms, _WIFI_JOIN_TIMEOUT_MS
+                )  # while joining: when to give up
             return
         if self.phase == _WIFI_JOINING:
             if wifi is None or wifi.connected():
@@ -215,7 +219,9 @@ class Node:
                     msg = self.logic.step(reading, now)
                     if msg is not None:
                         self.client.publish(msg[0], msg[1], msg[2], msg[3])
-                    elif ticks_diff(now, self.info_due_ms) >= 0:  # not in the same pass as a state: one send per feed
+                    elif (
+                        ticks_diff(now, self.info_due_ms) >= 0
+                    ):  # not in the same pass as a state: one send per feed
                         self._send_info(now)
                 cmd = self.client.poll()
                 if cmd is not None:
@@ -304,10 +310,13 @@ def setup(cfg) -> Node:
     wdt = machine.WDT()
     sensor = sensor_from_config(cfg)  # loads that sensor's driver only
     gc.collect()
+    radio = wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"])
+    if "ap_after_ms" in cfg:  # nodeconfig: only when config.json sets wifi.ap_after_s
+        radio.ap_after_ms = cfg["ap_after_ms"]
     node = Node(
         cfg,
         sensor,
-        wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"]),
+        radio,
         wdt,
         None,
         machine.reset_cause(),

@@ -35,22 +35,32 @@ def fetch(link, st, key) -> None:
     try:
         new = json.loads(body)  # pyright: ignore[reportArgumentType] (MicroPython reads a bytearray; no copy)
         del body
-        for name in new:
-            v = new[name]
-            if name == "wifi":
-                v = v["ssid"], v["password"]
-            elif name == "broker":
-                v = v["host"], v["port"]
-            else:
-                raise ValueError
-            if type(v[0]) is not str or not v[0] or type(v[1]) is not (str if name == "wifi" else int):
-                raise ValueError
-        with open("config.json") as f:
-            d = json.load(f)
-        for name in new:
-            d[name] = new[name]
+        stage(new, st)
     except (ValueError, TypeError, KeyError):
         raise OtaAbort("config")
+
+
+def stage(new, st) -> None:
+    """`new` (`wifi` and/or `broker`, each checked) merged into config.json as `config.json.tmp`, the one file of
+    an update in stage `swap` saved in `st`: the next boot swaps it in and tries it. ValueError, TypeError or
+    KeyError before anything is written when `new` is wrong. Also the fallback access point's (fallbackap.py)."""
+    for name in new:
+        v = new[name]
+        if name == "wifi":
+            v = v["ssid"], v["password"]
+        elif name == "broker":
+            v = v["host"], v["port"]
+        else:
+            raise ValueError
+        if type(v[0]) is not str or not v[0] or type(v[1]) is not (str if name == "wifi" else int):
+            raise ValueError
+    with open("config.json") as f:
+        d = json.load(f)
+    for name in new:  # key by key: what else config.json has there (wifi.ap_after_s) stays
+        if type(d.get(name)) is dict:
+            d[name].update(new[name])
+        else:
+            d[name] = new[name]
     with open("config.json.tmp", "w") as f:
         json.dump(d, f)
     if "wifi" in new:  # into the radio's flash too: the trial must join with the new key, not a saved old one
@@ -61,4 +71,4 @@ def fetch(link, st, key) -> None:
     st["version"] = "config"
     st["stage"] = "swap"
     otaboot.save(st)
-    print("ota: config fetched")
+    print("ota: config staged")
