@@ -21,23 +21,22 @@ from pathlib import Path
 
 import pytest
 
-from tests import test_firmware_ota as ota
+from tests import firmware_fixtures
 from tests.conftest import REPO
+from tests.firmware_fixtures import NODE, OTA_WAIT, Board, node_key
 from wsnav.firmware.build import build
 from wsnav.firmware.testing import SHORT_TRIAL, build_for_host, versioned_sources
 from wsnav.schemas.credentials import fallback_ap_key, fallback_ap_ssid
 
 pytestmark = pytest.mark.slow
 
-NODE, Board, node_key = ota.NODE, ota.Board, ota.node_key
-creds, broker, infos = ota.creds, ota.broker, ota.infos
-"""The OTA tests' fixtures: the site's credentials, `wsnav broker run` with them, the operator's view of `info`."""
+creds, broker, infos = firmware_fixtures.creds, firmware_fixtures.broker, firmware_fixtures.infos
+"""The site's credentials, `wsnav broker run` with them, the node's `info` as the operator sees it."""
 VERSION = "1.0.0-ap"
 QUICK_AP = {**SHORT_TRIAL, "_WIFI_JOIN_TIMEOUT_MS": 2000}
 """A quick trial, and Wi-Fi joins given up after 2 s (the board: 20 s), so the access point opens after the
 config's minimum `ap_after_s` (10 s) and a join or two, not minutes."""
 NETWORKS = {"school-old": "old-key-1234", "school-new": "new-key-5678"}
-WAIT = 120.0
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +54,7 @@ def free_port() -> int:
 
 
 @pytest.fixture
-def ap_board(fw, creds, broker, tmp_path, monkeypatch) -> Iterator[tuple[ota.Board, int]]:
+def ap_board(fw, creds, broker, tmp_path, monkeypatch) -> Iterator[tuple[Board, int]]:
     """A node configured for school-old with a key that network refuses (its key was changed), opening its
     access point after 10 s; the board's fake access point on a free local port."""
     port = free_port()
@@ -111,7 +110,7 @@ def test_a_node_without_a_known_network_takes_new_settings_from_its_access_point
     which the operator's command prints), serves the form, refuses bad requests with a 400 and keeps serving,
     then tries the posted network as a configuration trial: online with it and confirmed, config.json kept."""
     b, port = ap_board
-    b.wait_serial("ap: open " + fallback_ap_ssid(NODE), WAIT)
+    b.wait_serial("ap: open " + fallback_ap_ssid(NODE), OTA_WAIT)
     assert "wifi: no known network" in b.serial()
     name, key, auth = (b.unix.pins / "ap").read_text().split()
     assert (name, key, auth) == (fallback_ap_ssid(NODE), fallback_ap_key(node_key(creds)), "3")  # 3: WPA2-PSK
@@ -150,9 +149,9 @@ def test_a_node_without_a_known_network_takes_new_settings_from_its_access_point
 
     status, text = request(port, "POST", body=b"ssid=school-new&key=new-key-5678")
     assert status == 200 and "Trying" in text
-    b.wait_confirmed(WAIT)
+    b.wait_confirmed(OTA_WAIT)
     after = json.loads((b.fs / "config.json").read_text())
-    assert after["wifi"]["ssid"] == "school-new" and after["wifi"]["password"] == "new-key-5678"
+    assert after["wifi"] == {"ssid": "school-new", "password": "new-key-5678", "ap_after_s": 10}
     assert {k: v for k, v in after.items() if k != "wifi"} == {
         k: v for k, v in json.loads(before).items() if k != "wifi"
     }
@@ -166,12 +165,12 @@ def test_settings_that_do_not_get_the_node_online_bring_the_access_point_back(ap
     """A key the network refuses, posted on the page: the trial is not online within its bound, the old
     configuration comes back, and the access point opens again for another try."""
     b, port = ap_board
-    b.wait_serial("ap: open", WAIT)
+    b.wait_serial("ap: open", OTA_WAIT)
     before = (b.fs / "config.json").read_bytes()
     status, _text = request(port, "POST", body=b"ssid=school-new&key=wrong-key-0000")
     assert status == 200
-    b.wait_serial("ota: rollback", WAIT)
-    deadline = time.monotonic() + WAIT
+    b.wait_serial("ota: rollback", OTA_WAIT)
+    deadline = time.monotonic() + OTA_WAIT
     while b.serial().count("ap: open") < 2:
         assert time.monotonic() < deadline, b.serial()[-3000:]
         time.sleep(0.1)

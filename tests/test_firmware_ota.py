@@ -20,10 +20,10 @@ from pathlib import Path
 
 import pytest
 
+from tests import firmware_fixtures
 from tests.conftest import REPO
-from tests.firmware_fixtures import Subscriber, info_of
+from tests.firmware_fixtures import Board, node_key
 from wsnav.firmware.build import build
-from wsnav.firmware.deploy import firmware_files
 from wsnav.firmware.ota import NodeTransfer, OtaServer, Update, make_update
 from wsnav.firmware.ota_config import ConfigServer, Settings, seal_for
 from wsnav.firmware.testing import (
@@ -36,14 +36,15 @@ from wsnav.firmware.testing import (
     micropython_env,
     micropython_exe,
     versioned_sources,
-    write_credentials,
 )
-from wsnav.firmware.unix_board import UnixBoard
 from wsnav.runtime.mqtt_bus import MqttBus
-from wsnav.schemas.credentials import UPDATE_KEY_FILE, Credentials, NodeConfig, node_update_key
-from wsnav.schemas.messages import OTA_BOOT_FILES, NodeInfo
+from wsnav.schemas.credentials import UPDATE_KEY_FILE, Credentials, node_update_key
+from wsnav.schemas.messages import OTA_BOOT_FILES
 
 pytestmark = pytest.mark.slow
+creds, broker, infos = firmware_fixtures.creds, firmware_fixtures.broker, firmware_fixtures.infos
+"""The site's credentials, `wsnav broker run` with them, the node's `info` as the operator sees it (shared with the
+fallback access point's tests)."""
 
 SITE_DIR = REPO / "sites" / "school"
 SITE, NODE = "school", "n1"
@@ -89,109 +90,6 @@ def fw(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     return out
 
 
-@pytest.fixture(scope="module")
-def creds(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("creds")
-    write_credentials(SITE_DIR, out)
-    return out
-
-
-@pytest.fixture
-def broker(creds: Path, tmp_path: Path) -> Iterator[SiteBroker]:
-    b = SiteBroker(SITE_DIR, creds, tmp_path / "broker-data")
-    b.start()
-    yield b
-    b.kill()
-
-
-class Infos:
-    """The node's `nodes/<node>/info` as the operator's subscriber (tests/firmware_fixtures.py) sees it, each payload
-    checked against NodeInfo's bytes."""
-
-    def __init__(self, broker: SiteBroker, creds: Path) -> None:
-        self.subscriber = Subscriber(broker, creds)
-
-    def wait(self, pred: Callable[[NodeInfo], bool], timeout: float = WAIT) -> NodeInfo:
-        info = info_of(self.subscriber.wait(lambda m: (i := info_of(m)) is not None and pred(i), timeout))
-        assert info is not None
-        return info
-
-    def close(self) -> None:
-        self.subscriber.close()
-
-
-@pytest.fixture
-def infos(broker: SiteBroker, creds: Path) -> Iterator[Infos]:
-    i = Infos(broker, creds)
-    yield i
-    i.close()
-
-
-class Board:
-    """The node on the unix port, its filesystem `fs` holding `version`'s build and its real config."""
-
-    def __init__(
-        self,
-        fw: dict[str, Path],
-        version: str,
-        creds: Path,
-        broker: SiteBroker,
-        tmp: Path,
-        networks: dict[str, str] | None = None,
-    ) -> None:
-        """`networks`: the Wi-Fi networks in reach, SSID -> key (the fake radio's, host_stubs/network.py); the node
-        is configured for the first. None: its config leaves Wi-Fi to what the board joined before."""
-        data = json.loads((creds / f"{NODE}.json").read_text())
-        data["broker"] = {"host": broker.host, "port": broker.port}
-        data["sensor"]["warmup_s"] = 0
-        (tmp / "pins").mkdir()
-        for ssid, key in (networks or {}).items():
-            (tmp / "pins" / f"wifi_{ssid}").write_text(key)
-            data["wifi"] = data["wifi"] if data["wifi"]["ssid"] else {"ssid": ssid, "password": key}
-        config = tmp / "config.json"
-        config.write_text(NodeConfig.model_validate(data).model_dump_json())
-        self.fs = tmp / "fs"
-        self.fs.mkdir()
-        for name, path in firmware_files(fw[f"{version}-build"], config).items():
-            shutil.copyfile(path, self.fs / name)
-        self.log = tmp / "serial.log"
-        self.unix = UnixBoard(self.fs, fw["stubs"], self.log, tmp / "pins")
-
-    def serial(self) -> str:
-        return self.log.read_text(errors="replace") if self.log.exists() else ""
-
-    def wait_serial(self, text: str, timeout: float = WAIT) -> None:
-        deadline = time.monotonic() + timeout
-        while text not in self.serial():
-            assert time.monotonic() < deadline, f"no {text!r} on the serial line:\n{self.serial()[-3000:]}"
-            time.sleep(0.05)
-
-    def wait_confirmed(self, timeout: float = WAIT) -> None:
-        """Until the app's first connect marked the update good (`ota.json` renamed `ota.ok`: app.py)."""
-        deadline = time.monotonic() + timeout
-        while not (self.fs / "ota.ok").exists():
-            assert time.monotonic() < deadline, f"no ota.ok; serial line:\n{self.serial()[-3000:]}"
-            time.sleep(0.05)
-
-    def power_cut(self) -> None:
-        """SIGKILL mid-run: nothing flushed, nothing closed; the board supervisor powers it up again."""
-        boot = self.unix._boot
-        assert boot is not None
-        boot.proc.kill()
-
-    def leftovers(self) -> list[str]:
-        """What an update leaves on the board's flash: .tmp and .bak files, its state."""
-        return sorted(
-            p.name
-            for p in self.fs.iterdir()
-            if p.suffix in (".tmp", ".bak") or p.name in ("ota.json", "ota.ok")
-        )
-
-    def unfinished(self) -> list[str]:
-        """Leftovers but for a confirmed update's backups, which stay until the next boot removes them."""
-        return [n for n in self.leftovers() if not n.endswith(".bak") and n != "ota.ok"]
-
-
 @pytest.fixture
 def board_of(
     fw: dict[str, Path], creds: Path, broker: SiteBroker, tmp_path: Path
@@ -233,13 +131,6 @@ def config_cli(creds: Path, broker: SiteBroker, stdin: str) -> subprocess.Comple
 def finish(proc: subprocess.Popen[str]) -> tuple[int, str, str]:
     out, err = proc.communicate(timeout=WAIT * 3)
     return proc.returncode, out, err
-
-
-def node_key(creds: Path) -> str:
-    """NODE's update key, as `wsnav broker credentials` wrote it into its config."""
-    key = NodeConfig.model_validate_json((creds / f"{NODE}.json").read_text()).update_key
-    assert key is not None
-    return key
 
 
 def serve(
@@ -601,7 +492,7 @@ def test_a_new_wifi_network_sent_over_the_air_is_tried_and_kept(fw, creds, broke
     assert proc.returncode == 0, (proc.stdout, proc.stderr, board.serial()[-3000:])
     assert f"{NODE}: new configuration confirmed" in proc.stdout
     after = json.loads((board.fs / "config.json").read_text())
-    assert after["wifi"] == {"ssid": "school-new", "password": "new-key-5678"}
+    assert after["wifi"] == {**before["wifi"], "ssid": "school-new", "password": "new-key-5678"}  # the rest kept
     assert {k: v for k, v in after.items() if k != "wifi"} == {k: v for k, v in before.items() if k != "wifi"}
     assert "new-key-5678" not in board.serial()
 

@@ -169,26 +169,24 @@ def _drain(conn) -> None:
             return
 
 
-def serve(cfg) -> None:
-    """Open the access point and serve the page until the known network joins (reset into the app) or a good
-    form is posted (its trial staged, reset). Returns (MARK removed) only when the node has no update key."""
+def open_ap(cfg):
+    """The access point up and its page's socket listening: (station, access point, socket, poller); None (MARK
+    removed either way) when the node has no update key."""
     with open("config.json") as f:  # not in the parsed cfg: nodeconfig keeps it out of the app's heap
         uk = json.load(f).get("update_key")
     otaboot.remove(MARK)  # whatever happens next: a power cut here boots the app, which opens us again
     if type(uk) is not str or len(uk) != 64:
         print("ap: no update key, no access point")
-        return
+        return None
     import wifi
 
-    wdt = machine.WDT()
     sta = wifi.Wifi(
         cfg["wifi_ssid"], cfg["wifi_password"], 0
-    )  # no access point from here; first: it closes the SDK's own access point
+    )  # no access point from here; first: it closes the SDK's own
     ap = network.WLAN(network.AP_IF)
     ap.active(True)
     ssid = ("wsnav-" + cfg["node"])[:32]
     ap.config(essid=ssid, password=key(uk), authmode=network.AUTH_WPA2_PSK)
-    del uk
     srv = socket.socket()
     srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     srv.bind(socket.getaddrinfo(ap.ifconfig()[0], getattr(network, "AP_PORT", 80))[0][-1])
@@ -196,6 +194,18 @@ def serve(cfg) -> None:
     poller = select.poll()
     poller.register(srv, select.POLLIN)
     print("ap: open", ssid)
+    return sta, ap, srv, poller
+
+
+def serve(cfg) -> None:
+    """Open the access point and serve the page until the known network joins (reset into the app) or a good
+    form is posted (its trial staged, reset). Returns only when the node has no update key (then the app runs)."""
+    opened = open_ap(cfg)
+    if opened is None:
+        return
+    sta, ap, srv, poller = opened
+    del opened
+    wdt = machine.WDT()
     node = cfg["node"]
     tried = time.ticks_add(time.ticks_ms(), -_RETRY_MS)
     while True:
