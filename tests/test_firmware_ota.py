@@ -492,7 +492,11 @@ def test_a_new_wifi_network_sent_over_the_air_is_tried_and_kept(fw, creds, broke
     assert proc.returncode == 0, (proc.stdout, proc.stderr, board.serial()[-3000:])
     assert f"{NODE}: new configuration confirmed" in proc.stdout
     after = json.loads((board.fs / "config.json").read_text())
-    assert after["wifi"] == {**before["wifi"], "ssid": "school-new", "password": "new-key-5678"}  # the rest kept
+    assert after["wifi"] == {
+        **before["wifi"],
+        "ssid": "school-new",
+        "password": "new-key-5678",
+    }  # the rest kept
     assert {k: v for k, v in after.items() if k != "wifi"} == {k: v for k, v in before.items() if k != "wifi"}
     assert "new-key-5678" not in board.serial()
 

@@ -223,7 +223,7 @@ def config_command(args: argparse.Namespace) -> int:
 
 
 def fallback_ap_command(args: argparse.Namespace) -> int:
-    """One line per node: its id, its access point's name and key (firmware/device/fallbackap.py), for the
+    """One line per node: its id, its access point's name and key (firmware/device/fallback_ap.py), for the
     installer who joins it with a phone to give a node that lost its network a new one."""
     import re
 

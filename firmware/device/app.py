@@ -47,6 +47,11 @@ ESP8266 SDK's watchdog may reset the board (the budget table in docs/firmware-es
 _WIFI_JOIN_TIMEOUT_MS = const(20000)
 _MAX_OFFLINE_MS = const(600000)
 """Ten minutes without the broker: stop feeding the watchdog and let it reset the board."""
+_FALLBACK_AP_MS = const(300000)
+"""Offline (no broker) this long, its last Wi-Fi join timed out: the node resets into its fallback access point
+(fallback_ap.py; the marker file `wifi.fallback`, which otaboot.boot looks for), before the watchdog's bound
+above. A constant, not config.json's: a setting read here would cost the loop's heap (bench.firmware_heap);
+config.json's wifi.fallback_ap false keeps the access point closed (fallback_ap.py reads it)."""
 _INFO_RETRY_MS = const(60000)
 """When the diagnostics could not be loaded (no heap), try again after this long, not every iteration."""
 _MAX_ERRORS = const(20)
@@ -154,9 +159,7 @@ class Node:
     def _connect_broker(self, now_ms: int) -> None:
         client = self.client
         try:
-            client.connect(
-                self.logic.will(), self.logic.status_topic[:-6] + "command"
-            )  # its nodes/<node>/command
+            client.connect(self.logic.will(), self.logic.status_topic[:-6] + "command")  # its nodes/<node>/command
             self.feed()
             for topic, payload, retain, qos in self.logic.on_connect(now_ms):
                 client.publish(topic, payload, retain, qos)
@@ -181,9 +184,7 @@ class Node:
                 if wifi is not None:
                     wifi.start()
                 self.phase = _WIFI_JOINING
-                self.next_attempt_ms = ticks_add(
-                    now_ms, _WIFI_JOIN_TIMEOUT_MS
-                )  # while joining: when to give up
+                self.next_attempt_ms = ticks_add(now_ms, _WIFI_JOIN_TIMEOUT_MS)  # while joining: when to give up
             return
         if self.phase == _WIFI_JOINING:
             if wifi is None or wifi.connected():
@@ -194,6 +195,9 @@ class Node:
                 self.phase = _OFFLINE
                 self.next_attempt_ms = ticks_add(now_ms, self.wifi_backoff.next_delay_ms())
                 print("wifi join timed out")
+                if ticks_diff(now_ms, self.offline_since_ms) >= _FALLBACK_AP_MS:
+                    open("wifi.fallback", "w").close()  # otaboot.boot: fallback_ap.py, not the app
+                    __import__("machine").reset()
             return
         # _BROKER_WAIT
         if wifi is not None and not wifi.connected():
@@ -219,9 +223,7 @@ class Node:
                     msg = self.logic.step(reading, now)
                     if msg is not None:
                         self.client.publish(msg[0], msg[1], msg[2], msg[3])
-                    elif (
-                        ticks_diff(now, self.info_due_ms) >= 0
-                    ):  # not in the same pass as a state: one send per feed
+                    elif ticks_diff(now, self.info_due_ms) >= 0:  # not in the same pass as a state: one send per feed
                         self._send_info(now)
                 cmd = self.client.poll()
                 if cmd is not None:
@@ -310,13 +312,10 @@ def setup(cfg) -> Node:
     wdt = machine.WDT()
     sensor = sensor_from_config(cfg)  # loads that sensor's driver only
     gc.collect()
-    radio = wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"])
-    if "ap_after_ms" in cfg:  # nodeconfig: only when config.json sets wifi.ap_after_s
-        radio.ap_after_ms = cfg["ap_after_ms"]
     node = Node(
         cfg,
         sensor,
-        radio,
+        wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"]),
         wdt,
         None,
         machine.reset_cause(),

@@ -5,7 +5,6 @@ plain attributes in the units the firmware uses (ms, mm), so a bad file fails at
 instead of deep in the main loop. The host validates the same file fully with pydantic before deploy.
 """
 
-
 def valid_id(text) -> bool:
     """True if `text` is a contract id (a topic level without separators or wildcards)."""
     if not isinstance(text, str) or not 1 <= len(text) <= 32:
@@ -110,10 +109,6 @@ def parse(d) -> dict:
     wifi = _dict(d, "wifi", {})
     c["wifi_ssid"] = _str(wifi, "ssid", "", "wifi.")
     c["wifi_password"] = _str(wifi, "password", "", "wifi.")
-    if wifi.get("ap_after_s") is not None:  # absent or null: wifi.py's default; a key only then (heap)
-        c["ap_after_ms"] = _int(wifi, "ap_after_s", where="wifi.") * 1000
-        if not (c["ap_after_ms"] == 0 or 10000 <= c["ap_after_ms"] <= 540000):
-            raise ConfigError("config: wifi.ap_after_s must be 0 (never) or in [10, 540]")
     heartbeat_s = _num(d, "heartbeat_s")
     if not 0 < heartbeat_s <= 3600:
         raise ConfigError("config: heartbeat_s must be in (0, 3600]")

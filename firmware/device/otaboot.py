@@ -5,8 +5,8 @@ cut leaves the old state or the new one, never half of one):
 - `fetch`: command.py wrote it (an `update` command); boot into update mode (updater.py: nothing else loaded);
   `config` likewise (a `config` command): update mode fetches a configuration (otaconfig.py), whose one file
   `config.json` then goes through `swap` and `trial` as an update's files do; so does one posted to the fallback
-  access point (fallbackap.py, started here when wifi.py left its marker `wifi.fallback`; a trial then pending is
-  rolled back first: its network did not join);
+  access point (fallback_ap.py, started here when app.py left its marker `wifi.fallback`; a trial then pending
+  is rolled back first: its network did not join);
 - `swap`: every new file is whole in `<name>.tmp` and hash-checked; `swap` renames them in (idempotent; here,
   not in the updater, which may be one of the files a power cut left half moved);
 - `trial`: the new files are in, the old ones kept as `<name>.bak`; the app confirms the update once it has
@@ -129,13 +129,8 @@ def boot(cfg) -> None:
     if st is not None:
         clear(st, ".bak", "ota.ok")
         print("ota: backups removed")
-    if exists("wifi.fallback"):  # wifi.py: no known network joined for wifi.ap_after_s
-        st = load()
-        if st is not None and st.get("stage") == "trial":
-            rollback(st)  # the trial's network did not join: the old settings back first (a config's resets)
-        import fallbackap
-
-        fallbackap.serve(cfg)  # never returns, but on a node without an update key: then the app
+    if exists("wifi.fallback"):  # app.py's marker: no known network joined
+        __import__("fallback_ap").serve(cfg)  # never returns, but without an update key; 11 characters: no qstr
     if exists("config.rolled"):
         cfg["last_error"] = "config: rolled back"  # app.Node's first
         remove("config.rolled")

@@ -43,7 +43,7 @@ def fetch(link, st, key) -> None:
 def stage(new, st) -> None:
     """`new` (`wifi` and/or `broker`, each checked) merged into config.json as `config.json.tmp`, the one file of
     an update in stage `swap` saved in `st`: the next boot swaps it in and tries it. ValueError, TypeError or
-    KeyError before anything is written when `new` is wrong. Also the fallback access point's (fallbackap.py)."""
+    KeyError before anything is written when `new` is wrong. Also the fallback access point's (fallback_ap.py)."""
     for name in new:
         v = new[name]
         if name == "wifi":
@@ -56,7 +56,7 @@ def stage(new, st) -> None:
             raise ValueError
     with open("config.json") as f:
         d = json.load(f)
-    for name in new:  # key by key: what else config.json has there (wifi.ap_after_s) stays
+    for name in new:  # key by key: what else config.json has there (wifi.fallback_ap_s) stays
         if type(d.get(name)) is dict:
             d[name].update(new[name])
         else:

@@ -4,7 +4,7 @@ unless the file `$WSNAV_PINS/wifi_down` exists or a driver sets `sdk[3]`: then t
 or the file `$WSNAV_PINS/wifi_<SSID>` holds that network's key and the join used another (STAT_WRONG_PASSWORD;
 no such file: any key joins). `sdk` is the SDK's flash and counters: [saved SSID, flash writes (each connect
 with credentials), joins (every connect), access point out, the last join's key accepted, saved key]. What it
-leaves out: scanning, DHCP, the time a join takes. The access point (AP_IF, fallbackap.py) is not a radio here:
+leaves out: scanning, DHCP, the time a join takes. The access point (AP_IF, fallback_ap.py) is not a radio here:
 its `config(essid=, password=, authmode=)` is written to `$WSNAV_PINS/ap` (one line, for the test to read), and
 its address is the host's loopback, on port $WSNAV_AP_PORT (AP_PORT; the board's is 80): no WPA2, so whoever
 reaches the port is "in"; the test checks the key the firmware would set, not that the radio enforces it. Kept small: on the 38 KiB heap the stub costs what the board (ROM) never pays."""

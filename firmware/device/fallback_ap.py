@@ -1,5 +1,5 @@
-"""The fallback access point: a node that has joined no known network for `wifi.ap_after_s` (wifi.py writes MARK
-and resets) boots into this instead of the app (otaboot.boot), so the app's heap is not shared with it.
+"""The fallback access point: a node offline with no known network joined for 5 minutes (app._FALLBACK_AP_MS;
+app.py writes MARK and resets) boots into this instead of the app (otaboot.boot), so the app's heap is not shared with it.
 
 It opens `wsnav-<node>` (WPA2; the key is per node, derived from its update key: `key`, the host's
 schemas.credentials.fallback_ap_key, printed by `wsnav firmware fallback-ap`) and serves one page on port 80: a
@@ -7,7 +7,8 @@ form for an SSID and a key. A good POST is tried as a configuration over the air
 rolled back if the node is not online with it in time; then the access point opens again). Meanwhile the station
 keeps joining the known network (wifi.Wifi, every _RETRY_MS); once it joins, the node resets into the app. A
 request is read within _REQUEST_MS, at most _HEAD bytes of head and _BODY of body; anything else gets a 400 and
-one line, and the next request is served. A node without an update key opens no access point (it would be open).
+one line, and the next request is served. A node without an update key opens no access point (it would be open),
+nor one whose config.json says `"wifi": {"fallback_ap": false}`: both boot the app again.
 """
 
 import json
@@ -22,7 +23,7 @@ import select
 from micropython import const
 
 MARK = "wifi.fallback"
-"""The marker file (wifi.py writes it, this module removes it): longer than 10 characters, not interned."""
+"""The marker file (app.py writes it, this module removes it): longer than 10 characters, not interned."""
 _HEAD = const(2048)
 _BODY = const(256)
 _REQUEST_MS = const(5000)
@@ -171,18 +172,22 @@ def _drain(conn) -> None:
 
 def open_ap(cfg):
     """The access point up and its page's socket listening: (station, access point, socket, poller); None (MARK
-    removed either way) when the node has no update key."""
-    with open("config.json") as f:  # not in the parsed cfg: nodeconfig keeps it out of the app's heap
-        uk = json.load(f).get("update_key")
+    removed either way) when config.json's wifi.fallback_ap is false or the node has no update key."""
+    with open("config.json") as f:  # not in the parsed cfg: nodeconfig keeps both out of the app's heap
+        d = json.load(f)
+    uk = d.get("update_key")
+    off = d.get("wifi", {}).get("fallback_ap") is False
+    del d
     otaboot.remove(MARK)  # whatever happens next: a power cut here boots the app, which opens us again
+    if off:
+        print("ap: off (wifi.fallback_ap)")
+        return None
     if type(uk) is not str or len(uk) != 64:
         print("ap: no update key, no access point")
         return None
     import wifi
 
-    sta = wifi.Wifi(
-        cfg["wifi_ssid"], cfg["wifi_password"], 0
-    )  # no access point from here; first: it closes the SDK's own
+    sta = wifi.Wifi(cfg["wifi_ssid"], cfg["wifi_password"])  # first: it closes the SDK's own access point
     ap = network.WLAN(network.AP_IF)
     ap.active(True)
     ssid = ("wsnav-" + cfg["node"])[:32]
@@ -199,7 +204,20 @@ def open_ap(cfg):
 
 def serve(cfg) -> None:
     """Open the access point and serve the page until the known network joins (reset into the app) or a good
-    form is posted (its trial staged, reset). Returns only when the node has no update key (then the app runs)."""
+    form is posted (its trial staged, reset). Returns only when the access point is off or cannot be opened
+    (no update key; anything raised, printed): then the app runs, never the REPL. A trial still pending is
+    rolled back first (otaboot.boot calls this before it counts the boot): its network did not join (a
+    configuration's rollback resets; the marker stays, so the next boot comes back here)."""
+    try:
+        _serve(cfg)
+    except Exception as exc:
+        print("ap: failed,", exc)
+
+
+def _serve(cfg) -> None:
+    st = otaboot.load()
+    if st is not None and st.get("stage") == "trial":
+        otaboot.rollback(st)
     opened = open_ap(cfg)
     if opened is None:
         return
