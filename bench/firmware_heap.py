@@ -11,7 +11,9 @@ Baselines in the same run: each bare interpreter's free heap (the ratio is the s
 and on the unix port the firmware of another git revision (`--baseline REF`, default main).
 Writes its section of BENCHMARKS.md unless --no-write. Target (issue 19): >= 8 KB free after setup, 32-bit.
 `--quick`: the 32-bit rows after setup alone (PIR and HC-SR04), each as the floor over the free heap, at most 1.0:
-any change that takes a node under the 8 KB floor fails; and the tests' heap (firmware.testing.HEAP) over the 64-bit
+any change that takes a node under the 8 KB floor fails; the fallback access point (its own boot, no app) open,
+against the same floor, and its largest request on the unix port at the tests' heap (a run that does not fit
+fails); and the tests' heap (firmware.testing.HEAP) over the 64-bit
 heap that corresponds to the board's (`tests_heap`), at most 1.0: the tests never get more room than the board has.
 
 The 64-bit heap that corresponds to the board's 38 KiB (`tests_heap`, what firmware.testing.HEAP is set from):
@@ -205,6 +207,112 @@ def wasm_setup(node: str, device: Path, config: Path, script: Path | None = None
     return dict(zip(words[1::2], map(int, words[2::2]), strict=True))
 
 
+FALLBACK_AP_OPEN = r"""
+import gc
+import sys
+
+import micropython
+import nodeconfig
+
+_bare = globals().get("_bare", 0)
+CFG = nodeconfig.load("config.json")
+del nodeconfig
+del sys.modules["nodeconfig"]
+gc.collect()
+import otaboot
+import fallback_ap
+
+opened = fallback_ap.open_ap(CFG)
+gc.collect()
+_setup = gc.mem_alloc()
+"""
+"""The fallback access point's boot (firmware/device/fallback_ap.py) as main.py enters it: config parsed, parser
+dropped, otaboot loaded (it imports fallback_ap for the marker file), the access point opened and its socket
+listening, after a collection ("setup")."""
+FALLBACK_AP_REQUEST = r"""
+class Conn:
+    def __init__(self, parts):
+        self.parts = parts
+        self.at = 0
+
+    def readinto(self, b):
+        if not self.parts:
+            return 0
+        part = self.parts[0]
+        n = min(len(b), len(part) - self.at)
+        b[:n] = part[self.at : self.at + n]
+        self.at += n
+        if self.at == len(part):
+            self.parts.pop(0)
+            self.at = 0
+        return n
+
+    def send(self, b):
+        return len(b)
+
+    def settimeout(self, t):
+        pass
+
+
+body = b"ssid=" + b"%41" * 32 + b"&key=" + b"%42" * 50
+start = b"POST / HTTP/1.1\r\nContent-Length: 256\r\nX-Pad: "
+pad = b"p" * 200
+parts = [start] + [pad] * 9 + [b"p" * (2040 - len(start) - 9 * 200 - 4), b"\r\n\r\n", body]
+gc.collect()
+new = fallback_ap.handle(Conn(parts), lambda: None, CFG["node"], opened[-1])
+del parts, pad, body
+import otaconfig
+
+otaconfig.stage({"wifi": {"ssid": new[0], "password": new[1]}}, {"boots": 0})
+"""
+"""Then the largest request the page reads (head and body at their bounds, the body all %-escapes) answered and
+parsed, and its settings staged as a configuration trial (otaconfig.stage: config.json loaded, merged and
+written), with what the boot holds then, just before its reset. `Conn` stands for the accepted socket (Python
+here, counted). Run on the 64-bit unix port only: on the WebAssembly port each call from a script keeps a few
+hundred bytes after a collection (a trivial function's too: the port's, not the firmware's; the unix port keeps
+32 B over 200 calls of the form's parser), so a request there measures the port."""
+FALLBACK_AP_END = r"""
+gc.collect()
+_used = gc.mem_alloc()
+micropython.mem_info()
+print("heap used", _used, "bare", _bare, "setup", _setup)
+"""
+
+
+def fallback_ap_heap(node: str, device: Path, stubs: Path, config: Path, out: Path) -> dict[str, int]:
+    """The fallback access point: free bytes once open on the 32-bit port at 38 KiB (`free32`); on the 64-bit
+    unix port at the tests' heap (firmware.testing.HEAP), free once open (`open64`) and after the largest request
+    is answered and staged (`request64`). A request that does not fit fails the run."""
+    out.mkdir(parents=True, exist_ok=True)
+    open_only = out / "fallback_ap_open.py"
+    open_only.write_text(FALLBACK_AP_OPEN + FALLBACK_AP_END)
+    free32 = wasm_setup(node, device, config, open_only)["free"]
+    fs = out / "fs"
+    fs.mkdir(exist_ok=True)
+    shutil.copyfile(config, fs / "config.json")
+    (fs / "pins").mkdir(exist_ok=True)
+    script = out / "fallback_ap_request.py"
+    script.write_text(FALLBACK_AP_OPEN + FALLBACK_AP_REQUEST + FALLBACK_AP_END)
+    env = micropython_env(device, stubs, fs / "pins")
+    env["WSNAV_AP_PORT"] = "0"  # any free port: nothing connects
+    proc = subprocess.run(
+        [micropython_exe(), "-X", f"heapsize={HEAP}", str(script)],
+        cwd=fs,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    words = proc.stdout.split("heap used")[-1].split()
+    if proc.returncode != 0 or "ota: config staged" not in proc.stdout or len(words) != 5:
+        raise SystemExit(
+            f"fallback access point on the unix port: {(proc.stdout + proc.stderr).strip()[-300:]}"
+        )
+    total = gc_total(heap_bytes(HEAP))
+    return {"free32": free32, "open64": total - int(words[4]), "request64": total - int(words[0])}
+
+
 MAIN_LOOP = "        app.main(cfg)\n"
 """The line of main.py that enters the node's loop; `main_to_setup` ends at the setup instead."""
 
@@ -323,6 +431,16 @@ def quick_floor() -> NoReturn:
         rows, derived = derive_tests_heap(node_exe, device, stubs, configs, tmp)
         for name, (used32, free32, used64) in rows.items():
             print(f"{name} through main.py: 32-bit {used32} B used, {free32} B free; 64-bit {used64} B used")
+        ap = fallback_ap_heap(node_exe, device, stubs, configs["PIR"], tmp / "fallback-ap")
+        print(
+            f"fallback access point open, 32-bit, 38 KiB: {ap['free32']} B free; 64-bit at {HEAP}: "
+            f"{ap['open64']} B open, {ap['request64']} B after the largest request"
+        )
+        check_ratio(
+            "the fallback access point: the 8192 B floor over its free heap once open",
+            SETUP_TARGET / ap["free32"],
+            1.0,
+        )
         print(
             f"the 64-bit heap that corresponds to the board's 38 KiB: {derived} B (the tests' HEAP: {HEAP})"
         )
@@ -361,6 +479,7 @@ def main() -> None:
         w_sonar = wasm_setup(node_exe, device, sonar_cfg)
         w_pir_plain = wasm_setup(node_exe, plain, tmp / "pir.json")
         w_sonar_plain = wasm_setup(node_exe, plain, sonar_cfg)
+        ap = fallback_ap_heap(node_exe, device, stubs, tmp / "pir.json", tmp / "fallback-ap")
         through_main, derived = derive_tests_heap(
             node_exe, device, stubs, {"PIR": tmp / "pir.json", "HC-SR04 (15 samples)": sonar_cfg}, tmp
         )
@@ -389,6 +508,10 @@ def main() -> None:
             (f"{name} node after setup through main.py (from source, otaboot loaded and dropped)", free32)
             for name, (_u, free32, _u64) in through_main.items()
         ),
+        (
+            "fallback access point open (fallback_ap.py, no app: otaboot loaded, socket listening)",
+            ap["free32"],
+        ),
         ("HC-SR04 node after setup, less the board's boot (bound)", w_sonar["free"] - boot),
         ("PIR node after setup, less the board's boot (bound)", w_pir["free"] - boot),
         (
@@ -406,6 +529,11 @@ def main() -> None:
         (f"HC-SR04 node (15 samples) after setup, {args.baseline}'s firmware", base_hcsr04),
         ("PIR node, right after setup in the long run", long["heap_start"]),
         (f"PIR node, lowest over {args.hours} simulated hours", long["heap_lowest"]),
+        ("fallback access point open", ap["open64"]),
+        (
+            "fallback access point after the largest request, its settings staged (otaconfig loaded)",
+            ap["request64"],
+        ),
     ]
     header = ["| free heap after gc.collect() | bytes | of the bare interpreter's |", "| --- | ---: | ---: |"]
     table32 = header + [f"| {name} | {value} | {value / w_bare:.2f} |" for name, value in rows32]
@@ -444,6 +572,11 @@ def main() -> None:
         f"compiled first and not counted) and the mount on the unix port ({mount_cost} B with 64-bit objects, "
         "more than the board pays; this port has no littlefs).\n\n"
         + "\n".join(table32)
+        + "\n\nThe fallback access point (firmware/device/fallback_ap.py) is a boot of its own, without the app: "
+        "its row is main.py's path into it (config parsed, otaboot loaded, fallback_ap imported) with the access "
+        "point open and its page's socket listening, its request buffer (2304 B) allocated. The largest request "
+        "it reads is measured on the unix port below: on this port each call made from a script keeps a few "
+        "hundred bytes after a collection (a trivial function's too), which would measure the port."
         + "\n\n**The tests' heap.** The tests run the 64-bit unix port at the heap that leaves the firmware the "
         "board's free bytes after main.py's setup (`tests_heap`: its GC total is the 64-bit run's used bytes, its "
         f"Python machine/network stubs included, plus the 32-bit run's free bytes; {equivalence}): {derived} B, "
@@ -453,7 +586,10 @@ def main() -> None:
         f"**64-bit: the unix port**, `-X heapsize={HEAP}`, as the tests run the node: a bound, not "
         "the board. Objects are larger (8-byte pointers, 32-byte GC blocks), and the fake machine/network "
         f"modules are Python here and counted ({bare - with_stubs} B, the second row), as is the long run's own "
-        "driver (the gap between the after-setup and the long run's first rows). The long run: against `wsnav "
+        "driver (the gap between the after-setup and the long run's first rows). The fallback access point's "
+        "rows: its boot as above, then the largest request the page reads (head and body at their bounds) "
+        "answered and parsed and its settings staged as a configuration trial, just before its reset; the "
+        "request's own buffers come and go in between, and the run at this heap is what says they fit. The long run: against `wsnav "
         f"broker run`, {long['publications']} publications, {long['connects']} connect, diagnostics sent after "
         f"the connect and every 5 min. The baseline revision's firmware is built by this tree's build (-O3) "
         "and set up by that revision's own test driver.\n\n"

@@ -80,41 +80,46 @@ def settings(body: bytes):
     return ssid.decode(), k.decode()
 
 
-def _request(conn, feed):
-    """(request line, body) of one request, read within _REQUEST_MS, the watchdog fed between reads;
-    ValueError when it is too long, too slow, cut short or malformed."""
-    buf = b""
+def _request(conn, feed, buf):
+    """(request line, body) of one request, read into `buf` (_HEAD + _BODY bytes, allocated once: a request
+    costs the heap its two results only) within _REQUEST_MS, the watchdog fed between reads; ValueError when it
+    is too long, too slow, cut short or malformed."""
+    mv = memoryview(buf)
+    n = 0
+    end = -1  # where the head's blank line starts
+    need = len(buf)
     t0 = time.ticks_ms()
-    line = None
-    length = 0
-    while True:
+    while n < need:
         feed()
         if time.ticks_diff(time.ticks_ms(), t0) > _REQUEST_MS:
             raise ValueError("request too slow")
         try:
-            chunk = conn.recv(256)
+            got = conn.readinto(mv[n:need])
         except OSError:  # the 0.5 s timeout: no byte yet
-            chunk = None
-        if chunk == b"":
+            continue
+        if got == 0:
             raise ValueError("request cut short")
-        if chunk:
-            buf += chunk
-        if line is None:
-            end = buf.find(b"\r\n\r\n")
-            if end < 0 or end > _HEAD:
-                if len(buf) > _HEAD:
-                    raise ValueError("request head too long")
-                continue
-            lines = buf[:end].split(b"\r\n")
-            buf = buf[end + 4 :]
-            line = lines[0]
-            for h in lines[1:]:
-                if h[:15].lower() == b"content-length:":
-                    length = int(h[15:].strip())  # ValueError: not a number
-            if not 0 <= length <= _BODY:
-                raise ValueError("body too long")
-        if len(buf) >= length:
-            return line, buf[:length]
+        if not got:
+            continue
+        n += got
+        if end >= 0:
+            continue
+        end = buf.find(b"\r\n\r\n", 0, n)
+        if end < 0 and n < _HEAD:
+            continue
+        if end < 0 or end + 4 > _HEAD:
+            raise ValueError("request head too long")
+        length = 0
+        i = buf.find(b"\r\n", 0, end + 2) + 2  # the first header line (none: past `end`)
+        while i < end:
+            j = buf.find(b"\r\n", i, end + 2)
+            if buf[i : i + 15].lower() == b"content-length:":
+                length = int(bytes(buf[i + 15 : j]))  # ValueError: not a number
+            i = j + 2
+        if not 0 <= length <= _BODY:
+            raise ValueError("body too long")
+        need = end + 4 + length
+    return bytes(buf[: buf.find(b"\r\n")]), bytes(buf[end + 4 : need])
 
 
 def _send(conn, status: str, text: str) -> None:
@@ -128,10 +133,10 @@ def _send(conn, status: str, text: str) -> None:
     conn.send(body)
 
 
-def handle(conn, feed, node: str):
-    """Answer one request; (ssid, key) when it brought good settings, else None."""
+def handle(conn, feed, node: str, buf):
+    """Answer one request (read into `buf`: _request); (ssid, key) when it brought good settings, else None."""
     try:
-        line, body = _request(conn, feed)
+        line, body = _request(conn, feed, buf)
         parts = line.split()
         if len(parts) != 3 or not parts[2].startswith(b"HTTP/"):
             raise ValueError("not an HTTP request")
@@ -158,21 +163,23 @@ def handle(conn, feed, node: str):
     return new
 
 
-def _drain(conn) -> None:
-    """Read what the client sent beyond its request (4 KB at most, 0.4 s at most), then the close does not reset
-    the connection under the answer: TCP answers unread data with a reset, and the client loses what it was sent."""
+def _drain(conn, buf) -> None:
+    """Read what the client sent beyond its request (into `buf`, 8 times at most, 0.4 s at most), then the close
+    does not reset the connection under the answer: TCP answers unread data with a reset, and the client loses
+    what it was sent."""
     conn.settimeout(0.05)
     for _ in range(8):
         try:
-            if not conn.recv(512):
+            if not conn.readinto(buf):
                 return
         except OSError:
             return
 
 
 def open_ap(cfg):
-    """The access point up and its page's socket listening: (station, access point, socket, poller); None (MARK
-    removed either way) when config.json's wifi.fallback_ap is false or the node has no update key."""
+    """The access point up and its page's socket listening: (station, access point, socket, poller, request
+    buffer); None (MARK removed either way) when config.json's wifi.fallback_ap is false or the node has no
+    update key."""
     with open("config.json") as f:  # not in the parsed cfg: nodeconfig keeps both out of the app's heap
         d = json.load(f)
     uk = d.get("update_key")
@@ -199,7 +206,7 @@ def open_ap(cfg):
     poller = select.poll()
     poller.register(srv, select.POLLIN)
     print("ap: open", ssid)
-    return sta, ap, srv, poller
+    return sta, ap, srv, poller, bytearray(_HEAD + _BODY)
 
 
 def serve(cfg) -> None:
@@ -221,7 +228,7 @@ def _serve(cfg) -> None:
     opened = open_ap(cfg)
     if opened is None:
         return
-    sta, ap, srv, poller = opened
+    sta, ap, srv, poller, buf = opened
     del opened
     wdt = machine.WDT()
     node = cfg["node"]
@@ -240,8 +247,8 @@ def _serve(cfg) -> None:
         new = None
         try:
             conn.settimeout(0.5)
-            new = handle(conn, wdt.feed, node)
-            _drain(conn)
+            new = handle(conn, wdt.feed, node, buf)
+            _drain(conn, buf)
         except OSError as exc:  # the client went away mid-answer
             print("ap:", exc)
         conn.close()
