@@ -119,7 +119,7 @@ def test_a_node_without_a_known_network_takes_new_settings_from_its_access_point
     before = (b.fs / "config.json").read_bytes()
 
     status, page = request(port, "GET")
-    assert status == 200 and "<form method=post>" in page and "name=ssid" in page and "name=key" in page
+    assert status == 200 and "<form method=post>" in page and "name=ssid" in page and "name=key" in page, page
     assert request(port, "GET", "/generate_204")[0] == 404
 
     bad = {

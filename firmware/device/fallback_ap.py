@@ -81,10 +81,9 @@ def settings(body: bytes):
 
 
 def _request(conn, feed, buf):
-    """(request line, body) of one request, read into `buf` (_HEAD + _BODY bytes, allocated once: a request
-    costs the heap its two results only) within _REQUEST_MS, the watchdog fed between reads; ValueError when it
-    is too long, too slow, cut short or malformed."""
-    mv = memoryview(buf)
+    """(request line, body) of one request, gathered in `buf` (_HEAD + _BODY bytes, allocated once: no request
+    builds a long object of its own, only chunks of 256 B) within _REQUEST_MS, the watchdog fed between reads;
+    ValueError when it is too long, too slow, cut short or malformed."""
     n = 0
     end = -1  # where the head's blank line starts
     need = len(buf)
@@ -93,15 +92,15 @@ def _request(conn, feed, buf):
         feed()
         if time.ticks_diff(time.ticks_ms(), t0) > _REQUEST_MS:
             raise ValueError("request too slow")
-        try:
-            got = conn.readinto(mv[n:need])
+        try:  # recv, not readinto: a socket's readinto waits for the whole buffer
+            chunk = conn.recv(need - n if need - n < 256 else 256)
         except OSError:  # the 0.5 s timeout: no byte yet
             continue
-        if got == 0:
+        if not chunk:
             raise ValueError("request cut short")
-        if not got:
-            continue
-        n += got
+        buf[n : n + len(chunk)] = chunk
+        n += len(chunk)
+        del chunk
         if end >= 0:
             continue
         end = buf.find(b"\r\n\r\n", 0, n)
@@ -163,14 +162,14 @@ def handle(conn, feed, node: str, buf):
     return new
 
 
-def _drain(conn, buf) -> None:
-    """Read what the client sent beyond its request (into `buf`, 8 times at most, 0.4 s at most), then the close
+def _drain(conn) -> None:
+    """Read what the client sent beyond its request (8 chunks of 512 B at most, 0.4 s at most), then the close
     does not reset the connection under the answer: TCP answers unread data with a reset, and the client loses
     what it was sent."""
     conn.settimeout(0.05)
     for _ in range(8):
         try:
-            if not conn.readinto(buf):
+            if not conn.recv(512):
                 return
         except OSError:
             return
@@ -248,7 +247,7 @@ def _serve(cfg) -> None:
         try:
             conn.settimeout(0.5)
             new = handle(conn, wdt.feed, node, buf)
-            _drain(conn, buf)
+            _drain(conn)
         except OSError as exc:  # the client went away mid-answer
             print("ap:", exc)
         conn.close()
