@@ -45,13 +45,12 @@ const wlan = (id) => {
     connect: () => undefined,
     disconnect: () => undefined,
     config: () => undefined,
-    ifconfig: () => ["192.168.4.1", "255.255.255.0", "192.168.4.1", "192.168.4.1"],
   };
 };
 // The fallback access point's (fallback_ap.open_ap) listening socket and poller: one small object each, as above.
-mp.registerJsModule("network", { STA_IF: 0, AP_IF: 1, AUTH_WPA2_PSK: 3, WLAN: wlan });
+mp.registerJsModule("network", { STA_IF: 0, AP_IF: 1, WLAN: wlan });
 const sock = () => ({ setsockopt: () => undefined, bind: () => undefined, listen: () => undefined });
-const addr = () => [[2, 1, 0, "", ["192.168.4.1", 80]]];
+const addr = () => [[2, 1, 0, "", ["0.0.0.0", 80]]];
 mp.registerJsModule("socket", { SOL_SOCKET: 1, SO_REUSEADDR: 4, getaddrinfo: addr, socket: sock });
 mp.registerJsModule("select", { POLLIN: 1, POLLHUP: 16, POLLERR: 8, poll: () => ({ register: () => undefined }) });
 

@@ -5,16 +5,17 @@ or the file `$WSNAV_PINS/wifi_<SSID>` holds that network's key and the join used
 no such file: any key joins). `sdk` is the SDK's flash and counters: [saved SSID, flash writes (each connect
 with credentials), joins (every connect), access point out, the last join's key accepted, saved key]. What it
 leaves out: scanning, DHCP, the time a join takes. The access point (AP_IF, fallback_ap.py) is not a radio here:
-its `config(essid=, password=, authmode=)` is written to `$WSNAV_PINS/ap` (one line, for the test to read), and
-its address is the host's loopback, on port $WSNAV_AP_PORT (AP_PORT; the board's is 80): no WPA2, so whoever
-reaches the port is "in"; the test checks the key the firmware would set, not that the radio enforces it. Kept small: on the 38 KiB heap the stub costs what the board (ROM) never pays."""
+its `config(essid=, password=, authmode=)` goes to `$WSNAV_PINS/ap` (fake_ap.py, loaded then only), and it
+listens on the host, on port $WSNAV_AP_PORT (AP_PORT; the board's is 80): no WPA2, so whoever reaches the port is
+"in"; the test checks the key the firmware would set, not that a radio enforces it. Kept small: on the 38 KiB heap the
+stub costs what the board (ROM) never pays (the access point's part: 192 B on the unix port, bench.firmware_heap's
+stubs row)."""
 
 import os
 
 STA_IF = 0
 AP_IF = 1
 STAT_WRONG_PASSWORD = 2
-AUTH_WPA2_PSK = 3
 AP_PORT = int(os.getenv("WSNAV_AP_PORT") or 80)
 sdk = ["", 0, 0, False, True, ""]
 
@@ -22,18 +23,14 @@ sdk = ["", 0, 0, False, True, ""]
 class WLAN:
     PM_NONE = 0
 
-    def __init__(
-        self, id=STA_IF
-    ):  # few names: each is a qstr the board has in ROM (firmware/device/diagnostics.py)
+    def __init__(self, id=STA_IF):  # few names: each is a qstr the board has in ROM (firmware/device/diagnostics.py)
         self._active = id == AP_IF
 
     def config(self, what=None, pm=2, **ap):
         if what:
             return sdk[0]  # 'ssid', the only setting the firmware reads
-        if ap:  # the access point's settings
-            with open((os.getenv("WSNAV_PINS") or "/tmp/wsnav-pins") + "/ap", "w") as f:
-                f.write("%s %s %d" % (ap["essid"], ap["password"], ap["authmode"]))
-            return
+        if ap:
+            return __import__("fake_ap").configured(ap)  # the access point's (fallback_ap.py)
         WLAN.pm = pm  # the radio's sleep type, global as on the ESP8266 (which boots in modem sleep, 2)
 
     def active(self, on=None):
@@ -52,9 +49,6 @@ class WLAN:
                 sdk[4] = f.read() == sdk[5]
         except OSError:
             sdk[4] = True
-
-    def ifconfig(self):
-        return ("127.0.0.1", "255.255.255.0", "127.0.0.1", "127.0.0.1")
 
     def disconnect(self):
         pass
