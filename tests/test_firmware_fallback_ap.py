@@ -201,3 +201,25 @@ def test_a_node_told_not_to_open_its_access_point_keeps_it_closed(
             socket.create_connection(("127.0.0.1", port), timeout=5).close()
     finally:
         b.unix.close()
+
+
+@pytest.mark.parametrize(
+    ("nodes", "key_file", "message"),
+    [
+        ("n1", False, "cannot read the site's update key"),
+        ("n1,a/b", True, "'a/b' is not a node id"),
+        (",", True, "give node ids, each once"),
+    ],
+)
+def test_fallback_ap_command_refuses_bad_arguments_in_one_line(
+    tmp_path: Path, nodes: str, key_file: bool, message: str
+) -> None:
+    """`wsnav firmware fallback-ap` without the site's update key, or with a bad node id: one line, exit 2, no key
+    printed for anyone."""
+    if key_file:
+        (tmp_path / "update.key").write_text("ab" * 32)
+    cmd = [sys.executable, "-m", "wsnav.cli", "firmware", "fallback-ap"]
+    cmd += ["--credentials", str(tmp_path / "operator.json"), "--nodes", nodes]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=60, cwd=REPO)
+    assert proc.returncode == 2 and proc.stdout == "", (proc.stdout, proc.stderr)
+    assert message in proc.stderr and proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
