@@ -267,7 +267,8 @@ otaconfig.stage({"wifi": {"ssid": new[0], "password": new[1]}}, {"boots": 0})
 """Then the largest request the page reads (head and body at their bounds, the body all %-escapes) answered and
 parsed, and its settings staged as a configuration trial (otaconfig.stage: config.json loaded, merged and
 written), with what the boot holds then, just before its reset. `Conn` stands for the accepted socket (Python
-here, counted). Run on the 64-bit unix port only: on the WebAssembly port each call from a script keeps a few
+here, counted). Run on the 64-bit unix port only (its fake radio's access point, host_stubs/fake_ap.py, installed first and
+counted): on the WebAssembly port each call from a script keeps a few
 hundred bytes after a collection (a trivial function's too: the port's, not the firmware's; the unix port keeps
 32 B over 200 calls of the form's parser), so a request there measures the port."""
 FALLBACK_AP_END = r"""
@@ -291,7 +292,9 @@ def fallback_ap_heap(node: str, device: Path, stubs: Path, config: Path, out: Pa
     shutil.copyfile(config, fs / "config.json")
     (fs / "pins").mkdir(exist_ok=True)
     script = out / "fallback_ap_request.py"
-    script.write_text(FALLBACK_AP_OPEN + FALLBACK_AP_REQUEST + FALLBACK_AP_END)
+    script.write_text(
+        "import fake_ap\nfake_ap.install()\n" + FALLBACK_AP_OPEN + FALLBACK_AP_REQUEST + FALLBACK_AP_END
+    )
     env = micropython_env(device, stubs, fs / "pins")
     env["WSNAV_AP_PORT"] = "0"  # any free port: nothing connects
     proc = subprocess.run(

@@ -4,19 +4,13 @@ unless the file `$WSNAV_PINS/wifi_down` exists or a driver sets `sdk[3]`: then t
 or the file `$WSNAV_PINS/wifi_<SSID>` holds that network's key and the join used another (STAT_WRONG_PASSWORD;
 no such file: any key joins). `sdk` is the SDK's flash and counters: [saved SSID, flash writes (each connect
 with credentials), joins (every connect), access point out, the last join's key accepted, saved key]. What it
-leaves out: scanning, DHCP, the time a join takes. The access point (AP_IF, fallback_ap.py) is not a radio here:
-its `config(essid=, password=, authmode=)` goes to `$WSNAV_PINS/ap` (fake_ap.py, loaded then only), and it
-listens on the host, on port $WSNAV_AP_PORT (AP_PORT; the board's is 80): no WPA2, so whoever reaches the port is
-"in"; the test checks the key the firmware would set, not that a radio enforces it. Kept small: on the 38 KiB heap the
-stub costs what the board (ROM) never pays (the access point's part: 192 B on the unix port, bench.firmware_heap's
-stubs row)."""
+leaves out: scanning, DHCP, the time a join takes. Kept small: on the 38 KiB heap the stub costs what the board (ROM) never pays."""
 
 import os
 
 STA_IF = 0
 AP_IF = 1
 STAT_WRONG_PASSWORD = 2
-AP_PORT = int(os.getenv("WSNAV_AP_PORT") or 80)
 sdk = ["", 0, 0, False, True, ""]
 
 
@@ -26,11 +20,9 @@ class WLAN:
     def __init__(self, id=STA_IF):  # few names: each is a qstr the board has in ROM (firmware/device/diagnostics.py)
         self._active = id == AP_IF
 
-    def config(self, what=None, pm=2, **ap):
+    def config(self, what=None, pm=2):
         if what:
             return sdk[0]  # 'ssid', the only setting the firmware reads
-        if ap:
-            return __import__("fake_ap").configured(ap)  # the access point's (fallback_ap.py)
         WLAN.pm = pm  # the radio's sleep type, global as on the ESP8266 (which boots in modem sleep, 2)
 
     def active(self, on=None):
