@@ -21,6 +21,8 @@ The WebAssembly port collects only between calls from JavaScript (a gc.collect()
 bench/wasm_port/setup_heap.mjs), so its figures are read from JavaScript after a collection, and a sequence runs in
 parts where the board collects. Until 2026-11-28 they were read inside the call and counted every byte the setup
 had allocated, garbage included (main.py's path, PIR: 4912 B free instead of 17840 B on the same firmware).
+`--quick` also checks the fallback access point (its own boot, no app) open against the same floor, and its largest
+request on the unix port at the tests' heap (a run that does not fit fails).
 
 The 64-bit heap that corresponds to the board's 38 KiB (`tests_heap`, what firmware.testing.HEAP is set from):
 main.py run from source up to the node's setup (`main_to_setup`: config parsed, otaboot loaded and dropped, app
@@ -222,6 +224,113 @@ def wasm_setup(node: str, device: Path, config: Path, script: Path | None = None
 
 GROWN: list[str] = []
 """The configs of the runs in which the WebAssembly port added heap inside a call (setup_heap.mjs's `grew`)."""
+FALLBACK_AP_OPEN = r"""
+import gc
+import sys
+
+import micropython
+import nodeconfig
+
+_bare = globals().get("_bare", 0)
+CFG = nodeconfig.load("config.json")
+del nodeconfig
+del sys.modules["nodeconfig"]
+gc.collect()
+import otaboot
+import fallback_ap
+
+opened = fallback_ap.open_ap(CFG)
+gc.collect()
+_setup = gc.mem_alloc()
+"""
+"""The fallback access point's boot (firmware/device/fallback_ap.py) as main.py enters it: config parsed, parser
+dropped, otaboot loaded (it imports fallback_ap for the marker file), the access point opened and its socket
+listening, after a collection ("setup")."""
+FALLBACK_AP_REQUEST = r"""
+class Conn:
+    def __init__(self, parts):
+        self.parts = parts
+        self.at = 0
+
+    def recv(self, n):
+        if not self.parts:
+            return b""
+        part = self.parts[0]
+        chunk = part[self.at : self.at + n]
+        self.at += len(chunk)
+        if self.at == len(part):
+            self.parts.pop(0)
+            self.at = 0
+        return chunk
+
+    def send(self, b):
+        return len(b)
+
+    def settimeout(self, t):
+        pass
+
+
+body = b"ssid=" + b"%41" * 32 + b"&key=" + b"%42" * 50
+start = b"POST / HTTP/1.1\r\nContent-Length: 256\r\nX-Pad: "
+pad = b"p" * 200
+parts = [start] + [pad] * 9 + [b"p" * (2040 - len(start) - 9 * 200 - 4), b"\r\n\r\n", body]
+gc.collect()
+new = fallback_ap.handle(Conn(parts), lambda: None, CFG["node"], opened[-1])
+del parts, pad, body
+import otaconfig
+
+otaconfig.stage({"wifi": {"ssid": new[0], "password": new[1]}}, {"boots": 0})
+"""
+"""Then the largest request the page reads (head and body at their bounds, the body all %-escapes) answered and
+parsed, and its settings staged as a configuration trial (otaconfig.stage: config.json loaded, merged and
+written), with what the boot holds then, just before its reset. `Conn` stands for the accepted socket (Python
+here, counted). Run on the 64-bit unix port only (its fake radio's access point, host_stubs/fake_ap.py, installed first and
+counted): on the WebAssembly port each call from a script keeps a few
+hundred bytes after a collection (a trivial function's too: the port's, not the firmware's; the unix port keeps
+32 B over 200 calls of the form's parser), so a request there measures the port."""
+FALLBACK_AP_END = r"""
+gc.collect()
+_used = gc.mem_alloc()
+micropython.mem_info()
+print("heap used", _used, "bare", _bare, "setup", _setup)
+"""
+
+
+def fallback_ap_heap(node: str, device: Path, stubs: Path, config: Path, out: Path) -> dict[str, int]:
+    """The fallback access point: free bytes once open on the 32-bit port at 38 KiB (`free32`); on the 64-bit
+    unix port at the tests' heap (firmware.testing.HEAP), free once open (`open64`) and after the largest request
+    is answered and staged (`request64`). A request that does not fit fails the run."""
+    out.mkdir(parents=True, exist_ok=True)
+    open_only = out / "fallback_ap_open.py"
+    open_only.write_text(FALLBACK_AP_OPEN + FALLBACK_AP_END)
+    free32 = wasm_setup(node, device, config, open_only)["free"]
+    fs = out / "fs"
+    fs.mkdir(exist_ok=True)
+    shutil.copyfile(config, fs / "config.json")
+    (fs / "pins").mkdir(exist_ok=True)
+    script = out / "fallback_ap_request.py"
+    script.write_text(
+        "import fake_ap\nfake_ap.install()\n" + FALLBACK_AP_OPEN + FALLBACK_AP_REQUEST + FALLBACK_AP_END
+    )
+    env = micropython_env(device, stubs, fs / "pins")
+    env["WSNAV_AP_PORT"] = "0"  # any free port: nothing connects
+    proc = subprocess.run(
+        [micropython_exe(), "-X", f"heapsize={HEAP}", str(script)],
+        cwd=fs,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    words = proc.stdout.split("heap used")[-1].split()
+    if proc.returncode != 0 or "ota: config staged" not in proc.stdout or len(words) != 5:
+        raise SystemExit(
+            f"fallback access point on the unix port: {(proc.stdout + proc.stderr).strip()[-300:]}"
+        )
+    total = gc_total(heap_bytes(HEAP))
+    return {"free32": free32, "open64": total - int(words[4]), "request64": total - int(words[0])}
+
 
 MAIN_LOOP = "        app.main(cfg)\n"
 """The line of main.py that enters the node's loop; `main_to_setup` ends at the setup instead."""
@@ -366,6 +475,16 @@ def quick_floor() -> NoReturn:
                 SETUP_TARGET / ring,
                 1.0,
             )
+        ap = fallback_ap_heap(node_exe, device, stubs, configs["PIR"], tmp / "fallback-ap")
+        print(
+            f"fallback access point open, 32-bit, 38 KiB: {ap['free32']} B free; 64-bit at {HEAP}: "
+            f"{ap['open64']} B open, {ap['request64']} B after the largest request"
+        )
+        check_ratio(
+            "the fallback access point: the 8192 B floor over its free heap once open",
+            SETUP_TARGET / ap["free32"],
+            1.0,
+        )
         print(
             f"the 64-bit heap that corresponds to the board's 38 KiB: {derived} B (the tests' HEAP: {HEAP})"
         )
@@ -404,6 +523,7 @@ def main() -> None:
         w_sonar = wasm_setup(node_exe, device, sonar_cfg)
         w_pir_plain = wasm_setup(node_exe, plain, tmp / "pir.json")
         w_sonar_plain = wasm_setup(node_exe, plain, sonar_cfg)
+        ap = fallback_ap_heap(node_exe, device, stubs, tmp / "pir.json", tmp / "fallback-ap")
         through_main, derived = derive_tests_heap(
             node_exe, device, stubs, {"PIR": tmp / "pir.json", "HC-SR04 (15 samples)": sonar_cfg}, tmp
         )
@@ -447,6 +567,10 @@ def main() -> None:
             (f"{name} node after setup through main.py, its log ring full (8 lines of 60 characters)", free)
             for name, free in rings.items()
         ),
+        (
+            "fallback access point open (fallback_ap.py, no app: otaboot loaded, socket listening)",
+            ap["free32"],
+        ),
         ("HC-SR04 node after setup, less the board's boot (bound)", w_sonar["free"] - boot),
         ("PIR node after setup, less the board's boot (bound)", w_pir["free"] - boot),
         (
@@ -464,6 +588,11 @@ def main() -> None:
         (f"HC-SR04 node (15 samples) after setup, {args.baseline}'s firmware", base_hcsr04),
         ("PIR node, right after setup in the long run", long["heap_start"]),
         (f"PIR node, lowest over {args.hours} simulated hours", long["heap_lowest"]),
+        ("fallback access point open", ap["open64"]),
+        (
+            "fallback access point after the largest request, its settings staged (otaconfig loaded)",
+            ap["request64"],
+        ),
     ]
     header = ["| free heap after gc.collect() | bytes | of the bare interpreter's |", "| --- | ---: | ---: |"]
     table32 = header + [f"| {name} | {value} | {value / w_bare:.2f} |" for name, value in rows32]
@@ -517,6 +646,11 @@ def main() -> None:
         f"compiled first and not counted) and the mount on the unix port ({mount_cost} B with 64-bit objects, "
         "more than the board pays; this port has no littlefs).\n\n"
         + "\n".join(table32)
+        + "\n\nThe fallback access point (firmware/device/fallback_ap.py) is a boot of its own, without the app: "
+        "its row is main.py's path into it (config parsed, otaboot loaded, fallback_ap imported) with the access "
+        "point open and its page's socket listening, its request buffer (2304 B) allocated. The largest request "
+        "it reads is measured on the unix port below: on this port each call made from a script keeps a few "
+        "hundred bytes after a collection (a trivial function's too), which would measure the port."
         + "\n\n**The tests' heap.** The 64-bit unix port's heap that leaves the firmware the board's free bytes "
         "after main.py's setup (`tests_heap`: its GC total is the 64-bit run's used bytes, its Python "
         f"machine/network stubs included, plus the 32-bit run's free bytes; {equivalence}): {derived} B; "
@@ -526,7 +660,10 @@ def main() -> None:
         f"**64-bit: the unix port**, `-X heapsize={HEAP}`, as the tests run the node: a bound, not "
         "the board. Objects are larger (8-byte pointers, 32-byte GC blocks), and the fake machine/network "
         f"modules are Python here and counted ({bare - with_stubs} B, the second row), as is the long run's own "
-        "driver (the gap between the after-setup and the long run's first rows). The long run: against `wsnav "
+        "driver (the gap between the after-setup and the long run's first rows). The fallback access point's "
+        "rows: its boot as above, then the largest request the page reads (head and body at their bounds) "
+        "answered and parsed and its settings staged as a configuration trial, just before its reset; the "
+        "request's own buffers come and go in between, and the run at this heap is what says they fit. The long run: against `wsnav "
         f"broker run`, {long['publications']} publications, {long['connects']} connect, diagnostics sent after "
         f"the connect and every 5 min. The baseline revision's firmware is built by this tree's build (-O3) "
         "and set up by that revision's own test driver.\n\n"

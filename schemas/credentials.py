@@ -31,6 +31,11 @@ class WifiConfig(BaseModel):
 
     ssid: str = ""
     password: str = ""
+    fallback_ap: bool = Field(default=True, exclude_if=lambda v: v is True)
+    """False: the node never opens its fallback access point (firmware/device/fallback_ap.py, after 5 minutes
+    without a network: app._FALLBACK_AP_MS); it keeps retrying, as before. Left out of config.json when true:
+    on the board even a key the firmware does not use costs heap while main.py parses the file (a null one
+    cost 48 B after setup, bench.firmware_heap's 32-bit port)."""
 
 
 class Credentials(BaseModel):
@@ -90,6 +95,20 @@ def sign_manifest(node_key: str, manifest: bytes) -> str:
     import hmac
 
     return hmac.new(node_key.encode(), manifest, hashlib.sha256).hexdigest()
+
+
+def fallback_ap_ssid(node: str) -> str:
+    """The name of a node's fallback access point (firmware/device/fallback_ap.py): at most 32 bytes, as Wi-Fi's."""
+    return ("wsnav-" + node)[:32]
+
+
+def fallback_ap_key(node_key: str) -> str:
+    """A node's fallback access point's WPA2 key, from its update key (NodeConfig.update_key): 16 hex digits of
+    sha256(key, "wsnav-ap"), what the board computes (fallback_ap.key). Who has the site's update key can print it
+    (`wsnav firmware fallback-ap`); a node taken off the ceiling gives away its own only."""
+    import hashlib
+
+    return hashlib.sha256(node_key.encode() + b"wsnav-ap").hexdigest()[:16]
 
 
 CONFIG_KEYS = ("wifi", "broker", "password")

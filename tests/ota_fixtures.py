@@ -1,5 +1,5 @@
 """What the over-the-air tests share (tests/test_firmware_ota.py, tests/test_firmware_password.py): the node on
-the MicroPython unix port with its real config (`Board`), the operator's view of its `info` (`Infos`), a transfer
+the MicroPython unix port with its real config (`Board`), the site's credentials and broker and the node's `info` (fixtures `creds`, `broker`, `infos`; also the fallback access point's tests), the operator's view of its `info` (`Infos`), a transfer
 served from the test's process (`follow`), and main.py itself on the board's heap (`update_mode_then_trial`)."""
 
 from __future__ import annotations
@@ -8,14 +8,23 @@ import json
 import shutil
 import subprocess
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
+
+import pytest
 
 from tests.conftest import REPO
 from tests.firmware_fixtures import Subscriber, info_of
 from wsnav.firmware.deploy import firmware_files
 from wsnav.firmware.ota import NodeTransfer
-from wsnav.firmware.testing import HEAP, NodeProcess, SiteBroker, micropython_env, micropython_exe
+from wsnav.firmware.testing import (
+    HEAP,
+    NodeProcess,
+    SiteBroker,
+    micropython_env,
+    micropython_exe,
+    write_credentials,
+)
 from wsnav.firmware.unix_board import UnixBoard
 from wsnav.runtime.mqtt_bus import MqttBus
 from wsnav.schemas.credentials import Credentials, NodeConfig
@@ -145,3 +154,32 @@ def update_mode_then_trial(board: Board, stubs: Path, tmp_path: Path) -> NodePro
 
 NETWORKS = {"school-old": "old-key-1234", "school-new": "new-key-5678"}
 """The site's Wi-Fi networks in the configuration tests: the node starts on the first."""
+
+
+@pytest.fixture(scope="module")
+def creds(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("creds")
+    write_credentials(SITE_DIR, out)
+    return out
+
+
+@pytest.fixture
+def broker(creds: Path, tmp_path: Path) -> Iterator[SiteBroker]:
+    b = SiteBroker(SITE_DIR, creds, tmp_path / "broker-data")
+    b.start()
+    yield b
+    b.kill()
+
+
+@pytest.fixture
+def infos(broker: SiteBroker, creds: Path) -> Iterator[Infos]:
+    i = Infos(broker, creds)
+    yield i
+    i.close()
+
+
+def node_key(creds: Path) -> str:
+    """NODE's update key, as `wsnav broker credentials` wrote it into its config."""
+    key = NodeConfig.model_validate_json((creds / f"{NODE}.json").read_text()).update_key
+    assert key is not None
+    return key

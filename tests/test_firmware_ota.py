@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 
+from tests import ota_fixtures
 from tests.ota_fixtures import (
     NETWORKS,
     NODE,
@@ -30,6 +31,7 @@ from tests.ota_fixtures import (
     Board,
     Infos,
     follow,
+    node_key,
     update_mode_then_trial,
 )
 from wsnav.firmware.build import build
@@ -41,11 +43,13 @@ from wsnav.firmware.testing import (
     build_for_host,
     fake_flash,
     versioned_sources,
-    write_credentials,
 )
 from wsnav.runtime.mqtt_bus import MqttBus
-from wsnav.schemas.credentials import UPDATE_KEY_FILE, Credentials, NodeConfig, node_update_key
+from wsnav.schemas.credentials import UPDATE_KEY_FILE, Credentials, node_update_key
 from wsnav.schemas.messages import OTA_BOOT_FILES
+
+creds, broker, infos = ota_fixtures.creds, ota_fixtures.broker, ota_fixtures.infos
+"""The site's credentials, `wsnav broker run` with them, the node's `info` as the operator sees it (tests/ota_fixtures.py)."""
 
 pytestmark = pytest.mark.slow
 
@@ -86,28 +90,6 @@ def fw(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         build(root / f"{version}-build", out[version])
         out[f"{version}-build"] = root / f"{version}-build"
     return out
-
-
-@pytest.fixture(scope="module")
-def creds(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("creds")
-    write_credentials(SITE_DIR, out)
-    return out
-
-
-@pytest.fixture
-def broker(creds: Path, tmp_path: Path) -> Iterator[SiteBroker]:
-    b = SiteBroker(SITE_DIR, creds, tmp_path / "broker-data")
-    b.start()
-    yield b
-    b.kill()
-
-
-@pytest.fixture
-def infos(broker: SiteBroker, creds: Path) -> Iterator[Infos]:
-    i = Infos(broker, creds)
-    yield i
-    i.close()
 
 
 @pytest.fixture
@@ -153,13 +135,6 @@ def config_cli(creds: Path, broker: SiteBroker, stdin: str, *change: str) -> sub
 def finish(proc: subprocess.Popen[str]) -> tuple[int, str, str]:
     out, err = proc.communicate(timeout=WAIT * 3)
     return proc.returncode, out, err
-
-
-def node_key(creds: Path) -> str:
-    """NODE's update key, as `wsnav broker credentials` wrote it into its config."""
-    key = NodeConfig.model_validate_json((creds / f"{NODE}.json").read_text()).update_key
-    assert key is not None
-    return key
 
 
 def serve(
@@ -483,7 +458,11 @@ def test_a_new_wifi_network_sent_over_the_air_is_tried_and_kept(fw, creds, broke
     assert proc.returncode == 0, (proc.stdout, proc.stderr, board.serial()[-3000:])
     assert f"{NODE}: new configuration confirmed" in proc.stdout
     after = json.loads((board.fs / "config.json").read_text())
-    assert after["wifi"] == {"ssid": "school-new", "password": "new-key-5678"}
+    assert after["wifi"] == {
+        **before["wifi"],
+        "ssid": "school-new",
+        "password": "new-key-5678",
+    }  # the rest kept
     assert {k: v for k, v in after.items() if k != "wifi"} == {k: v for k, v in before.items() if k != "wifi"}
     assert "new-key-5678" not in board.serial()
 

@@ -17,7 +17,12 @@ from typing import TYPE_CHECKING
 
 from wsnav.firmware.build import DEVICE, BuildError
 from wsnav.runtime.cli_support import CliError, host_port
-from wsnav.schemas.credentials import UPDATE_KEY_FILE, node_update_key
+from wsnav.schemas.credentials import (
+    UPDATE_KEY_FILE,
+    fallback_ap_key,
+    fallback_ap_ssid,
+    node_update_key,
+)
 
 if TYPE_CHECKING:
     from wsnav.console.operator_link import OperatorLink
@@ -89,8 +94,20 @@ def register(sub: argparse._SubParsersAction[Parser]) -> None:
     )
     g.set_defaults(func=logs_command)
 
+    a = fw_sub.add_parser(
+        "fallback-ap",
+        help="print each node's fallback access point (opened when it joins no known network): its name and "
+        "WPA2 key, derived from the site's update key; nothing is sent",
+    )
+    a.add_argument(
+        "--credentials", type=Path, required=True, metavar="FILE", help="the operator's operator.json"
+    )
+    a.add_argument("--nodes", required=True, metavar="N1,N2", help="the nodes, comma-separated")
+    _update_key_argument(a, "the keys derive from")
+    a.set_defaults(func=fallback_ap_command)
 
-def _key_and_timeout(p: argparse.ArgumentParser, what: str) -> None:
+
+def _update_key_argument(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument(
         "--update-key",
         type=Path,
@@ -98,6 +115,10 @@ def _key_and_timeout(p: argparse.ArgumentParser, what: str) -> None:
         help=f"the site's update key that {what} (default: update.key beside --credentials, where "
         "wsnav broker credentials writes it)",
     )
+
+
+def _key_and_timeout(p: argparse.ArgumentParser, what: str) -> None:
+    _update_key_argument(p, what)
     p.add_argument(
         "--timeout",
         type=float,
@@ -107,11 +128,17 @@ def _key_and_timeout(p: argparse.ArgumentParser, what: str) -> None:
     )
 
 
-def _nodes(args: argparse.Namespace) -> list[str]:
-    """--nodes as a list, checked, and --timeout checked."""
+def _node_ids(args: argparse.Namespace) -> list[str]:
+    """--nodes as a list, checked."""
     nodes = [n.strip() for n in args.nodes.split(",") if n.strip()]
     if not nodes or len(set(nodes)) != len(nodes):
         raise CliError(f"--nodes {args.nodes!r}: give node ids, each once, separated by commas")
+    return nodes
+
+
+def _nodes(args: argparse.Namespace) -> list[str]:
+    """--nodes as a list, checked, and --timeout checked."""
+    nodes = _node_ids(args)
     if not (math.isfinite(args.timeout) and args.timeout > 0):
         raise CliError(f"--timeout {args.timeout:g}: expected a positive number of seconds")
     return nodes
@@ -386,3 +413,20 @@ def logs_command(args: argparse.Namespace) -> int:
     for line in failures:
         print(line, file=sys.stderr)
     return 1 if failures else 0
+
+
+def fallback_ap_command(args: argparse.Namespace) -> int:
+    """One line per node: its id, its access point's name and key (firmware/device/fallback_ap.py), for the
+    installer who joins it with a phone to give a node that lost its network a new one."""
+    import re
+
+    from wsnav.schemas.ids import ID_PATTERN
+
+    nodes = _node_ids(args)
+    for n in nodes:
+        if not re.match(ID_PATTERN, n):
+            raise CliError(f"--nodes: {n!r} is not a node id")
+    site_key = _site_key(args)
+    for n in nodes:
+        print(f"{n}  {fallback_ap_ssid(n)}  {fallback_ap_key(node_update_key(site_key, n))}")
+    return 0

@@ -56,9 +56,12 @@ const wlan = (id) => {
     config: () => undefined,
   };
 };
+// The fallback access point's (fallback_ap.open_ap) listening socket and poller: one small object each, as above.
 mp.registerJsModule("network", { STA_IF: 0, AP_IF: 1, WLAN: wlan });
-mp.registerJsModule("socket", { getaddrinfo: () => [], socket: () => ({}) });
-mp.registerJsModule("select", { POLLIN: 1, POLLHUP: 16, POLLERR: 8, poll: () => ({}) });
+const sock = () => ({ setsockopt: () => undefined, bind: () => undefined, listen: () => undefined });
+const addr = () => [[2, 1, 0, "", ["0.0.0.0", 80]]];
+mp.registerJsModule("socket", { SOL_SOCKET: 1, SO_REUSEADDR: 4, getaddrinfo: addr, socket: sock });
+mp.registerJsModule("select", { POLLIN: 1, POLLHUP: 16, POLLERR: 8, poll: () => ({ register: () => undefined }) });
 
 mp.FS.mkdirTree("/lib");
 for (const name of fs.readdirSync(buildDir)) {

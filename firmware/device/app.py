@@ -47,6 +47,11 @@ ESP8266 SDK's watchdog may reset the board (the budget table in docs/firmware-es
 _WIFI_JOIN_TIMEOUT_MS = const(20000)
 _MAX_OFFLINE_MS = const(600000)
 """Ten minutes without the broker: stop feeding the watchdog and let it reset the board."""
+_FALLBACK_AP_MS = const(300000)
+"""Offline (no broker) this long, its last Wi-Fi join timed out: the node resets into its fallback access point
+(fallback_ap.py; the marker file `wifi.fallback`, which otaboot.boot looks for), before the watchdog's bound
+above. A constant, not config.json's: a setting read here would cost the loop's heap (bench.firmware_heap);
+config.json's wifi.fallback_ap false keeps the access point closed (fallback_ap.py reads it)."""
 _INFO_RETRY_MS = const(60000)
 """When the diagnostics could not be loaded (no heap), try again after this long, not every iteration."""
 _MAX_ERRORS = const(20)
@@ -211,6 +216,9 @@ class Node:
                 self.phase = _OFFLINE
                 self.next_attempt_ms = ticks_add(now_ms, self.wifi_backoff.next_delay_ms())
                 self.log("wifi join timed out")
+                if ticks_diff(now_ms, self.offline_since_ms) >= _FALLBACK_AP_MS:
+                    open("wifi.fallback", "w").close()  # otaboot.boot: fallback_ap.py, not the app
+                    __import__("machine").reset()
             return
         # _BROKER_WAIT
         if wifi is not None and not wifi.connected():

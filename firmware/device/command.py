@@ -36,7 +36,9 @@ def apply(node, body, now_ms: int) -> None:
             # Written directly (otaboot's save would load a module on the loop's heap): a write cut short by
             # power is unreadable JSON, which the next boot takes for no update.
             with open("ota.json", "w") as f:
-                f.write('{"stage":"%s","manifest":"%s","boots":0}' % ("fetch" if cmd == "update" else cmd, digest))
+                f.write(
+                    '{"stage":"%s","manifest":"%s","boots":0}' % ("fetch" if cmd == "update" else cmd, digest)
+                )
             print("update", digest[:8])
             restart(node)  # into update mode (otaboot.boot at the next boot)
         elif cmd == "log":  # its last log lines (app.Node.log) on nodes/<node>/log, QoS 0: an answer, not state

@@ -24,7 +24,14 @@ REASON_EXT_SYS_RST); anything else is `unknown` (schemas.messages.ResetCause).""
 
 
 def info(
-    logic, uptime_s: int, connects: int, reset_cause: int, rssi=None, heap_free=None, error=None, bad_commands=0
+    logic,
+    uptime_s: int,
+    connects: int,
+    reset_cause: int,
+    rssi=None,
+    heap_free=None,
+    error=None,
+    bad_commands=0,
 ) -> tuple:
     """(topic, payload str, retain, qos) of the diagnostics of `logic` (a NodeLogic: its node id and topics),
     `uptime_s` seconds since boot (seconds, not the board's wrapping ms clock: a small int for 34 years),
@@ -33,20 +40,23 @@ def info(
     and every INFO_PERIOD_MS by its own clock. An RSSI outside -127..0 (the ESP8266 says 31 without a link) is
     left out. The error is cut to 32 characters, its quotes and backslashes made `'` and `/`. The payload's
     UTF-8 bytes are byte for byte what the model serialises (payloads.py says why it is built by hand)."""
-    payload = '{"v":1,"node":"%s","fw":"%s","reset":"%s","uptime_s":%d%s%s,"reconnects":%d%s,"heartbeat_ms":%d,"bad_commands":%d}' % (
-        logic.node,
-        FIRMWARE_VERSION,
-        RESET_NAMES.split()[reset_cause if 0 <= reset_cause < 7 else 7],
-        uptime_s,
-        ',"rssi":%d' % rssi if rssi is not None and -127 <= rssi <= 0 else "",
-        ',"heap_free":%d' % heap_free if heap_free is not None else "",
-        connects - 1 if connects > 0 else 0,
-        # \\ -> /, " -> ': by code point, as one-character literals would be interned (see above)
-        ',"error":"%s"' % str(error)[:32].replace(chr(92), chr(47)).replace(chr(34), chr(39))
-        if error is not None
-        else "",
-        logic.heartbeat_ms,
-        bad_commands,
+    payload = (
+        '{"v":1,"node":"%s","fw":"%s","reset":"%s","uptime_s":%d%s%s,"reconnects":%d%s,"heartbeat_ms":%d,"bad_commands":%d}'
+        % (
+            logic.node,
+            FIRMWARE_VERSION,
+            RESET_NAMES.split()[reset_cause if 0 <= reset_cause < 7 else 7],
+            uptime_s,
+            ',"rssi":%d' % rssi if rssi is not None and -127 <= rssi <= 0 else "",
+            ',"heap_free":%d' % heap_free if heap_free is not None else "",
+            connects - 1 if connects > 0 else 0,
+            # \\ -> /, " -> ': by code point, as one-character literals would be interned (see above)
+            ',"error":"%s"' % str(error)[:32].replace(chr(92), chr(47)).replace(chr(34), chr(39))
+            if error is not None
+            else "",
+            logic.heartbeat_ms,
+            bad_commands,
+        )
     )
     topic = logic.status_topic[:-6] + "info"  # nodes/<node>/status -> nodes/<node>/info
     return (topic, payload, True, 0)

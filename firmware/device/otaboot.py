@@ -4,7 +4,9 @@
 cut leaves the old state or the new one, never half of one):
 - `fetch`: command.py wrote it (an `update` command); boot into update mode (updater.py: nothing else loaded);
   `config` likewise (a `config` command): update mode fetches a configuration (otaconfig.py), whose one file
-  `config.json` then goes through `swap` and `trial` as an update's files do;
+  `config.json` then goes through `swap` and `trial` as an update's files do; so does one posted to the fallback
+  access point (fallback_ap.py, started here when app.py left its marker `wifi.fallback`; a trial then pending
+  is rolled back first: its network did not join);
 - `swap`: every new file is whole in `<name>.tmp` and hash-checked; `swap` renames them in (idempotent; here,
   not in the updater, which may be one of the files a power cut left half moved);
 - `trial`: the new files are in, the old ones kept as `<name>.bak`; the app confirms the update once it has
@@ -33,7 +35,9 @@ MAX_BOOTS = 3
 # boot's app says so in its first `info`; lost if that boot never gets online: the old configuration did before).
 LOOPS = "otaboot.loops"
 """Watchdog or exception resets in a row, outside an update (health.apply removes it)."""
-APP_ONLY = "app payloads debounce node_logic backoff sensing diagnostics digital_sensor ultrasonic command health"
+APP_ONLY = (
+    "app payloads debounce node_logic backoff sensing diagnostics digital_sensor ultrasonic command health"
+)
 """The app's modules that safe mode does without (it keeps mqtt and wifi; diagnostics is loaded again for its
 one `info`). One string: a tuple of ten would be ten objects on the heap of every boot."""
 
@@ -125,6 +129,8 @@ def boot(cfg) -> None:
     if st is not None:
         clear(st, ".bak", "ota.ok")
         print("ota: backups removed")
+    if exists("wifi.fallback"):  # app.py's marker: no known network joined
+        __import__("fallback_ap").serve(cfg)  # never returns, but without an update key; 11 characters: no qstr
     if exists("config.rolled"):
         cfg["last_error"] = "config: rolled back"  # app.Node's first
         remove("config.rolled")

@@ -43,26 +43,39 @@ def fetch(link, st, key) -> None:
         seq = new.pop("seq")  # every configuration has its number: refused without one
         if type(seq) is not int or seq <= last_seq():
             raise OtaAbort("old config")  # a replay, or one older than the last taken
-        for name in new:
-            v = new[name]
-            if name == "wifi":
-                v = v["ssid"], v["password"]
-            elif name == "broker":
-                v = v["host"], v["port"]
-            elif name == "password":  # the MQTT password, as long as the site's credentials' at least
-                if type(v) is not str or len(v) < 16:
-                    raise ValueError
-                continue
-            else:
-                raise ValueError
-            if type(v[0]) is not str or not v[0] or type(v[1]) is not (str if name == "wifi" else int):
-                raise ValueError
-        with open("config.json") as f:
-            d = json.load(f)
-        for name in new:
-            d[name] = new[name]
+        stage(new, st)
     except (ValueError, TypeError, KeyError):
         raise OtaAbort("config")
+    with open("config.sqt", "w") as f:  # after the state: a cut before leaves the number, not the config, behind
+        f.write(str(seq))
+    os.rename("config.sqt", SEQ)
+
+
+def stage(new, st) -> None:
+    """`new` (`wifi`, `broker` and/or `password`, each checked) merged into config.json as `config.json.tmp`, the one file of
+    an update in stage `swap` saved in `st`: the next boot swaps it in and tries it. ValueError, TypeError or
+    KeyError before anything is written when `new` is wrong. Also the fallback access point's (fallback_ap.py)."""
+    for name in new:
+        v = new[name]
+        if name == "wifi":
+            v = v["ssid"], v["password"]
+        elif name == "broker":
+            v = v["host"], v["port"]
+        elif name == "password":  # the MQTT password, as long as the site's credentials' at least
+            if type(v) is not str or len(v) < 16:
+                raise ValueError
+            continue
+        else:
+            raise ValueError
+        if type(v[0]) is not str or not v[0] or type(v[1]) is not (str if name == "wifi" else int):
+            raise ValueError
+    with open("config.json") as f:
+        d = json.load(f)
+    for name in new:  # key by key: what else config.json has there (wifi.fallback_ap_s) stays
+        if type(d.get(name)) is dict:
+            d[name].update(new[name])
+        else:
+            d[name] = new[name]
     with open("config.json.tmp", "w") as f:
         json.dump(d, f)
     if "wifi" in new:  # into the radio's flash too: the trial must join with the new key, not a saved old one
@@ -73,10 +86,7 @@ def fetch(link, st, key) -> None:
     st["version"] = "config"
     st["stage"] = "swap"
     otaboot.save(st)
-    with open("config.sqt", "w") as f:  # after the state: a cut before leaves the number, not the config, behind
-        f.write(str(seq))
-    os.rename("config.sqt", SEQ)
-    print("ota: config fetched")
+    print("ota: config staged")
 
 
 def last_seq() -> int:

@@ -128,6 +128,7 @@ class Link:
                 print("ota: broker", exc)
                 self.sleep(1000)
 
+
 class Fetcher(Link):
     """The update mode's transfer: chunks asked for one at a time, each answer checked against the question."""
 
@@ -140,7 +141,9 @@ class Fetcher(Link):
         """(file size, data) of file `index` at `offset`."""
         client = self.client
         for _ in range(_TRIES):
-            client.publish(self.request, ('{"v":1,"file":%d,"offset":%d}' % (index, offset)).encode(), False, 0)
+            client.publish(
+                self.request, ('{"v":1,"file":%d,"offset":%d}' % (index, offset)).encode(), False, 0
+            )
             t0 = time.ticks_ms()
             while time.ticks_diff(time.ticks_ms(), t0) < _CHUNK_WAIT_MS:
                 body = client.poll()
@@ -182,7 +185,9 @@ class Fetcher(Link):
 
         if fscheck.fat():
             raise OtaAbort("FAT filesystem")
-        with open("config.json") as f:  # here, not in nodeconfig: one more key in the app's config dict crossed
+        with open(
+            "config.json"
+        ) as f:  # here, not in nodeconfig: one more key in the app's config dict crossed
             key = json.load(f).get("update_key")  # a dict size on the 64-bit port (a 38 KiB setup failed)
         if type(key) is not str or len(key) != 64:
             raise OtaAbort("no update key")

@@ -8,12 +8,13 @@ KeyboardInterrupt), then wait at the REPL. The REPL speaks the shape of mpremote
 it prints the prompt "\\x05raw>" and reads code up to "\\x04", runs it in the globals main.py ran in, and
 answers with the printed output, "\\x04", the exception if any, "\\x04". While it waits for input it runs the
 soft timers, as the ESP8266 does (mp_hal_stdin_rx_chr -> mp_event_handle_nowait -> mp_handle_pending).
-machine.WDT reports to the host's watchdog (PipeWDT).
+machine.WDT reports to the host's watchdog (PipeWDT); the fake radio has its access point (fake_ap.py).
 """
 
 import os
 import sys
 
+import fake_ap
 import machine
 import select
 import soft_timers
@@ -41,6 +42,7 @@ class PipeWDT:
 
 machine.WDT = PipeWDT  # pyright: ignore[reportAttributeAccessIssue]
 soft_timers.install()
+fake_ap.install()  # the fallback access point's side of the fake radio
 env = {"__name__": "__main__"}
 stdin = getattr(sys.stdin, "buffer", None)
 """The raw bytes of stdin; None on MicroPython 1.19, whose sys.stdin (a TextIOWrapper) has no `buffer`: then
