@@ -175,6 +175,18 @@ def config_heap(
     return dict(zip(words[1::2], map(int, words[2::2]), strict=True))["free"]
 
 
+def takes_numbers(revision: str) -> bool:
+    """Whether `revision`'s otaconfig wants a configuration's number (`seq`): from 2026-11-28 on it refuses one
+    without; before, it refuses one with."""
+    source = subprocess.run(
+        ["git", "show", f"{revision}:firmware/device/otaconfig.py"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    return '"seq"' in source.stdout
+
+
 def heap_rows(tmp: Path, creds: Path, update: Update, baseline: str) -> list[tuple[str, int]]:
     node = wasm_port_ready()
     build(tmp / "heap-build")
@@ -209,7 +221,10 @@ def heap_rows(tmp: Path, creds: Path, update: Update, baseline: str) -> list[tup
         ),
         ("update mode after setup (updater, MQTT client, Wi-Fi)", up["setup_free"]),
         ("update mode during the transfer (the manifest's files, a chunk, sha256, open .tmp)", up["free"]),
-        (f"{opened}: Wi-Fi, {baseline}'s firmware", config_heap(node, base, pir, wifi, tmp, numbered=False)),
+        (
+            f"{opened}: Wi-Fi, {baseline}'s firmware",
+            config_heap(node, base, pir, wifi, tmp, numbered=takes_numbers(baseline)),
+        ),
         (f"{opened}: Wi-Fi", config_heap(node, tmp / "heap-build", pir, wifi, tmp)),
         (f"{opened}: MQTT password", config_heap(node, tmp / "heap-build", pir, password, tmp)),
         (
