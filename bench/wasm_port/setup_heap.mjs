@@ -30,7 +30,8 @@ const [buildDir, configPath, manifestPath, dataPath] = process.argv.slice(2);
 let out = "";
 const mp = await loadMicroPython({
   heapsize: 38 * 1024,
-  stdout: (text) => { out += text + "\n"; },
+  // a script's own figures: a line it prints starting "bench " is passed on (bench/firmware_ota.py)
+  stdout: (text) => { if (text.startsWith("bench ")) console.log(text.slice(6)); else out += text + "\n"; },
   stderr: (text) => { out += text + "\n"; },
 });
 
