@@ -409,7 +409,7 @@ def tests_heap(used64: int, free32: int) -> int:
 
 
 def heap_bytes(spec: str) -> int:
-    """`-X heapsize`'s value in bytes ("40k", "40960")."""
+    """`-X heapsize`'s value in bytes ("44k", "45056")."""
     units = {"k": 1024, "m": 1024 * 1024}
     return int(spec[:-1]) * units[spec[-1]] if spec[-1] in units else int(spec)
 

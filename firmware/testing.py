@@ -27,14 +27,17 @@ def host_stubs_of(checkout_firmware: Path) -> Path:
     return here if here.is_dir() else checkout_firmware / "device" / "host_stubs"
 
 
-HEAP = "40k"
+HEAP = "44k"
 """The 64-bit unix port's heap for the tests: at most the one that corresponds to the ESP8266's 38 KiB GC heap
 (docs/architecture.md, "The ESP8266"), derived by bench.firmware_heap (`tests_heap`): main.py run to the node's
 setup on both ports, the 32-bit WebAssembly port (the board's object sizes) at 38 KiB and this port; that is the
 heap whose GC total is this port's used bytes plus the board's free bytes (measured 2026-11-28: PIR 36032 B used
 here, 17504 B free on the board; HC-SR04 36544 and 17088: 54016 B). 40k was derived when the bench still counted
-the port's uncollected garbage (4912 B free on the board); kept, it gives the tests less headroom than the board
-has, never more. Not twice 38 KiB:
+the port's uncollected garbage (4912 B free on the board); 44k since the fallback access point and the log ring
+came in beside each other: at 40k the node could no longer build its first `info` ("info: no heap") and its
+reconnect loop ran out of heap (tests/test_firmware_node.py, the DNS test, beside other tests), where the board
+keeps 17 KB free. Still about 10 KB under the derived heap: the tests get less headroom than the board, never
+more. Not twice 38 KiB:
 bytecode and names are the same size on both ports and this port has more names in ROM; its Python stubs of
 machine and network (4 KB, ROM on the board) are in the used bytes. The loop's objects are larger here (8-byte
 pointers), so in the loop this is stricter than the board. bench.firmware_heap --quick (CI) fails when this is

@@ -1,6 +1,6 @@
 """Test driver: hours of simulated time through the board's main loop, on a 38 KiB heap.
 
-    micropython -X heapsize=40k -m longrun CONFIG SIM_SECONDS
+    micropython -X heapsize=44k -m longrun CONFIG SIM_SECONDS
 
 An accelerated clock: each 50 ms loop period advances simulated time without sleeping, so heartbeats, debounce
 delays and backoffs follow simulated time; the MQTT link is real (pings follow real time). The sensor follows a

@@ -1,6 +1,6 @@
 """Test driver: exercises mqtt.MQTTClient against a scripted fake broker on 127.0.0.1:PORT.
 
-    micropython -X heapsize=40k -m mqtt_probe PORT CASE
+    micropython -X heapsize=44k -m mqtt_probe PORT CASE
 
 Prints one line per step ("connected", "published", "pings N", "error <msg>") for the test to check.
 """

@@ -1,6 +1,6 @@
 """Test driver: the node (app.Node, the board's code) in real time on the MicroPython unix port.
 
-    micropython -X heapsize=40k -m run_node CONFIG
+    micropython -X heapsize=44k -m run_node CONFIG
 
 Sensor from the fake pin files ($WSNAV_PINS), fake Wi-Fi, real MQTT. Runs until killed. The broker backoff is
 capped at 1 s so a restarted broker is found within seconds. DNS is the real getaddrinfo while the file
